@@ -1,0 +1,726 @@
+"""Image losses for scratch design (SPEC section 6, paper section 3.4).
+
+All losses compare a stack of rendered display images with a stack of targets, both display values
+(nominally in ``[0, 1]``) of shape ``(M, H, W)``: ``M`` views, ``H`` rows (row 0 at the top), ``W``
+columns. Computation follows the dtype of ``render`` (``target`` is cast to it), so float32 is the
+working precision for users and float64 for references. Every function here is pure, jittable and
+differentiable in ``render``.
+
+- ``perceptual_loss``: ``E_p = sum_j mean((g * (I_j - T_j))^2)`` with ``g`` the 3x3 Gaussian of
+  ``gaussian_kernel3`` (sigma ``BLUR_SIGMA`` = 1 px, edge-replicate boundary).
+- ``l2_loss``: plain ``sum_j mean((I_j - T_j)^2)`` for ablations.
+- ``gram_loss``: ``E_g = sum_j mean_l ||Gram(phi_l(I_j)) - Gram(phi_l(T_j))||_F^2`` with Gatys-style
+  Gram matrices normalised by channels times positions; ``phi`` is ``FilterBank`` (weight-free,
+  default) or ``VGG19Features`` (from a local weights file, ``load_vgg19``).
+- ``total_loss``, ``LossConfig``, ``make_loss``: the weighted sum ``lambda_p E_p + lambda_g E_g``.
+
+The design of the filter bank, the VGG file format and the calibration of ``LAMBDA_G`` are in
+``docs/losses.md``. NaN detection is the optimiser's job: these functions propagate NaN.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from collections.abc import Callable, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+__all__ = [
+    "BLUR_SIGMA",
+    "LAMBDA_G",
+    "LOSS_KINDS",
+    "VGG19_LAYERS",
+    "VGG19_TAPS",
+    "BoundLoss",
+    "FilterBank",
+    "Loss",
+    "LossConfig",
+    "VGG19Features",
+    "blur3",
+    "calibrate_lambda_g",
+    "gaussian_kernel3",
+    "gram",
+    "gram_loss",
+    "l2_loss",
+    "load_vgg19",
+    "make_loss",
+    "perceptual_loss",
+    "total_loss",
+]
+
+#: Standard deviation (pixels) of the 3x3 Gaussian ``g`` in ``E_p``. With sigma = 1 px the 1D
+#: weights are ``[e, 1, e] / (1 + 2e)``, ``e = exp(-1/2)``, i.e. ``[0.2741, 0.4519, 0.2741]``:
+#: a genuine low-pass over the whole 3x3 support (a smaller sigma would make ``g`` nearly a delta
+#: and ``E_p`` nearly plain L2); it also matches the sigma of the SPEC section 7 metrics.
+BLUR_SIGMA = 1.0
+
+#: Default ``lambda_g`` for the default ``FilterBank`` features (with ``lambda_p = 1``): the median,
+#: over 18 pairs of 256x256 natural targets and scratch-like renders, of the value making
+#: ``lambda_g E_g = E_p / 4`` (measured medians 120-390 by render kind; the gradient norms are
+#: then 0.3-1 times those of ``E_p``). ``E_g`` is small in absolute terms because the Gram entries
+#: are divided by channels times positions. Measurements in ``docs/losses.md``. Not valid for VGG
+#: features (different scale; see ``calibrate_lambda_g``).
+LAMBDA_G = 200.0
+
+#: Allowed ``LossConfig.kind`` values.
+LOSS_KINDS = ("l2", "perceptual", "perceptual+gram")
+
+
+def _check_images(render, target, name: str = "render") -> tuple[Array, Array]:
+    """Validate a ``(render, target)`` pair; returns them as arrays in ``render``'s dtype.
+
+    ``name`` is what the first argument is called in error messages.
+    """
+    render = jnp.asarray(render)
+    target = jnp.asarray(target)
+    if not jnp.issubdtype(render.dtype, jnp.floating):
+        raise TypeError(f"{name} must be a floating-point array, got dtype {render.dtype}")
+    if render.ndim != 3:
+        raise ValueError(
+            f"{name} must have shape (M, H, W) (views, rows, columns), got shape {render.shape}"
+        )
+    if target.shape != render.shape:
+        raise ValueError(
+            f"target must have the same shape as {name} {render.shape}, got {target.shape}"
+        )
+    if not jnp.issubdtype(target.dtype, jnp.floating):
+        raise TypeError(
+            f"target must be floating-point display values in [0, 1], got dtype {target.dtype}"
+        )
+    return render, target.astype(render.dtype)
+
+
+# ----------------------------------------------------------------------------------------------
+# The perceptual loss E_p
+
+
+def _gauss1(sigma: float) -> tuple[float, float, float]:
+    """1D weights ``[e, 1, e] / (1 + 2e)``, ``e = exp(-1 / (2 sigma^2))`` (Python floats)."""
+    if not (isinstance(sigma, (int, float)) and math.isfinite(sigma) and sigma > 0):
+        raise ValueError(f"sigma must be a finite positive number of pixels, got {sigma!r}")
+    e = math.exp(-1.0 / (2.0 * sigma * sigma))
+    return (e / (1.0 + 2.0 * e), 1.0 / (1.0 + 2.0 * e), e / (1.0 + 2.0 * e))
+
+
+def gaussian_kernel3(sigma: float = BLUR_SIGMA, dtype=None) -> Array:
+    """The normalised 3x3 Gaussian kernel ``g`` of ``E_p``.
+
+    ``g[a, b] = k[a] k[b]`` with ``k = [e, 1, e] / (1 + 2e)``, ``e = exp(-1 / (2 sigma^2))``: the
+    Gaussian sampled at offsets ``-1, 0, 1`` px and truncated to 3x3, renormalised to sum 1.
+
+    **Arguments:**
+
+    - `sigma`: standard deviation in pixels, ``> 0``. Default ``BLUR_SIGMA`` (1 px).
+    - `dtype`: floating dtype of the result (default: JAX's default float).
+
+    **Returns:**
+
+    ``(3, 3)`` array summing to 1.
+    """
+    k = np.array(_gauss1(sigma))
+    return jnp.asarray(np.outer(k, k), dtype=dtype)
+
+
+def _pad1(x: Array) -> Array:
+    """Edge-replicate padding by one pixel on the last two axes."""
+    pad = [(0, 0)] * (x.ndim - 2) + [(1, 1), (1, 1)]
+    return jnp.pad(x, pad, mode="edge")
+
+
+def _cols(p: Array, a: float, b: float, c: float) -> Array:
+    """3-tap stencil ``a x[c-1] + b x[c] + c x[c+1]`` along the last axis (drops 2 columns)."""
+    out = a * p[..., :, :-2] if a else 0.0
+    if b:
+        out = out + b * p[..., :, 1:-1]
+    if c:
+        out = out + c * p[..., :, 2:]
+    return out
+
+
+def _rows(p: Array, a: float, b: float, c: float) -> Array:
+    """3-tap stencil along the second-to-last axis (drops 2 rows)."""
+    out = a * p[..., :-2, :] if a else 0.0
+    if b:
+        out = out + b * p[..., 1:-1, :]
+    if c:
+        out = out + c * p[..., 2:, :]
+    return out
+
+
+def blur3(images: Float[Array, "... H W"], sigma: float = BLUR_SIGMA) -> Float[Array, "... H W"]:
+    """Convolve with the 3x3 Gaussian ``gaussian_kernel3(sigma)`` (``g`` of ``E_p``).
+
+    Boundary: edge replication (numpy/jax ``mode="edge"``, scipy ``mode="nearest"``), so a
+    constant image stays constant and every pixel, corners included, is constrained. The output has
+    the input's shape and dtype.
+
+    **Arguments:**
+
+    - `images`: ``(..., H, W)`` floating array.
+    - `sigma`: Gaussian standard deviation in pixels.
+
+    **Returns:**
+
+    ``(..., H, W)`` blurred images.
+    """
+    k = _gauss1(sigma)  # separable
+    p = _pad1(images)
+    return _rows(_cols(p, *k), *k)
+
+
+def perceptual_loss(render: Float[Array, "M H W"], target: Float[Array, "M H W"]) -> Array:
+    """Perceptual loss ``E_p = sum_j mean_pixels((g * (I_j - T_j))^2)`` (SPEC section 6, Eq. 12).
+
+    ``g`` is ``gaussian_kernel3()`` (sigma 1 px, edge-replicate boundary, see ``blur3``). A
+    constant offset ``c`` between render and target gives exactly ``E_p = M c^2``.
+
+    **Arguments:**
+
+    - `render`: ``(M, H, W)`` rendered display values.
+    - `target`: ``(M, H, W)`` target display values (cast to ``render``'s dtype).
+
+    **Returns:**
+
+    Scalar in ``render``'s dtype.
+    """
+    render, target = _check_images(render, target)
+    d = blur3(render - target)
+    return jnp.sum(jnp.mean(d * d, axis=(-2, -1)))
+
+
+def l2_loss(render: Float[Array, "M H W"], target: Float[Array, "M H W"]) -> Array:
+    """Plain squared L2 ``sum_j mean_pixels((I_j - T_j)^2)`` (the paper's Fig. 17 baseline).
+
+    **Arguments:**
+
+    - `render`, `target`: ``(M, H, W)`` display values.
+
+    **Returns:**
+
+    Scalar in ``render``'s dtype.
+    """
+    render, target = _check_images(render, target)
+    d = render - target
+    return jnp.sum(jnp.mean(d * d, axis=(-2, -1)))
+
+
+# ----------------------------------------------------------------------------------------------
+# Gram matrices and feature maps
+
+
+def gram(features: Float[Array, "... C H W"]) -> Float[Array, "... C C"]:
+    """Gatys-style normalised Gram matrix ``G = F F^T / (C N)``.
+
+    ``F`` is the feature map flattened to ``(C, N)``, ``N = H W`` positions. Dividing by ``N``
+    makes ``G`` a mean over positions (independent of image size); dividing also by ``C`` makes
+    ``||G_I - G_T||_F^2``, a sum over ``C^2`` entries, independent of the channel count.
+
+    **Arguments:**
+
+    - `features`: ``(..., C, H, W)`` feature maps.
+
+    **Returns:**
+
+    ``(..., C, C)`` symmetric matrices.
+    """
+    c, h, w = features.shape[-3:]
+    f = features.reshape(*features.shape[:-3], c, h * w)
+    return jnp.einsum("...an,...bn->...ab", f, f) / (c * h * w)
+
+
+_R = math.sqrt(0.5)
+# Unit directions e_k = (cos, sin)(45 k degrees) in the displayed image plane (x = column to the
+# right, y = up = decreasing row). Written out so that 90-degree rotations permute channels exactly.
+_COS8 = (1.0, _R, 0.0, -_R, -1.0, -_R, 0.0, _R)
+_SIN8 = (0.0, _R, 1.0, _R, 0.0, -_R, -1.0, -_R)
+
+
+def _avg_pool2(x: Array) -> Array:
+    """2x2 average pooling on the last two axes; an odd last row/column is dropped."""
+    h, w = x.shape[-2] // 2, x.shape[-1] // 2
+    x = x[..., : 2 * h, : 2 * w].reshape(*x.shape[:-2], h, 2, w, 2)
+    return x.mean(axis=(-3, -1))
+
+
+class FilterBank(eqx.Module):
+    """Weight-free multi-scale oriented filter bank, the default ``phi`` of ``E_g``.
+
+    Pyramid: level 0 is the image; level ``s + 1`` is the 2x2 average pool of level ``s`` (an odd
+    last row/column is dropped). At each level ``L`` (edge-replicate padding, 3x3 stencils, ``s =
+    [1, 2, 1]/4`` smoothing across the derivative direction):
+
+    - ``Gx = d_col (x) s_row``, ``Gy = -d_row (x) s_col`` (``d = [-1, 0, 1]/2``; ``y`` points up);
+    - ``Gxx = dd_col (x) s_row``, ``Gyy = dd_row (x) s_col`` (``dd = [1, -2, 1]``),
+      ``Gxy = -d_col (x) d_row``;
+    - ``D1_k = cos(t_k) Gx + sin(t_k) Gy`` for ``t_k = 45 k`` degrees, ``k = 0..7`` (steered first
+      derivative along direction ``t_k``);
+    - ``D2_k = cos^2 Gxx + 2 cos sin Gxy + sin^2 Gyy`` at ``t_k``, ``k = 0..3`` (steered second
+      derivative across lines that run at ``t_k + 90`` degrees).
+
+    The 17 channels per level, in order: ``L`` (local mean intensity), ``relu(D1_k)`` for
+    ``k = 0..7`` (half-wave rectified edges, 8 directions), then ``relu(-D2_k), relu(D2_k)`` for
+    ``k = 0..3`` (bright ridges, dark valleys). Properties (tested): every channel except ``L`` is
+    exactly zero on a constant image; rotating the image by +90 degrees (``np.rot90``) maps
+    ``D1_k -> D1_{k+2 mod 8}`` and ``D2_k -> D2_{k+2 mod 4}`` exactly (even sizes at every level),
+    so ``E_g`` is invariant under rotating render and target together.
+
+    **Fields:**
+
+    - `n_scales`: pyramid levels (static), default 4 (256 px images: 256, 128, 64, 32).
+    """
+
+    n_scales: int = eqx.field(static=True, default=4)
+
+    def __check_init__(self):
+        if not (isinstance(self.n_scales, int) and self.n_scales >= 1):
+            raise ValueError(f"n_scales must be a positive int, got {self.n_scales!r}")
+
+    @property
+    def channels(self) -> int:
+        """Channels per level (17)."""
+        return 17
+
+    def min_size(self) -> int:
+        """Smallest allowed image side: the coarsest level must be at least 2x2."""
+        return 2**self.n_scales
+
+    def level(self, x: Float[Array, "... H W"]) -> Float[Array, "... 17 H W"]:
+        """The 17 feature channels of one pyramid level ``x``."""
+        p = _pad1(x)
+        sc = _cols(p, 0.25, 0.5, 0.25)  # smooth along columns, (.., H+2, W)
+        dc = _cols(p, -0.5, 0.0, 0.5)
+        ddc = _cols(p, 1.0, -2.0, 1.0)
+        gx = _rows(dc, 0.25, 0.5, 0.25)
+        gy = -_rows(sc, -0.5, 0.0, 0.5)  # rows grow downwards, y grows upwards
+        gxx = _rows(ddc, 0.25, 0.5, 0.25)
+        gyy = _rows(sc, 1.0, -2.0, 1.0)
+        gxy = -_rows(dc, -0.5, 0.0, 0.5)
+        chans = [x]
+        for c, s in zip(_COS8, _SIN8):
+            chans.append(jax.nn.relu(c * gx + s * gy))
+        for c, s in zip(_COS8[:4], _SIN8[:4]):
+            d2 = (c * c) * gxx + (2.0 * c * s) * gxy + (s * s) * gyy
+            chans.append(jax.nn.relu(-d2))
+            chans.append(jax.nn.relu(d2))
+        return jnp.stack(chans, axis=-3)
+
+    def __call__(self, images: Float[Array, "M H W"]) -> list[Float[Array, "M 17 h w"]]:
+        """Feature maps of each view at each pyramid level.
+
+        **Arguments:**
+
+        - `images`: ``(M, H, W)`` display values; ``H, W >= 2**n_scales``.
+
+        **Returns:**
+
+        A list of ``n_scales`` arrays ``(M, 17, H_s, W_s)``, ``H_s = floor(H / 2^s)``.
+        """
+        h, w = images.shape[-2:]
+        if min(h, w) < self.min_size():
+            raise ValueError(
+                f"images of {h}x{w} px are too small for a {self.n_scales}-level filter bank "
+                f"(each side must be at least {self.min_size()} px)"
+            )
+        out = []
+        x = images
+        for s in range(self.n_scales):
+            if s:
+                x = _avg_pool2(x)
+            out.append(self.level(x))
+        return out
+
+
+#: VGG-19 convolution layers up to conv5_1, in order, as ``(name, torchvision features index)``.
+VGG19_LAYERS: tuple[tuple[str, int], ...] = (
+    ("conv1_1", 0),
+    ("conv1_2", 2),
+    ("conv2_1", 5),
+    ("conv2_2", 7),
+    ("conv3_1", 10),
+    ("conv3_2", 12),
+    ("conv3_3", 14),
+    ("conv3_4", 16),
+    ("conv4_1", 19),
+    ("conv4_2", 21),
+    ("conv4_3", 23),
+    ("conv4_4", 25),
+    ("conv5_1", 28),
+)
+#: Layers whose ReLU outputs are the Gram features (Gatys et al. 2015).
+VGG19_TAPS = ("conv1_1", "conv2_1", "conv3_1", "conv4_1", "conv5_1")
+_IMAGENET_MEAN = (0.485, 0.456, 0.406)
+_IMAGENET_STD = (0.229, 0.224, 0.225)
+
+
+class VGG19Features(eqx.Module):
+    """VGG-19 feature extractor (ReLU outputs of conv1_1, conv2_1, conv3_1, conv4_1, conv5_1).
+
+    Built by ``load_vgg19`` from a local ``.npz`` file (format in ``docs/losses.md``). Grayscale
+    display values are replicated to RGB and normalised with the ImageNet mean/std; then the
+    torchvision ``vgg19().features`` stack: 3x3 convolutions (stride 1, zero padding 1), ReLU, and
+    2x2 max pooling (stride 2, floor) between blocks. Channel widths are whatever the file holds
+    (the real network has 64, 128, 256, 512, 512). Weights are constants here: no gradient flows to
+    them (``stop_gradient``).
+
+    **Fields:**
+
+    - `weights`: 13 arrays ``(out, in, 3, 3)`` (torch OIHW, cross-correlation).
+    - `biases`: 13 arrays ``(out,)``.
+    """
+
+    weights: tuple[Float[Array, "o i 3 3"], ...]
+    biases: tuple[Float[Array, " o"], ...]
+
+    def min_size(self) -> int:
+        """Smallest allowed image side (four 2x2 poolings leave at least one pixel)."""
+        return 16
+
+    def __call__(self, images: Float[Array, "M H W"]) -> list[Float[Array, "M C h w"]]:
+        """Feature maps of each view at the five tapped layers.
+
+        **Arguments:**
+
+        - `images`: ``(M, H, W)`` display values in ``[0, 1]``; ``H, W >= 16``.
+
+        **Returns:**
+
+        A list of 5 arrays ``(M, C_l, H_l, W_l)``, ``H_l = floor(H / 2^l)``.
+        """
+        h, w = images.shape[-2:]
+        if min(h, w) < self.min_size():
+            raise ValueError(f"images of {h}x{w} px are too small for VGG-19 (need >= 16 px)")
+        dt = images.dtype
+        mean = jnp.asarray(_IMAGENET_MEAN, dt)[:, None, None]
+        std = jnp.asarray(_IMAGENET_STD, dt)[:, None, None]
+        x = (images[:, None, :, :] - mean) / std  # (M, 3, H, W): gray replicated to RGB
+        out = []
+        for (name, _), wgt, b in zip(VGG19_LAYERS, self.weights, self.biases):
+            if name.endswith("_1") and name != "conv1_1":
+                m, c, hh, ww = x.shape
+                x = x[:, :, : hh // 2 * 2, : ww // 2 * 2]
+                x = x.reshape(m, c, hh // 2, 2, ww // 2, 2).max(axis=(3, 5))
+            wgt = jax.lax.stop_gradient(wgt).astype(dt)
+            b = jax.lax.stop_gradient(b).astype(dt)
+            x = jax.lax.conv_general_dilated(
+                x, wgt, (1, 1), ((1, 1), (1, 1)), dimension_numbers=("NCHW", "OIHW", "NCHW")
+            )
+            x = jax.nn.relu(x + b[:, None, None])
+            if name in VGG19_TAPS:
+                out.append(x)
+        return out
+
+
+def load_vgg19(path: str | os.PathLike) -> VGG19Features:
+    """Load VGG-19 convolution weights from a local ``.npz`` file (nothing is downloaded).
+
+    The file holds, for each layer name ``conv1_1 .. conv5_1`` of ``VGG19_LAYERS``, the keys
+    ``<name>.weight`` (``(out, in, 3, 3)``, torch OIHW layout) and ``<name>.bias`` (``(out,)``);
+    ``conv1_1`` takes 3 input channels and each layer's ``in`` equals the previous layer's ``out``.
+    Other keys (e.g. ``conv5_2`` .. ``conv5_4``) are ignored. ``scripts/convert_vgg19.py`` writes
+    such a file from torchvision's ``vgg19`` state dict.
+
+    **Arguments:**
+
+    - `path`: the ``.npz`` file.
+
+    **Returns:**
+
+    A ``VGG19Features`` module (weights stored as float32, cast to the image dtype when applied).
+
+    **Raises:**
+
+    ``FileNotFoundError`` for a missing file, ``ValueError`` naming the key for a missing key, a
+    wrong shape or a channel mismatch, or non-finite weights.
+    """
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"VGG-19 weights file not found: {path!r}")
+    try:
+        data = np.load(path, allow_pickle=False)
+    except Exception as e:  # noqa: BLE001 - report any unreadable file the same way
+        raise ValueError(f"VGG-19 weights file {path!r} is not a readable .npz file: {e}") from e
+    with data:
+        keys = set(data.files)
+        weights, biases = [], []
+        prev_out = 3
+        for name, _ in VGG19_LAYERS:
+            for suffix in ("weight", "bias"):
+                if f"{name}.{suffix}" not in keys:
+                    hint = sorted(keys)[:4]
+                    raise ValueError(
+                        f"VGG-19 weights file {path!r} lacks key {name}.{suffix!s} (found keys "
+                        f"{hint}...; convert torchvision weights with scripts/convert_vgg19.py)"
+                    )
+            wgt = np.asarray(data[f"{name}.weight"])
+            b = np.asarray(data[f"{name}.bias"])
+            if wgt.ndim != 4 or wgt.shape[2:] != (3, 3):
+                raise ValueError(
+                    f"{name}.weight must have shape (out, in, 3, 3), got {wgt.shape} in {path!r}"
+                )
+            if wgt.shape[1] != prev_out:
+                raise ValueError(
+                    f"{name}.weight has {wgt.shape[1]} input channels but the previous layer "
+                    f"gives {prev_out} (shape {wgt.shape}) in {path!r}"
+                )
+            if b.shape != (wgt.shape[0],):
+                raise ValueError(
+                    f"{name}.bias must have shape ({wgt.shape[0]},), got {b.shape} in {path!r}"
+                )
+            if not (np.all(np.isfinite(wgt)) and np.all(np.isfinite(b))):
+                raise ValueError(f"{name} has non-finite weights in {path!r}")
+            prev_out = wgt.shape[0]
+            weights.append(jnp.asarray(wgt, jnp.float32))
+            biases.append(jnp.asarray(b, jnp.float32))
+    return VGG19Features(tuple(weights), tuple(biases))
+
+
+Features = Callable[[Array], Sequence[Array]]
+
+
+def _grams(features: Features, images: Array) -> list[Array]:
+    return [gram(f) for f in features(images)]
+
+
+def _gram_distance(grams_i: Sequence[Array], grams_t: Sequence[Array]) -> Array:
+    """``sum_j mean_l ||G_l(I_j) - G_l(T_j)||_F^2`` from precomputed ``(M, C, C)`` Grams."""
+    per_layer = [jnp.sum((gi - gt) ** 2, axis=(-2, -1)) for gi, gt in zip(grams_i, grams_t)]
+    return jnp.sum(jnp.mean(jnp.stack(per_layer), axis=0))
+
+
+def gram_loss(
+    render: Float[Array, "M H W"],
+    target: Float[Array, "M H W"],
+    features: Features | None = None,
+) -> Array:
+    """Gram loss ``E_g = sum_j mean_l ||Gram(phi_l(I_j)) - Gram(phi_l(T_j))||_F^2`` (Eq. 13).
+
+    ``Gram`` is ``gram`` (normalised by channels times positions); the layers ``l`` (filter-bank
+    scales or VGG taps) are averaged with equal weights (Gatys et al.'s ``w_l = 1/L``).
+
+    **Arguments:**
+
+    - `render`, `target`: ``(M, H, W)`` display values.
+    - `features`: ``phi``, a callable ``(M, H, W) -> [(M, C_l, H_l, W_l), ...]``; default
+      ``FilterBank()``.
+
+    **Returns:**
+
+    Scalar in ``render``'s dtype.
+    """
+    render, target = _check_images(render, target)
+    features = FilterBank() if features is None else features
+    return _gram_distance(_grams(features, render), _grams(features, target))
+
+
+def total_loss(
+    render: Float[Array, "M H W"],
+    target: Float[Array, "M H W"],
+    lambda_p: float = 1.0,
+    lambda_g: float = LAMBDA_G,
+    features: Features | None = None,
+) -> Array:
+    """``E = lambda_p E_p + lambda_g E_g`` (SPEC section 6, Eq. 14).
+
+    **Arguments:**
+
+    - `render`, `target`: ``(M, H, W)`` display values.
+    - `lambda_p`: weight of ``perceptual_loss``.
+    - `lambda_g`: weight of ``gram_loss``; default ``LAMBDA_G`` is calibrated for the default
+      ``FilterBank`` (see ``docs/losses.md``); VGG features need their own value.
+    - `features`: ``phi`` of ``gram_loss``; default ``FilterBank()``.
+
+    **Returns:**
+
+    Scalar in ``render``'s dtype.
+    """
+    e = lambda_p * perceptual_loss(render, target)
+    if not (isinstance(lambda_g, (int, float)) and lambda_g == 0):
+        e = e + lambda_g * gram_loss(render, target, features)
+    return e
+
+
+def calibrate_lambda_g(
+    render: Float[ArrayLike, "M H W"],
+    target: Float[ArrayLike, "M H W"],
+    features: Features | None = None,
+    ratio: float = 0.25,
+) -> float:
+    """The ``lambda_g`` for which ``lambda_g E_g = ratio * E_p`` on the given images (host side).
+
+    This is how ``LAMBDA_G`` was chosen for the filter bank (``docs/losses.md``); use it with a
+    representative render (e.g. a scratch design's current render) to pick ``lambda_g`` for VGG
+    weights.
+
+    **Arguments:**
+
+    - `render`, `target`: ``(M, H, W)`` display values.
+    - `features`: ``phi``; default ``FilterBank()``.
+    - `ratio`: wanted ``lambda_g E_g / E_p`` (``lambda_p = 1``), positive.
+
+    **Returns:**
+
+    ``ratio * E_p / E_g`` as a Python float.
+    """
+    if not (math.isfinite(ratio) and ratio > 0):
+        raise ValueError(f"ratio must be finite and positive, got {ratio!r}")
+    ep = float(perceptual_loss(render, target))
+    eg = float(gram_loss(render, target, features))
+    if not (math.isfinite(ep) and math.isfinite(eg)) or eg <= 0:
+        raise ValueError(f"cannot calibrate: E_p = {ep}, E_g = {eg} (need finite, E_g > 0)")
+    return ratio * ep / eg
+
+
+# ----------------------------------------------------------------------------------------------
+# Configuration
+
+
+@dataclasses.dataclass(frozen=True)
+class LossConfig:
+    """Which loss the optimiser minimises (JSON-friendly: ``dataclasses.asdict``).
+
+    **Fields:**
+
+    - `kind`: ``"l2"`` (``lambda_p * l2_loss``), ``"perceptual"`` (``lambda_p E_p``) or
+      ``"perceptual+gram"`` (``lambda_p E_p + lambda_g E_g``, default).
+    - `lambda_p`: weight of the pixel term, ``>= 0``; default 1 (paper).
+    - `lambda_g`: weight of ``E_g``, ``>= 0``. ``None`` (default) means ``LAMBDA_G`` for the filter
+      bank; with ``vgg_weights`` it must be given (``calibrate_lambda_g`` helps).
+    - `vgg_weights`: path of a local VGG-19 ``.npz`` (``load_vgg19``); ``None`` uses
+      ``FilterBank``.
+    """
+
+    kind: str = "perceptual+gram"
+    lambda_p: float = 1.0
+    lambda_g: float | None = None
+    vgg_weights: str | None = None
+
+    def __post_init__(self):
+        if self.kind not in LOSS_KINDS:
+            raise ValueError(f"kind must be one of {LOSS_KINDS}, got {self.kind!r}")
+        for name in ("lambda_p", "lambda_g"):
+            v = getattr(self, name)
+            if v is None and name == "lambda_g":
+                continue
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+        if self.vgg_weights is not None:
+            object.__setattr__(self, "vgg_weights", os.fspath(self.vgg_weights))
+            if self.kind == "perceptual+gram" and self.lambda_g is None:
+                raise ValueError(
+                    "lambda_g must be given with vgg_weights: LAMBDA_G is calibrated for the "
+                    "filter bank only (see jscratch.loss.calibrate_lambda_g and docs/losses.md)"
+                )
+
+
+class BoundLoss(eqx.Module):
+    """A ``Loss`` with the target and its Gram matrices precomputed: ``__call__(render)``.
+
+    Saves the target's feature pass at every optimisation step.
+    """
+
+    loss: Loss
+    target: Float[Array, "M H W"]
+    target_grams: tuple[Array, ...] | None
+
+    def __call__(self, render: Float[Array, "M H W"]) -> Array:
+        """Total loss of ``render`` against the bound target (scalar, ``render``'s dtype)."""
+        return self.loss._combine(render, self.target, self.target_grams)
+
+    def terms(self, render: Float[Array, "M H W"]) -> dict[str, Array]:
+        """The terms of the loss (see ``Loss.terms``)."""
+        return self.loss._terms(render, self.target, self.target_grams)
+
+
+class Loss(eqx.Module):
+    """The configured loss ``render, target -> scalar`` (build with ``make_loss``).
+
+    **Fields:**
+
+    - `kind`: as ``LossConfig.kind`` (static).
+    - `lambda_p`, `lambda_g`: weights (Python floats).
+    - `features`: ``phi`` of ``E_g`` (``FilterBank`` or ``VGG19Features``), ``None`` unless
+      ``kind == "perceptual+gram"``.
+    """
+
+    kind: str = eqx.field(static=True)
+    lambda_p: float = eqx.field(static=True)
+    lambda_g: float = eqx.field(static=True)
+    features: FilterBank | VGG19Features | None
+
+    def __call__(self, render: Float[Array, "M H W"], target: Float[Array, "M H W"]) -> Array:
+        """Total loss (scalar in ``render``'s dtype)."""
+        return self._combine(render, target, None)
+
+    def terms(
+        self, render: Float[Array, "M H W"], target: Float[Array, "M H W"]
+    ) -> dict[str, Array]:
+        """The loss and its unweighted terms: ``{"total", "l2"}`` for ``kind == "l2"``, else
+        ``{"total", "E_p"}`` plus ``"E_g"`` for ``"perceptual+gram"``."""
+        return self._terms(render, target, None)
+
+    def bind(self, target: Float[ArrayLike, "M H W"]) -> BoundLoss:
+        """Precompute everything that depends on ``target`` alone.
+
+        **Arguments:**
+
+        - `target`: ``(M, H, W)`` floating display values; kept in their own dtype (cast to
+          the render's dtype when the loss is evaluated).
+
+        **Returns:**
+
+        A ``BoundLoss``; ``bound(render) == loss(render, target)`` up to rounding.
+        """
+        target, _ = _check_images(target, target, name="target")
+        grams = None
+        if self.kind == "perceptual+gram":
+            grams = tuple(_grams(self.features, target))
+        return BoundLoss(self, target, grams)
+
+    def _terms(self, render, target, target_grams) -> dict[str, Array]:
+        render, target = _check_images(render, target)
+        if self.kind == "l2":
+            e = l2_loss(render, target)
+            return {"total": self.lambda_p * e, "l2": e}
+        ep = perceptual_loss(render, target)
+        out = {"total": self.lambda_p * ep, "E_p": ep}
+        if self.kind == "perceptual+gram":
+            if target_grams is None:
+                target_grams = _grams(self.features, target)
+            else:
+                target_grams = [g.astype(render.dtype) for g in target_grams]
+            eg = _gram_distance(_grams(self.features, render), target_grams)
+            out["E_g"] = eg
+            out["total"] = out["total"] + self.lambda_g * eg
+        return out
+
+    def _combine(self, render, target, target_grams) -> Array:
+        return self._terms(render, target, target_grams)["total"]
+
+
+def make_loss(config: LossConfig | None = None) -> Loss:
+    """Build the loss callable ``(render (M, H, W), target (M, H, W)) -> scalar`` of a config.
+
+    Loads VGG-19 weights from ``config.vgg_weights`` when given (``load_vgg19``).
+
+    **Arguments:**
+
+    - `config`: a ``LossConfig``; default ``LossConfig()`` (``E_p + LAMBDA_G E_g``, filter bank).
+
+    **Returns:**
+
+    A ``Loss`` module (jittable; ``loss.bind(target)`` precomputes the target's Grams).
+    """
+    config = LossConfig() if config is None else config
+    if not isinstance(config, LossConfig):
+        raise TypeError(f"config must be a LossConfig, got {type(config).__name__}")
+    features = None
+    if config.kind == "perceptual+gram":
+        features = FilterBank() if config.vgg_weights is None else load_vgg19(config.vgg_weights)
+    lambda_g = LAMBDA_G if config.lambda_g is None else float(config.lambda_g)
+    return Loss(config.kind, float(config.lambda_p), lambda_g, features)
