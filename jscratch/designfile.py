@@ -1,0 +1,331 @@
+"""The design file (SPEC section 9): what an optimisation saves and what ``fabricate`` reads.
+
+A design is one ``.npz`` file holding
+
+- ``p0``, ``p1``: ``(N, 2)`` scratch endpoints, board metres;
+- ``width``, ``depth``, ``alpha``: ``(N,)`` profile width ``w``, depth ``d`` (metres) and GGX roughness;
+- ``board``: ``(2,)`` board size ``(Sx, Sy)``, metres;
+- optionally ``camera``, ``light`` (``(M, 3)``, metres, above the board) and ``intensity`` (``(M,)``, W/sr),
+  when the design came from an optimisation.
+
+The ``.npz`` is the source of truth; :func:`write_svg` exports the same scratches for people and plotter
+tools. Loading checks shapes, finiteness, ranges and that every endpoint lies on the board, and names
+the first bad scratch and field.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from typing import NamedTuple
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+
+__all__ = [
+    "Design",
+    "DesignError",
+    "save_design",
+    "load_design",
+    "validate_design",
+    "write_svg",
+    "demo_design",
+    "groove_half_width",
+]
+
+# Endpoints may exceed the board by this fraction of its size (float32 rounding of values the
+# optimiser keeps on [0, S]: one float32 ulp at 0.3 m is 3e-8 m = 1e-7 of the board).
+ON_BOARD_RTOL = 1e-6
+
+_REQUIRED = ("p0", "p1", "width", "depth", "alpha", "board")
+_VIEWS = ("camera", "light", "intensity")
+
+
+class DesignError(ValueError):
+    """A design that breaks SPEC section 9 (the message names the array and the scratch)."""
+
+
+class Design(NamedTuple):
+    """A scratch design, all arrays float64 numpy, SI units (SPEC section 9).
+
+    **Fields:**
+
+    - `p0`, `p1`: `(N, 2)` endpoints, board metres.
+    - `width`, `depth`: `(N,)` profile parameters `w`, `d` of SPEC section 2, metres.
+    - `alpha`: `(N,)` GGX roughness.
+    - `board`: `(2,)` board size `(Sx, Sy)`, metres.
+    - `camera`, `light`: `(M, 3)` view positions, metres, or `None`.
+    - `intensity`: `(M,)` light intensities, W/sr, or `None`.
+    """
+
+    p0: np.ndarray
+    p1: np.ndarray
+    width: np.ndarray
+    depth: np.ndarray
+    alpha: np.ndarray
+    board: np.ndarray
+    camera: np.ndarray | None = None
+    light: np.ndarray | None = None
+    intensity: np.ndarray | None = None
+
+    @property
+    def n(self) -> int:
+        """Number of scratches."""
+        return int(self.p0.shape[0])
+
+    @property
+    def length(self) -> np.ndarray:
+        """`(N,)` scratch lengths, metres."""
+        return np.hypot(*(self.p1 - self.p0).T)
+
+
+def groove_half_width(width, depth):
+    """Half width `x_max = (w/2) sqrt(1 - exp(-2d/w))` of the groove (SPEC section 2), numpy, metres."""
+    width = np.asarray(width, dtype=np.float64)
+    depth = np.asarray(depth, dtype=np.float64)
+    return 0.5 * width * np.sqrt(-np.expm1(-2.0 * depth / width))
+
+
+def _as_float_array(name, value, source):
+    try:
+        arr = np.asarray(value)
+    except Exception as exc:  # jax arrays, lists, ... all go through np.asarray
+        raise DesignError(f"{source}: {name} cannot be read as an array ({exc})") from None
+    if arr.dtype == object or not (
+        np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)
+    ):
+        raise DesignError(f"{source}: {name} must hold real numbers, got dtype {arr.dtype}")
+    return np.array(arr, dtype=np.float64)
+
+
+def _first_bad(mask):
+    """Index of the first True along axis 0 of a boolean array (rows reduced with any)."""
+    rows = mask.reshape(mask.shape[0], -1).any(axis=1) if mask.ndim > 1 else mask
+    return int(np.flatnonzero(rows)[0])
+
+
+def validate_design(p0, p1, width, depth, alpha, board, camera=None, light=None, intensity=None,
+                    *, source="design") -> Design:
+    """Check a design against SPEC section 9 and return it as a float64 :class:`Design`.
+
+    **Arguments:** the design arrays (anything `np.asarray` reads, e.g. jax arrays), see
+    :class:`Design`; `source` names the design in messages (a file name).
+
+    **Returns:** the :class:`Design`.
+
+    **Raises:** :class:`DesignError` naming the array and the first bad scratch (or view) when a
+    shape is wrong, a value is not finite, `width`, `depth` or `alpha` is out of range
+    (`w > 0`, `d > 0`, `0 < alpha <= 1`), or an endpoint lies off the board.
+    """
+    arrays = {
+        "p0": _as_float_array("p0", p0, source),
+        "p1": _as_float_array("p1", p1, source),
+        "width": _as_float_array("width", width, source),
+        "depth": _as_float_array("depth", depth, source),
+        "alpha": _as_float_array("alpha", alpha, source),
+        "board": _as_float_array("board", board, source),
+    }
+    b = arrays["board"]
+    if b.shape != (2,):
+        raise DesignError(f"{source}: board must have shape (2,) (Sx, Sy in metres), got {b.shape}")
+    if not np.all(np.isfinite(b)) or np.any(b <= 0):
+        raise DesignError(f"{source}: board must be two finite positive sizes in metres, got {b.tolist()}")
+    P0 = arrays["p0"]
+    if P0.ndim != 2 or P0.shape[1] != 2:
+        raise DesignError(f"{source}: p0 must have shape (N, 2), got {P0.shape}")
+    n = P0.shape[0]
+    expected = {"p1": (n, 2), "width": (n,), "depth": (n,), "alpha": (n,)}
+    for name, shape in expected.items():
+        if arrays[name].shape != shape:
+            raise DesignError(
+                f"{source}: {name} must have shape {shape} to match p0 {P0.shape}, got {arrays[name].shape}"
+            )
+    for name in ("p0", "p1", "width", "depth", "alpha"):
+        bad = ~np.isfinite(arrays[name])
+        if bad.any():
+            i = _first_bad(bad)
+            raise DesignError(
+                f"{source}: scratch {i}: {name} = {arrays[name][i].tolist()} is not finite "
+                f"({int(bad.reshape(n, -1).any(axis=1).sum())} scratches have a non-finite {name})"
+            )
+    for name, lo_ok, text in (
+        ("width", lambda v: v > 0, "must be > 0 m"),
+        ("depth", lambda v: v > 0, "must be > 0 m"),
+        ("alpha", lambda v: (v > 0) & (v <= 1), "must lie in (0, 1]"),
+    ):
+        bad = ~lo_ok(arrays[name])
+        if bad.any():
+            i = _first_bad(bad)
+            raise DesignError(f"{source}: scratch {i}: {name} = {arrays[name][i]!r} {text}")
+    tol = ON_BOARD_RTOL * float(b.max())
+    for name in ("p0", "p1"):
+        pts = arrays[name]
+        off = (pts < -tol) | (pts > b + tol)
+        if off.any():
+            i = _first_bad(off)
+            raise DesignError(
+                f"{source}: scratch {i}: {name} = ({pts[i, 0]:.6g}, {pts[i, 1]:.6g}) m lies off the board "
+                f"[0, {b[0]:.6g}] x [0, {b[1]:.6g}] m ({int(off.any(axis=1).sum())} such endpoints in {name})"
+            )
+
+    views = {"camera": camera, "light": light, "intensity": intensity}
+    given = [k for k, v in views.items() if v is not None]
+    if given and len(given) != 3:
+        missing = [k for k in _VIEWS if k not in given]
+        raise DesignError(f"{source}: camera, light and intensity go together; missing {missing}")
+    if given:
+        cam = _as_float_array("camera", camera, source)
+        lig = _as_float_array("light", light, source)
+        inten = _as_float_array("intensity", intensity, source)
+        if cam.ndim != 2 or cam.shape[1] != 3:
+            raise DesignError(f"{source}: camera must have shape (M, 3), got {cam.shape}")
+        m = cam.shape[0]
+        if lig.shape != (m, 3):
+            raise DesignError(f"{source}: light must have shape ({m}, 3) to match camera, got {lig.shape}")
+        if inten.shape != (m,):
+            raise DesignError(f"{source}: intensity must have shape ({m},) to match camera, got {inten.shape}")
+        for name, arr in (("camera", cam), ("light", lig), ("intensity", inten)):
+            bad = ~np.isfinite(arr)
+            if bad.any():
+                raise DesignError(f"{source}: view {_first_bad(bad)}: {name} is not finite")
+        for name, arr in (("camera", cam), ("light", lig)):
+            bad = arr[:, 2] <= 0
+            if bad.any():
+                raise DesignError(f"{source}: view {_first_bad(bad)}: {name} must be above the board (z > 0)")
+        if np.any(inten < 0):
+            raise DesignError(f"{source}: view {_first_bad(inten < 0)}: intensity must be >= 0")
+        views = {"camera": cam, "light": lig, "intensity": inten}
+    else:
+        views = {"camera": None, "light": None, "intensity": None}
+    return Design(**arrays, **views)
+
+
+def save_design(path, p0, p1, width, depth, alpha, board, camera=None, light=None, intensity=None) -> Design:
+    """Validate and write a design to a `.npz` file (SPEC section 9), atomically.
+
+    **Arguments:** `path` (the file; written as given, no suffix added), then the arrays of
+    :class:`Design` (numpy or jax, float32 or float64; stored as float64).
+
+    **Returns:** the validated :class:`Design`.
+
+    **Raises:** :class:`DesignError` for an invalid design; nothing is written then.
+    """
+    path = os.fspath(path)
+    design = validate_design(p0, p1, width, depth, alpha, board, camera, light, intensity, source=path)
+    payload = {k: v for k, v in design._asdict().items() if v is not None}
+    directory = os.path.dirname(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(prefix=".design-", suffix=".npz.tmp", dir=directory)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, **payload)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return design
+
+
+def load_design(path) -> Design:
+    """Read and check a design `.npz` (SPEC section 9).
+
+    **Arguments:** `path` to the file.
+
+    **Returns:** a :class:`Design` of float64 numpy arrays.
+
+    **Raises:** `FileNotFoundError` for a missing file; :class:`DesignError` naming the array and
+    the first bad scratch for a file that is not a valid design.
+    """
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"design file {path!r} does not exist")
+    try:
+        npz = np.load(path, allow_pickle=False)
+    except Exception as exc:
+        raise DesignError(f"{path}: not a readable .npz design file ({exc})") from None
+    with npz:
+        if not hasattr(npz, "files"):
+            raise DesignError(f"{path}: expected an .npz archive of arrays, got a single array")
+        missing = [k for k in _REQUIRED if k not in npz.files]
+        if missing:
+            raise DesignError(f"{path}: missing array(s) {missing}; a design holds {list(_REQUIRED)}")
+        try:
+            arrays = {k: npz[k] for k in _REQUIRED + _VIEWS if k in npz.files}
+        except Exception as exc:
+            raise DesignError(f"{path}: cannot read arrays ({exc})") from None
+    return validate_design(**arrays, source=path)
+
+
+def _fmt(v):
+    s = f"{v:.4f}".rstrip("0").rstrip(".")
+    return "0" if s in ("-0", "") else s
+
+
+def write_svg(path, design: Design, *, min_stroke_mm: float = 0.02) -> None:
+    """Write the scratches as an SVG: one `<line>` per scratch, board millimetres.
+
+    The page is the board, `Sx x Sy` mm (`width="...mm"` with a matching `viewBox`, so Inkscape and
+    vpype read true sizes). SVG's y axis points down, so board point `(x, y)` is drawn at
+    `(1000 x, 1000 (Sy - y))`: the picture looks like the board seen from above, with the edge
+    `y = Sy` at the top (SPEC section 1). Each line's stroke width is the groove width `2 x_max`
+    (at least `min_stroke_mm`, to stay visible) and its `id` is `s<index>`.
+
+    **Arguments:** `path` of the SVG; `design` a :class:`Design`; `min_stroke_mm` the thinnest stroke.
+    """
+    sx, sy = (1000.0 * design.board).tolist()
+    stroke = np.maximum(2000.0 * groove_half_width(design.width, design.depth), min_stroke_mm)
+    x0, x1 = 1000.0 * design.p0[:, 0], 1000.0 * design.p1[:, 0]
+    y0, y1 = 1000.0 * (design.board[1] - design.p0[:, 1]), 1000.0 * (design.board[1] - design.p1[:, 1])
+    lines = [
+        '<?xml version="1.0" encoding="UTF-8"?>',
+        f'<svg xmlns="http://www.w3.org/2000/svg" version="1.1" width="{_fmt(sx)}mm" '
+        f'height="{_fmt(sy)}mm" viewBox="0 0 {_fmt(sx)} {_fmt(sy)}">',
+        f"<title>{quoteattr('jscratch design: %d scratches' % design.n)[1:-1]}</title>",
+        '<g id="scratches" fill="none" stroke="black" stroke-linecap="round">',
+    ]
+    for i in range(design.n):
+        lines.append(
+            f'<line id="s{i}" x1="{_fmt(x0[i])}" y1="{_fmt(y0[i])}" x2="{_fmt(x1[i])}" '
+            f'y2="{_fmt(y1[i])}" stroke-width="{_fmt(stroke[i])}"/>'
+        )
+    lines += ["</g>", "</svg>", ""]
+    text = "\n".join(lines)
+    path = os.fspath(path)
+    with open(path, "w", encoding="utf-8") as f:
+        f.write(text)
+
+
+def demo_design(n: int = 400, seed: int = 0, board=(0.3, 0.3)) -> Design:
+    """A small built-in design: `n` brushed scratches on rings around the board centre.
+
+    Lengths are uniform in `[5, 25]` mm and the profile is the optimisation start of SPEC section 5
+    (`w = 2.5e-4`, `d = 1.28e-4` m, `alpha = 0.04`); each scratch runs tangent to the circle through
+    its midpoint (a brushed-ring look) with a little random tilt. Every endpoint lies on the board.
+
+    **Arguments:** `n` scratches (>= 1), `seed` for `numpy.random.default_rng`, `board` `(Sx, Sy)` m.
+
+    **Returns:** a :class:`Design` without views.
+    """
+    if int(n) < 1:
+        raise ValueError(f"n must be >= 1, got {n}")
+    n = int(n)
+    rng = np.random.default_rng(seed)
+    b = np.asarray(board, dtype=np.float64)
+    centre = 0.5 * b
+    out = np.empty((0, 2, 2))
+    while out.shape[0] < n:
+        k = 2 * (n - out.shape[0]) + 8
+        mid = rng.uniform([0.0, 0.0], b, size=(k, 2))
+        rel = mid - centre
+        theta = np.arctan2(rel[:, 1], rel[:, 0]) + 0.5 * np.pi + rng.normal(0.0, 0.15, k)
+        half = 0.5 * rng.uniform(0.005, 0.025, k)
+        d = half[:, None] * np.stack([np.cos(theta), np.sin(theta)], axis=1)
+        seg = np.stack([mid - d, mid + d], axis=1)
+        ok = np.all((seg >= 0.0) & (seg <= b), axis=(1, 2))
+        out = np.concatenate([out, seg[ok]], axis=0)
+    out = out[:n]
+    return validate_design(
+        out[:, 0], out[:, 1], np.full(n, 2.5e-4), np.full(n, 1.28e-4), np.full(n, 0.04), b, source="demo design"
+    )
