@@ -1,0 +1,986 @@
+"""Differentiable multi-view rendering of a scratched board (SPEC sections 1, 4 and 5).
+
+The forward model: for every view ``j`` and pixel ``P`` the patch NDF ``D_P`` and the scratch
+coverage ``c`` are sums of the per-pair integrals ``jscratch.ndf.pair_integral`` over the
+(pixel, scratch) pairs that ``jscratch.bvh`` finds, divided by the footprint area ``S_P``; the pixel
+is then shaded at its footprint centre (SPEC section 4) into linear radiance.
+
+**Scene objects** (equinox modules, data only):
+
+- `Board`: board size ``Sx, Sy`` (m), image shape ``(H, W)`` and the board material (``F0``,
+  Smith roughness ``a_G``, board GGX roughness ``a_S``); all static.
+- `Scratches`: ``p0, p1`` ``(N, 2)`` (m), ``width, depth`` ``(N,)`` (m), ``alpha`` ``(N,)``.
+- `Views`: ``camera, light`` ``(M, 3)`` (m), ``intensity`` ``(M,)`` (W/sr).
+- `views_on_circle`: the paper's view layout (SPEC section 5).
+
+**Rendering:**
+
+- `render(scratches, views, board, *, eps=0.0)`: host driver; bins (``bvh.build_pairs``), culls
+  per view when ``eps > 0`` (``bvh.cull``), compacts the pair lists and calls `render_pairs`.
+- `render_pairs(scratches, views, board, pairs)`: the differentiable core, jittable, for use
+  inside a loss; the pair list is integer data computed outside the differentiated function.
+- `render_reference(scratches, views, board)`: float64 all-pairs reference (every scratch against
+  every pixel, dense sum, plain autodiff), for small scenes and tests.
+- `display(radiance)`: the display transform (gamma 2.2 with a finite slope at 0).
+- `pixel_footprints`, `pixel_centres`, `half_vectors`, `shade`: the pieces, public for notebooks,
+  the brute-force renderer (`jscratch.brute`) and `bvh.cull`.
+
+**Memory design.** `render_pairs` evaluates the pairs in fixed-size chunks inside a `lax.scan`
+and segment-sums each chunk into per-pixel accumulators, so the forward pass holds
+``O(M H W + N + chunk)`` floats whatever the number of pairs ``L``. Its reverse pass is a
+`jax.custom_vjp`: the residuals are the inputs only (parameters, half vectors and the integer pair
+list); the backward pass walks the same chunks again, recomputes each chunk's per-pair VJP and
+scatter-adds it into the per-scratch parameter gradients (and the per-pixel half-vector
+gradients), so a gradient step also holds ``O(M H W + N + chunk)`` floats beyond the pair list.
+Cost: the backward pass re-evaluates the forward kernel once (as `jax.checkpoint` would).
+Consequence: forward-mode autodiff (``jax.jvp``) is not available through `render_pairs`.
+
+**Multiple devices.** Given a `jax.sharding.Mesh`, `render_pairs` shards the (flattened,
+padded) pair axis over the mesh axes with `jax.shard_map`; parameters and half vectors are
+replicated; each device accumulates its pairs into full-size per-pixel sums that are ``psum``-ed,
+and in the backward pass its parameter gradients are ``psum``-ed. The call and its result are the
+same as on one device (up to summation order).
+
+Computation follows the dtype of ``scratches`` (float32 for users, float64 for references);
+``views`` are cast to it.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Sequence
+from typing import Any, NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import PartitionSpec
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+__all__ = [
+    "DEFAULT_CHUNK",
+    "DISPLAY_GAMMA",
+    "DISPLAY_KNEE",
+    "Board",
+    "Scratches",
+    "Views",
+    "display",
+    "half_vectors",
+    "pixel_centres",
+    "pixel_footprints",
+    "render",
+    "render_pairs",
+    "render_reference",
+    "shade",
+    "views_on_circle",
+]
+
+#: Pairs per chunk in `render_pairs` (per device). Peak memory of the per-pair work scales with it.
+DEFAULT_CHUNK = 16384
+#: Display gamma: display value ``radiance ** (1 / DISPLAY_GAMMA)`` above the knee.
+DISPLAY_GAMMA = 2.2
+#: Knee of the display transform (linear radiance, W/(sr m^2)); display value ``0.0152`` there.
+DISPLAY_KNEE = 1e-4
+
+
+# --------------------------------------------------------------------------------------------
+# Scene objects
+# --------------------------------------------------------------------------------------------
+
+
+def _to_shape(shape) -> tuple[int, int]:
+    try:
+        h, w = (int(s) for s in shape)
+    except (TypeError, ValueError):
+        raise ValueError(f"Board: `shape` must be (H, W), two positive ints; got {shape!r}") from None
+    return (h, w)
+
+
+class Board(eqx.Module):
+    """The board ``[0, Sx] x [0, Sy]`` (m) in the plane ``z = 0``, its image grid and material.
+
+    Every field is static (hashable, no array leaves): changing one recompiles a jitted render.
+
+    **Arguments:**
+
+    - `shape`: image ``(H, W)`` in pixels; row 0 lies along the board edge ``y = Sy`` (SPEC 1).
+    - `Sx`, `Sy`: board size (m). Default 0.3.
+    - `F0`: Schlick reflectance at normal incidence. Default 0.91 (aluminium).
+    - `a_G`: roughness of the Smith GGX shadowing-masking term. Default 0.04.
+    - `a_S`: GGX roughness of the flat (unscratched) board. Default 0.04.
+    """
+
+    shape: tuple[int, int] = eqx.field(static=True, default=(256, 256), converter=_to_shape)
+    Sx: float = eqx.field(static=True, default=0.3, converter=float)
+    Sy: float = eqx.field(static=True, default=0.3, converter=float)
+    F0: float = eqx.field(static=True, default=0.91, converter=float)
+    a_G: float = eqx.field(static=True, default=0.04, converter=float)
+    a_S: float = eqx.field(static=True, default=0.04, converter=float)
+
+    def __check_init__(self):
+        h, w = self.shape
+        if h < 1 or w < 1:
+            raise ValueError(f"Board: `shape` must be positive (H, W); got {self.shape}")
+        for name in ("Sx", "Sy"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"Board: `{name}` must be a positive finite length (m); got {v}")
+        if not 0.0 <= self.F0 <= 1.0:
+            raise ValueError(f"Board: `F0` must lie in [0, 1]; got {self.F0}")
+        for name in ("a_G", "a_S"):
+            v = getattr(self, name)
+            if not 0.0 < v <= 1.0:
+                raise ValueError(f"Board: `{name}` must lie in (0, 1]; got {v}")
+
+    @property
+    def H(self) -> int:
+        return self.shape[0]
+
+    @property
+    def W(self) -> int:
+        return self.shape[1]
+
+    @property
+    def n_pixels(self) -> int:
+        return self.shape[0] * self.shape[1]
+
+    @property
+    def pixel_area(self) -> float:
+        """Footprint area ``S_P`` (m^2)."""
+        return (self.Sx / self.W) * (self.Sy / self.H)
+
+
+def _is_tracer(x) -> bool:
+    return isinstance(x, jax.core.Tracer)
+
+
+def _float_dtype(*xs):
+    dt = jnp.result_type(*xs)
+    if not jnp.issubdtype(dt, jnp.floating):
+        dt = jnp.result_type(float)
+    return dt
+
+
+class Scratches(eqx.Module):
+    """``N`` straight scratches (SPEC sections 1-2).
+
+    **Arguments:**
+
+    - `p0`, `p1`: endpoints, ``(N, 2)``, board metres.
+    - `width`: profile width ``w`` (m), ``(N,)`` or a scalar broadcast to ``(N,)``. Default ``1e-4``.
+    - `depth`: depth ``d`` (m), ``(N,)`` or scalar. Default ``1e-4``.
+    - `alpha`: intrinsic GGX roughness in ``(0, 1]``, ``(N,)`` or scalar. Default ``0.04``.
+
+    All five arrays share one floating dtype (that of ``p0, p1``; integers become the default float).
+    Shapes are checked always; values (finite, ``width, depth > 0``, ``0 < alpha <= 1``) when the
+    arrays are concrete. Inside jit, `render_pairs` checks values with `eqx.error_if`.
+    """
+
+    p0: Float[Array, "n 2"]
+    p1: Float[Array, "n 2"]
+    width: Float[Array, " n"]
+    depth: Float[Array, " n"]
+    alpha: Float[Array, " n"]
+
+    def __init__(self, p0: ArrayLike, p1: ArrayLike, width: ArrayLike = 1e-4,
+                 depth: ArrayLike = 1e-4, alpha: ArrayLike = 0.04):
+        p0 = jnp.asarray(p0)
+        p1 = jnp.asarray(p1)
+        dtype = _float_dtype(p0, p1)
+        for name, p in (("p0", p0), ("p1", p1)):
+            if p.ndim != 2 or p.shape[1] != 2:
+                raise ValueError(f"Scratches: `{name}` must have shape (N, 2); got {p.shape}")
+        if p0.shape != p1.shape:
+            raise ValueError(f"Scratches: `p0` {p0.shape} and `p1` {p1.shape} must have the same shape")
+        n = p0.shape[0]
+        self.p0 = p0.astype(dtype)
+        self.p1 = p1.astype(dtype)
+        for name, v in (("width", width), ("depth", depth), ("alpha", alpha)):
+            v = jnp.asarray(v, dtype=dtype)
+            if v.ndim == 0:
+                v = jnp.broadcast_to(v, (n,))
+            if v.shape != (n,):
+                raise ValueError(f"Scratches: `{name}` must have shape (N,) = ({n},) or be a scalar;"
+                                 f" got {v.shape}")
+            setattr(self, name, v)
+
+    def __check_init__(self):
+        arrays = (self.p0, self.p1, self.width, self.depth, self.alpha)
+        if any(_is_tracer(a) for a in arrays):
+            return
+        names = ("p0", "p1", "width", "depth", "alpha")
+        for name, a in zip(names, arrays):
+            bad = ~np.isfinite(np.asarray(a))
+            if bad.any():
+                i = int(np.argwhere(bad.reshape(a.shape[0], -1).any(-1))[0, 0])
+                raise ValueError(f"Scratches: `{name}` of scratch {i} is not finite")
+        for name in ("width", "depth"):
+            a = np.asarray(getattr(self, name))
+            if (a <= 0).any():
+                i = int(np.argmax(a <= 0))
+                raise ValueError(f"Scratches: `{name}` must be > 0; scratch {i} has {a[i]}")
+        a = np.asarray(self.alpha)
+        if ((a <= 0) | (a > 1)).any():
+            i = int(np.argmax((a <= 0) | (a > 1)))
+            raise ValueError(f"Scratches: `alpha` must lie in (0, 1]; scratch {i} has {a[i]}")
+
+    @property
+    def n(self) -> int:
+        return self.p0.shape[0]
+
+    @property
+    def dtype(self):
+        return self.p0.dtype
+
+    @staticmethod
+    def random(key, n: int, board: Board | None = None, *, length=(0.005, 0.025),
+               width: float = 1e-4, depth: float = 1e-4, alpha: float = 0.04,
+               dtype=None) -> "Scratches":
+        """The SPEC section 5 initial layout: midpoints uniform on the board, directions uniform,
+        lengths uniform in ``length`` (m); a segment that would leave the board is shortened about
+        its midpoint (keeping its direction) so both endpoints lie on the board.
+
+        **Arguments:** `key` a PRNG key; `n` number of scratches; `board` (default `Board()`);
+        `length` ``(min, max)`` (m); `width, depth, alpha` scalars; `dtype` (default float).
+
+        **Returns:** `Scratches`.
+        """
+        board = Board() if board is None else board
+        dtype = jnp.result_type(float) if dtype is None else dtype
+        k1, k2, k3 = jax.random.split(key, 3)
+        size = jnp.asarray([board.Sx, board.Sy], dtype)
+        mid = jax.random.uniform(k1, (n, 2), dtype) * size
+        phi = jax.random.uniform(k2, (n,), dtype, 0.0, 2 * jnp.pi)
+        half = 0.5 * jax.random.uniform(k3, (n,), dtype, length[0], length[1])
+        t = jnp.stack([jnp.cos(phi), jnp.sin(phi)], -1)
+
+        def reach(direction):  # largest s with mid + s * direction on the board, (n,)
+            pos = (size - mid) / jnp.where(direction > 0, direction, 1)
+            neg = mid / jnp.where(direction < 0, -direction, 1)
+            r = jnp.where(direction > 0, pos, jnp.where(direction < 0, neg, jnp.inf))
+            return r.min(-1)
+
+        s = jnp.minimum(half, jnp.minimum(reach(t), reach(-t)))
+        p0 = jnp.clip(mid - s[:, None] * t, 0, size)
+        p1 = jnp.clip(mid + s[:, None] * t, 0, size)
+        return Scratches(p0, p1, width, depth, alpha)
+
+
+class Views(eqx.Module):
+    """``M`` view/light configurations (SPEC section 4).
+
+    **Arguments:**
+
+    - `camera`: camera positions ``(M, 3)`` (m), above the board (``z > 0``).
+    - `light`: point-light positions ``(M, 3)`` (m), above the board (``z > 0``).
+    - `intensity`: light intensities ``I_j`` (W/sr), ``(M,)`` or a scalar. Default 1.
+
+    Shapes are checked always; values (finite, ``z > 0``, ``intensity >= 0``) when concrete.
+    """
+
+    camera: Float[Array, "m 3"]
+    light: Float[Array, "m 3"]
+    intensity: Float[Array, " m"]
+
+    def __init__(self, camera: ArrayLike, light: ArrayLike, intensity: ArrayLike = 1.0):
+        camera = jnp.asarray(camera)
+        light = jnp.asarray(light)
+        dtype = _float_dtype(camera, light)
+        for name, p in (("camera", camera), ("light", light)):
+            if p.ndim != 2 or p.shape[1] != 3:
+                raise ValueError(f"Views: `{name}` must have shape (M, 3); got {p.shape}")
+        if camera.shape != light.shape:
+            raise ValueError(f"Views: `camera` {camera.shape} and `light` {light.shape} must have"
+                             " the same shape")
+        m = camera.shape[0]
+        intensity = jnp.asarray(intensity, dtype)
+        if intensity.ndim == 0:
+            intensity = jnp.broadcast_to(intensity, (m,))
+        if intensity.shape != (m,):
+            raise ValueError(f"Views: `intensity` must have shape (M,) = ({m},) or be a scalar;"
+                             f" got {intensity.shape}")
+        self.camera = camera.astype(dtype)
+        self.light = light.astype(dtype)
+        self.intensity = intensity
+
+    def __check_init__(self):
+        if any(_is_tracer(a) for a in (self.camera, self.light, self.intensity)):
+            return
+        for name in ("camera", "light", "intensity"):
+            a = np.asarray(getattr(self, name))
+            if not np.isfinite(a).all():
+                j = int(np.argwhere(~np.isfinite(a.reshape(a.shape[0], -1)).any(-1))[0, 0])
+                raise ValueError(f"Views: `{name}` of view {j} is not finite")
+        for name in ("camera", "light"):
+            z = np.asarray(getattr(self, name))[:, 2]
+            if (z <= 0).any():
+                j = int(np.argmax(z <= 0))
+                raise ValueError(f"Views: `{name}` of view {j} is at z = {z[j]}: it must be above"
+                                 " the board (z > 0)")
+        i = np.asarray(self.intensity)
+        if (i < 0).any():
+            j = int(np.argmax(i < 0))
+            raise ValueError(f"Views: `intensity` of view {j} is negative ({i[j]})")
+
+    @property
+    def m(self) -> int:
+        return self.camera.shape[0]
+
+
+def _direction(polar, azimuth):
+    return np.array([math.sin(polar) * math.cos(azimuth), math.sin(polar) * math.sin(azimuth),
+                     math.cos(polar)])
+
+
+def flat_highlight(camera, light) -> np.ndarray:
+    """Where the flat board mirrors the light into the camera: the point of ``z = 0`` on the
+    segment from ``camera`` to the light's mirror image ``(Lx, Ly, -Lz)`` (board metres, ``(..., 2)``).
+
+    At that point the half vector is the board normal, so the flat board's GGX peak
+    ``1 / (pi a_S^2)`` shows there.
+    """
+    c = np.asarray(camera, np.float64)
+    l = np.asarray(light, np.float64)
+    s = c[..., 2:3] / (c[..., 2:3] + l[..., 2:3])
+    return c[..., :2] + s * (l[..., :2] - c[..., :2])
+
+
+def views_on_circle(M: int, theta: float, distance: float = 1.0, offset: float | None = None,
+                    board: Board | None = None, *, light_azimuth: float = 0.0,
+                    camera_theta: float | None = None, intensity: ArrayLike = 1.0,
+                    dtype=None) -> Views:
+    """The paper's view layout (section 4.1, SPEC section 5), angles in radians.
+
+    One light at polar angle ``theta`` (from the board normal) and azimuth ``light_azimuth``;
+    camera ``j`` at polar angle ``camera_theta`` (default ``theta``) and azimuth
+    ``2 pi j / M + offset``; all at ``distance`` from the board centre. Every view shares the light.
+
+    A camera that sees the light mirrored by the flat board is refused: if the flat-board
+    highlight (`flat_highlight`, where the half vector is the board normal) falls on the board,
+    the board's own specular peak would dominate that view. With the light and cameras on one
+    circle this is the camera near the light's mirror azimuth ``light_azimuth + pi``.
+
+    **Arguments:**
+
+    - `M`: number of views (>= 1).
+    - `theta`: polar angle of the light (rad), in ``[0, pi/2)``.
+    - `distance`: distance of light and cameras from the board centre (m). Default 1.
+    - `offset`: azimuth of camera 0 (rad). Default: the offset that keeps every camera farthest
+      (in azimuth) from both the light and its mirror azimuth, ``pi / (2M)`` for odd ``M`` and
+      ``pi / M`` for even ``M`` (relative to ``light_azimuth``).
+    - `board`: the board (its centre and extent). Default `Board()`.
+    - `light_azimuth`, `camera_theta`, `intensity` ((M,) or scalar, W/sr), `dtype`.
+
+    **Returns:** `Views` with ``camera, light`` ``(M, 3)`` and ``intensity`` ``(M,)``.
+    """
+    board = Board() if board is None else board
+    if int(M) != M or M < 1:
+        raise ValueError(f"views_on_circle: `M` must be a positive int; got {M!r}")
+    M = int(M)
+    camera_theta = theta if camera_theta is None else camera_theta
+    for name, v in (("theta", theta), ("camera_theta", camera_theta)):
+        if not (math.isfinite(v) and 0.0 <= v < math.pi / 2):
+            hint = (f" (angles are in radians: did you mean {math.radians(v):.4f}?)"
+                    if math.isfinite(v) and 1.6 <= v < 90 else "")
+            raise ValueError(f"views_on_circle: `{name}` must lie in [0, pi/2) rad so that it is"
+                             f" above the board; got {v}{hint}")
+    if not (math.isfinite(distance) and distance > 0):
+        raise ValueError(f"views_on_circle: `distance` must be positive (m); got {distance}")
+    if offset is None:
+        offset = math.pi / (2 * M) if M % 2 else math.pi / M
+    centre = np.array([board.Sx / 2, board.Sy / 2, 0.0])
+    light = centre + distance * _direction(theta, light_azimuth)
+    azimuths = [2 * math.pi * j / M + offset + light_azimuth for j in range(M)]
+    cameras = np.stack([centre + distance * _direction(camera_theta, a) for a in azimuths])
+    spot = flat_highlight(cameras, light[None])
+    on = ((spot[:, 0] >= 0) & (spot[:, 0] <= board.Sx) & (spot[:, 1] >= 0)
+          & (spot[:, 1] <= board.Sy))
+    if on.any():
+        j = int(np.argmax(on))
+        raise ValueError(
+            f"views_on_circle: camera {j} (azimuth {math.degrees(azimuths[j]) % 360:.1f} deg) sees"
+            f" the light mirrored by the flat board at board point ({spot[j, 0]:.4f},"
+            f" {spot[j, 1]:.4f}) m, inside the board: the board's specular peak would dominate"
+            " that view. Change `offset`, `M`, `theta`/`camera_theta` or `distance`.")
+    dtype = jnp.result_type(float) if dtype is None else dtype
+    return Views(jnp.asarray(cameras, dtype), jnp.asarray(np.repeat(light[None], M, 0), dtype),
+                 jnp.asarray(intensity, dtype))
+
+
+# --------------------------------------------------------------------------------------------
+# Pixels and shading
+# --------------------------------------------------------------------------------------------
+
+
+def _edges(board: Board) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel edges in float64: x edges ``(W+1,)`` left to right, y edges ``(H+1,)`` top to bottom."""
+    xe = np.arange(board.W + 1, dtype=np.float64) * board.Sx / board.W
+    ye = board.Sy - np.arange(board.H + 1, dtype=np.float64) * board.Sy / board.H
+    ye[-1] = 0.0
+    return xe, ye
+
+
+def pixel_footprints(board: Board, dtype=None) -> Float[Array, "p 4 2"]:
+    """Pixel footprints (SPEC section 1) as counter-clockwise quads.
+
+    **Returns:** ``(H*W, 4, 2)`` board metres; pixel ``r*W + c`` is
+    ``(x0, y0), (x1, y0), (x1, y1), (x0, y1)`` with ``x0 = c Sx/W``, ``y1 = Sy - r Sy/H``.
+    """
+    xe, ye = _edges(board)
+    c = np.tile(np.arange(board.W), board.H)
+    r = np.repeat(np.arange(board.H), board.W)
+    x0, x1, y0, y1 = xe[c], xe[c + 1], ye[r + 1], ye[r]
+    fp = np.stack([np.stack([x0, y0], -1), np.stack([x1, y0], -1), np.stack([x1, y1], -1),
+                   np.stack([x0, y1], -1)], 1)
+    return jnp.asarray(fp, jnp.result_type(float) if dtype is None else dtype)
+
+
+def pixel_centres(board: Board, dtype=None) -> Float[Array, "p 2"]:
+    """Footprint centres ``(H*W, 2)`` (board metres), pixel ``r*W + c``."""
+    xe, ye = _edges(board)
+    c = np.tile(np.arange(board.W), board.H)
+    r = np.repeat(np.arange(board.H), board.W)
+    ctr = np.stack([0.5 * (xe[c] + xe[c + 1]), 0.5 * (ye[r] + ye[r + 1])], -1)
+    return jnp.asarray(ctr, jnp.result_type(float) if dtype is None else dtype)
+
+
+def _unit(v):
+    return v / jnp.sqrt(jnp.sum(v * v, -1, keepdims=True))
+
+
+class _Geometry(NamedTuple):
+    wo: Array  # (M, P, 3)
+    wi: Array  # (M, P, 3)
+    h: Array  # (M, P, 3)
+    r2: Array  # (M, P)
+
+
+def _geometry(views: Views, board: Board, dtype) -> _Geometry:
+    p = pixel_centres(board, dtype)
+    p3 = jnp.concatenate([p, jnp.zeros_like(p[:, :1])], -1)[None]  # (1, P, 3)
+    cam = views.camera.astype(dtype)[:, None]
+    lig = views.light.astype(dtype)[:, None]
+    wo = _unit(cam - p3)
+    dl = lig - p3
+    r2 = jnp.sum(dl * dl, -1)
+    wi = dl / jnp.sqrt(r2)[..., None]
+    return _Geometry(wo, wi, _unit(wi + wo), r2)
+
+
+def half_vectors(views: Views, board: Board, dtype=None) -> Float[Array, "m p 3"]:
+    """Board-frame unit half vectors at every footprint centre, ``(M, H*W, 3)`` (SPEC section 4),
+    as `bvh.cull` wants them (``h_pixel = half_vectors(...)[j]``)."""
+    dtype = views.camera.dtype if dtype is None else dtype
+    return _geometry(views, board, dtype).h
+
+
+def _ggx_unit(h, a):
+    """GGX ``D(h_z; a)`` for unit ``h`` with the cancellation-free denominator
+    ``(h_z^2 (a^2 - 1) + 1) = h_x^2 + h_y^2 + a^2 h_z^2``."""
+    hz = h[..., 2]
+    den = h[..., 0] ** 2 + h[..., 1] ** 2 + (a * hz) ** 2
+    return jnp.where(hz > 0, a * a / (jnp.pi * den * den), 0.0)
+
+
+def _smith_g1(vz, a):
+    return 2 * vz / (vz + jnp.sqrt(a * a + (1 - a * a) * vz * vz))
+
+
+def shade(D_P: Float[Array, "m p"], coverage: Float[Array, "m p"], views: Views,
+          board: Board) -> Float[Array, "m p"]:
+    """Per-pixel shading (SPEC section 4) at the footprint centres.
+
+    ``f = (D_P + max(0, 1 - c) D_ggx(h_z; a_S)) G F / (4 wi_z wo_z)``,
+    ``radiance = I f wi_z / r2``.
+
+    **Arguments:** `D_P` patch NDF ``(M, H*W)`` (1/sr); `coverage` ``c`` ``(M, H*W)`` or ``(H*W,)``;
+    `views`; `board`.
+
+    **Returns:** linear radiance ``(M, H*W)`` (W/(sr m^2)), in the dtype of `D_P`.
+    """
+    dtype = D_P.dtype
+    g = _geometry(views, board, dtype)
+    wiz, woz = g.wi[..., 2], g.wo[..., 2]
+    D = D_P + jnp.maximum(0.0, 1.0 - coverage) * _ggx_unit(g.h, board.a_S)
+    G = _smith_g1(wiz, board.a_G) * _smith_g1(woz, board.a_G)
+    F = board.F0 + (1 - board.F0) * (1 - jnp.sum(g.wo * g.h, -1)) ** 5
+    f = D * G * F / (4 * wiz * woz)
+    return views.intensity.astype(dtype)[:, None] * f * wiz / g.r2
+
+
+def display(radiance: ArrayLike, gamma: float = DISPLAY_GAMMA,
+            knee: float = DISPLAY_KNEE) -> Array:
+    """Display values from linear radiance: ``radiance ** (1/gamma)`` with a finite slope at 0.
+
+    Exact form, with ``g = 1/gamma``, knee ``k`` and ``P = k ** (g - 1)``:
+
+    - ``x >= k``: ``y = x ** g`` (the plain gamma);
+    - ``x < k``: ``y = (2 - g) P x + (g - 1) (P / k) x**2``, the quadratic through ``0`` that
+      matches ``x ** g`` in value and slope at ``k`` (so ``y`` is C1 and increasing on ``[0, inf)``).
+
+    The slope at 0 is ``(2 - g) P``: ``232.6`` for the defaults (``gamma = 2.2``, ``k = 1e-4``, where
+    ``y = 0.0152``, about 4/255). Negative inputs (the renderer produces none beyond rounding) follow
+    the same quadratic. No clipping above 1. Elementwise, any shape, follows the input dtype.
+    """
+    x = jnp.asarray(radiance)
+    if not jnp.issubdtype(x.dtype, jnp.floating):
+        x = x.astype(jnp.result_type(float))
+    g = 1.0 / gamma
+    P = knee ** (g - 1.0)
+    low = (2.0 - g) * P * x + (g - 1.0) * (P / knee) * x * x
+    high = jnp.maximum(x, knee) ** g  # double-where: no inf slope of x**g at 0 in the dead branch
+    return jnp.where(x < knee, low, high)
+
+
+# --------------------------------------------------------------------------------------------
+# Pair accumulation with bounded memory (custom VJP, chunked, optionally sharded)
+# --------------------------------------------------------------------------------------------
+
+
+class _Cfg(NamedTuple):
+    H: int
+    W: int
+    Sx: float
+    Sy: float
+    chunk: int  # pairs per chunk, per device
+    mesh: Any  # jax.sharding.Mesh or None
+    axes: tuple  # mesh axis names the pair axis is sharded over
+    need_D: bool
+    need_A: bool
+
+
+def _board_of(cfg: _Cfg) -> Board:
+    return Board(shape=(cfg.H, cfg.W), Sx=cfg.Sx, Sy=cfg.Sy)
+
+
+def _pair_kernel(cfg: _Cfg, xe, ye, p0, p1, w, d, a, h, pix):
+    """One (pixel, scratch) pair: ``(D_hat, A)`` from `ndf.pair_integral`. ``pix`` is the flat
+    pixel index ``v*P + r*W + c``; the footprint is rebuilt from it."""
+    from jscratch import ndf
+
+    q = pix % (cfg.H * cfg.W)
+    r = q // cfg.W
+    c = q % cfg.W
+    x0, x1, y0, y1 = xe[c], xe[c + 1], ye[r + 1], ye[r]
+    fp = jnp.stack([jnp.stack([x0, y0]), jnp.stack([x1, y0]), jnp.stack([x1, y1]),
+                    jnp.stack([x0, y1])])
+    return ndf.pair_integral(h, fp, p0, p1, w, d, a)
+
+
+def _gather(params, h_flat, pix, scr):
+    p0, p1, w, d, a = params
+    take = lambda x: x.at[scr].get(mode="clip")  # sentinel N -> N-1; masked below
+    return (take(p0), take(p1), take(w), take(d), take(a), h_flat.at[pix].get(mode="clip"))
+
+
+def _masked_chunk(cfg: _Cfg, xe, ye, pix, valid, p0, p1, w, d, a, h):
+    """Per-pair ``(D_hat, A)`` for a chunk, zero on padding slots. Padding slots get a benign
+    off-board dummy pair first (double-where), so no value or gradient there can be NaN."""
+    dt = w.dtype
+    v1 = valid[:, None]
+    p0 = jnp.where(v1, p0, jnp.asarray([-1.0, -1.0], dt))
+    p1 = jnp.where(v1, p1, jnp.asarray([-0.99, -1.0], dt))
+    w = jnp.where(valid, w, jnp.asarray(1e-4, dt))
+    d = jnp.where(valid, d, jnp.asarray(1e-4, dt))
+    a = jnp.where(valid, a, jnp.asarray(0.5, dt))
+    h = jnp.where(v1, h, jnp.asarray([0.0, 0.0, 1.0], dt))
+    kern = functools.partial(_pair_kernel, cfg, xe, ye)
+    D, A = jax.vmap(kern)(p0, p1, w, d, a, h, pix)
+    zero = jnp.zeros((), dt)
+    return jnp.where(valid, D, zero), jnp.where(valid, A, zero)
+
+
+def _edges_in(cfg: _Cfg, dtype):
+    xe, ye = _edges(_board_of(cfg))
+    return jnp.asarray(xe, dtype), jnp.asarray(ye, dtype)
+
+
+def _chunks(cfg: _Cfg, *xs):
+    return tuple(x.reshape(-1, cfg.chunk) for x in xs)
+
+
+def _varying(cfg: _Cfg, tree):
+    """Inside `jax.shard_map`, mark scan-carry initial values as device-varying."""
+    if cfg.mesh is None:
+        return tree
+    return jax.tree_util.tree_map(lambda x: jax.lax.pcast(x, cfg.axes, to="varying"), tree)
+
+
+def _fwd_local(cfg: _Cfg, params, h_flat, pix, scr, valid):
+    dt = params[2].dtype
+    xe, ye = _edges_in(cfg, dt)
+    n_out = h_flat.shape[0]
+
+    def body(carry, xs):
+        Ds, As = carry
+        pc, sc, vc = xs
+        D, A = _masked_chunk(cfg, xe, ye, pc, vc, *_gather(params, h_flat, pc, sc))
+        if cfg.need_D:
+            Ds = Ds.at[pc].add(D)
+        if cfg.need_A:
+            As = As.at[pc].add(A)
+        return (Ds, As), None
+
+    init = _varying(cfg, (jnp.zeros((n_out,), dt), jnp.zeros((n_out,), dt)))
+    (Ds, As), _ = jax.lax.scan(body, init, _chunks(cfg, pix, scr, valid))
+    if cfg.mesh is not None:
+        Ds, As = jax.lax.psum((Ds, As), cfg.axes)
+    return Ds, As
+
+
+def _bwd_local(cfg: _Cfg, params, h_flat, pix, scr, valid, gD, gA):
+    dt = params[2].dtype
+    xe, ye = _edges_in(cfg, dt)
+    # Differentiate only the outputs the caller uses, so XLA does no dead reverse work.
+    pick = [i for i, need in enumerate((cfg.need_D, cfg.need_A)) if need]
+
+    def body(carry, xs):
+        gp0, gp1, gw, gd, ga, gh = carry
+        pc, sc, vc = xs
+
+        def f(*gathered):
+            out = _masked_chunk(cfg, xe, ye, pc, vc, *gathered)
+            return tuple(out[i] for i in pick)
+
+        _, vjp = jax.vjp(f, *_gather(params, h_flat, pc, sc))
+        ct = tuple((gD, gA)[i].at[pc].get(mode="clip") for i in pick)
+        d0, d1, dw, dd, da, dh = vjp(ct)
+        # The sentinel index N is out of range: mode="drop" discards padding slots (already zero).
+        gp0 = gp0.at[sc].add(d0, mode="drop")
+        gp1 = gp1.at[sc].add(d1, mode="drop")
+        gw = gw.at[sc].add(dw, mode="drop")
+        gd = gd.at[sc].add(dd, mode="drop")
+        ga = ga.at[sc].add(da, mode="drop")
+        gh = gh.at[pc].add(dh, mode="drop")
+        return (gp0, gp1, gw, gd, ga, gh), None
+
+    init = _varying(cfg, tuple(jnp.zeros_like(x) for x in params) + (jnp.zeros_like(h_flat),))
+    grads, _ = jax.lax.scan(body, init, _chunks(cfg, pix, scr, valid))
+    if cfg.mesh is not None:
+        grads = jax.lax.psum(grads, cfg.axes)
+    return grads[:5], grads[5]
+
+
+def _maybe_shard(cfg: _Cfg, fn, n_rep: int, n_pair: int, n_rep_after: int = 0):
+    """Wrap ``fn(rep..., pair..., rep_after...)`` in `jax.shard_map` over ``cfg.mesh`` with the
+    pair arguments sharded along ``cfg.axes`` and everything else replicated."""
+    if cfg.mesh is None:
+        return fn
+    rep, shd = PartitionSpec(), PartitionSpec(cfg.axes)
+    in_specs = (rep,) * n_rep + (shd,) * n_pair + (rep,) * n_rep_after
+    return jax.shard_map(fn, mesh=cfg.mesh, in_specs=in_specs, out_specs=rep)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _pair_sums(cfg: _Cfg, params, h_flat, pix, scr, valid):
+    """Per-output-pixel sums ``(sum D_hat, sum A)`` over the pairs, each ``(n_out,)`` with
+    ``n_out = h_flat.shape[0]``. ``pix, scr, valid`` ``(L,)`` with ``L`` a multiple of
+    ``chunk * n_devices``."""
+    return _maybe_shard(cfg, functools.partial(_fwd_local, cfg), 2, 3)(params, h_flat, pix, scr,
+                                                                        valid)
+
+
+def _pair_sums_fwd(cfg, params, h_flat, pix, scr, valid):
+    out = _pair_sums(cfg, params, h_flat, pix, scr, valid)
+    return out, (params, h_flat, pix, scr, valid)
+
+
+def _pair_sums_bwd(cfg, res, g):
+    params, h_flat, pix, scr, valid = res
+    gD, gA = g
+    fn = _maybe_shard(cfg, functools.partial(_bwd_local, cfg), 2, 3, 2)
+    dparams, dh = fn(params, h_flat, pix, scr, valid, gD, gA)
+    return dparams, dh, None, None, None
+
+
+_pair_sums.defvjp(_pair_sums_fwd, _pair_sums_bwd)
+
+
+def _mesh_axes(mesh, axis_names) -> tuple:
+    if mesh is None:
+        return ()
+    if axis_names is None:
+        return tuple(mesh.axis_names)
+    return (axis_names,) if isinstance(axis_names, str) else tuple(axis_names)
+
+
+def _n_shards(mesh, axes) -> int:
+    if mesh is None:
+        return 1
+    return int(np.prod([mesh.shape[a] for a in axes]))
+
+
+def _round_up(x: int, m: int) -> int:
+    return -(-x // m) * m
+
+
+def _run_pair_sums(scratches: Scratches, board: Board, h_flat, pix, scr, valid, *, chunk, mesh,
+                   axes, need_D, need_A):
+    """Pad the flat pair list and call `_pair_sums`."""
+    L = pix.shape[0]
+    shards = _n_shards(mesh, axes)
+    per_shard = max(1, -(-L // shards))
+    chunk = int(min(chunk, _round_up(per_shard, 64)))
+    L_pad = _round_up(max(L, 1), chunk * shards)
+    n = scratches.n
+    if L_pad != L:
+        pad = L_pad - L
+        pix = jnp.concatenate([pix, jnp.zeros((pad,), pix.dtype)])
+        scr = jnp.concatenate([scr, jnp.full((pad,), n, scr.dtype)])
+        valid = jnp.concatenate([valid, jnp.zeros((pad,), bool)])
+    cfg = _Cfg(board.H, board.W, board.Sx, board.Sy, chunk, mesh, axes, need_D, need_A)
+    params = (scratches.p0, scratches.p1, scratches.width, scratches.depth, scratches.alpha)
+    return _pair_sums(cfg, params, h_flat, pix, scr, valid)
+
+
+# --------------------------------------------------------------------------------------------
+# Renderers
+# --------------------------------------------------------------------------------------------
+
+
+def _check_values(scratches: Scratches, views: Views):
+    """`eqx.error_if` value checks (work inside jit); returns checked copies."""
+    s = scratches
+    finite = jnp.all(jnp.isfinite(s.p0)) & jnp.all(jnp.isfinite(s.p1)) & jnp.all(
+        jnp.isfinite(s.width)) & jnp.all(jnp.isfinite(s.depth)) & jnp.all(jnp.isfinite(s.alpha))
+    p0 = eqx.error_if(s.p0, ~finite, "render: a scratch parameter (p0, p1, width, depth or alpha)"
+                      " is NaN or infinite")
+    p0 = eqx.error_if(p0, jnp.any(s.width <= 0) | jnp.any(s.depth <= 0),
+                      "render: scratch `width` and `depth` must be > 0")
+    p0 = eqx.error_if(p0, jnp.any(s.alpha <= 0) | jnp.any(s.alpha > 1),
+                      "render: scratch `alpha` must lie in (0, 1]")
+    cam = eqx.error_if(views.camera, ~(jnp.all(jnp.isfinite(views.camera))
+                                       & jnp.all(jnp.isfinite(views.light))
+                                       & jnp.all(jnp.isfinite(views.intensity))),
+                       "render: a view (camera, light or intensity) is NaN or infinite")
+    cam = eqx.error_if(cam, jnp.any(views.camera[:, 2] <= 0) | jnp.any(views.light[:, 2] <= 0),
+                       "render: every camera and light must be above the board (z > 0)")
+    s = eqx.tree_at(lambda t: t.p0, s, p0)
+    views = eqx.tree_at(lambda t: t.camera, views, cam)
+    return s, views
+
+
+def _pair_arrays(pairs, M: int, P: int, n: int, name: str):
+    """Flatten a pair list to output indices ``v*P + pixel``: a single `Pairs` ``(L,)`` shared by
+    all views, a `Pairs` with leading view axis ``(M, L)``, or a sequence of ``M`` `Pairs`."""
+    if isinstance(pairs, (list, tuple)):
+        if len(pairs) != M:
+            raise ValueError(f"render_pairs: `{name}` has {len(pairs)} pair lists for {M} views")
+        parts = [_pair_arrays(p, 1, P, n, name) for p in pairs]
+        pix = jnp.concatenate([p[0] + j * P for j, p in enumerate(parts)])
+        return (pix, jnp.concatenate([p[1] for p in parts]),
+                jnp.concatenate([p[2] for p in parts]),
+                functools.reduce(jnp.logical_or, [p[3] for p in parts]), False)
+    pix, scr, valid = jnp.asarray(pairs.pixel), jnp.asarray(pairs.scratch), jnp.asarray(pairs.valid)
+    if not (pix.shape == scr.shape == valid.shape) or pix.ndim not in (1, 2):
+        raise ValueError(f"render_pairs: `{name}` fields pixel, scratch, valid must share a shape"
+                         f" (L,) or (M, L); got {pix.shape}, {scr.shape}, {valid.shape}")
+    if not (jnp.issubdtype(pix.dtype, jnp.integer) and jnp.issubdtype(scr.dtype, jnp.integer)):
+        raise ValueError(f"render_pairs: `{name}` pixel and scratch indices must be integers")
+    overflow = jnp.any(jnp.asarray(pairs.overflow))
+    valid = valid.astype(bool)
+    if pix.ndim == 2:
+        if pix.shape[0] != M:
+            raise ValueError(f"render_pairs: `{name}` has a leading view axis of {pix.shape[0]}"
+                             f" for {M} views")
+        pix = pix + (jnp.arange(M, dtype=pix.dtype) * P)[:, None]
+        return pix.reshape(-1), scr.reshape(-1), valid.reshape(-1), overflow, False
+    return pix, scr, valid, overflow, True
+
+
+def _checked_pairs(pix, scr, valid, overflow, n_out: int, n: int, name: str):
+    pix = eqx.error_if(pix, overflow, f"render_pairs: `{name}` overflowed its capacity (incomplete"
+                       " pair list); rebuild it with bvh.build_pairs")
+    bad = valid & ((pix < 0) | (pix >= n_out) | (scr < 0) | (scr >= n))
+    pix = eqx.error_if(pix, jnp.any(bad), f"render_pairs: `{name}` has a valid pair with a pixel"
+                       " or scratch index out of range")
+    return pix
+
+
+def render_pairs(scratches: Scratches, views: Views, board: Board, pairs,
+                 coverage_pairs=None, *, chunk: int = DEFAULT_CHUNK,
+                 mesh: jax.sharding.Mesh | None = None,
+                 axis_names: str | Sequence[str] | None = None) -> Float[Array, "m h w"]:
+    """Render linear radiance from precomputed pair lists (jittable, differentiable).
+
+    **Arguments:**
+
+    - `scratches`, `views`, `board`: the scene. Computation in ``scratches.dtype``.
+    - `pairs`: the (pixel, scratch) pairs, as `bvh.Pairs` (fields ``pixel, scratch, valid,
+      overflow``): one list ``(L,)`` shared by every view, one with a leading view axis ``(M, L)``,
+      or a sequence of ``M`` lists (e.g. culled per view). Pixel indices are ``r*W + c``.
+    - `coverage_pairs`: the pair list the coverage ``c`` is summed over (a shared, unculled ``(L,)``
+      list). Default: ``pairs`` itself when shared, else each view's own list (exact only when the
+      per-view lists are unculled: a culled pair still covers the board).
+    - `chunk`: pairs per chunk per device (memory knob; results do not depend on it beyond rounding).
+    - `mesh`, `axis_names`: shard the pair axis over these mesh axes (default: all axes of `mesh`).
+
+    **Returns:** radiance ``(M, H, W)`` (W/(sr m^2)).
+
+    Errors (`eqx.error_if`, also under jit): non-finite or out-of-range scratch or view values, a
+    camera or light below the board, an overflowed pair list, out-of-range pair indices.
+    Gradients: reverse mode only (a `jax.custom_vjp` recomputes the pairs chunk by chunk).
+    """
+    dtype = scratches.dtype
+    if not jnp.issubdtype(dtype, jnp.floating):
+        raise ValueError(f"render_pairs: scratches must be floating point; got {dtype}")
+    M, P, n = views.m, board.n_pixels, scratches.n
+    axes = _mesh_axes(mesh, axis_names)
+    scratches, views = _check_values(scratches, views)
+    views = jax.tree_util.tree_map(lambda x: x.astype(dtype), views)
+    geo_h = half_vectors(views, board, dtype)  # (M, P, 3)
+
+    pix, scr, valid, overflow, shared = _pair_arrays(pairs, M, P, n, "pairs")
+    if shared:
+        L = pix.shape[0]
+        pix = (pix[None] + (jnp.arange(M, dtype=pix.dtype) * P)[:, None]).reshape(-1)
+        scr = jnp.broadcast_to(scr[None], (M, L)).reshape(-1)
+        valid = jnp.broadcast_to(valid[None], (M, L)).reshape(-1)
+    pix = _checked_pairs(pix, scr, valid, overflow, M * P, n, "pairs")
+    kw = dict(chunk=chunk, mesh=mesh, axes=axes)
+    if n == 0:
+        Ds = As = jnp.zeros((M * P,), dtype)
+    else:
+        Ds, As = _run_pair_sums(scratches, board, geo_h.reshape(M * P, 3), pix, scr, valid,
+                                need_D=True, need_A=coverage_pairs is None, **kw)
+    S = board.pixel_area
+    D_P = Ds.reshape(M, P) / S
+    if coverage_pairs is None:
+        cov = As.reshape(M, P) / S
+        if shared:
+            cov = cov[:1]
+    else:
+        cpix, cscr, cvalid, cover, cshared = _pair_arrays(coverage_pairs, 1, P, n,
+                                                          "coverage_pairs")
+        if not cshared:
+            raise ValueError("render_pairs: `coverage_pairs` must be one shared (L,) list")
+        cpix = _checked_pairs(cpix, cscr, cvalid, cover, P, n, "coverage_pairs")
+        if n == 0:
+            As = jnp.zeros((P,), dtype)
+        else:
+            h_dummy = jnp.zeros((P, 3), dtype).at[:, 2].set(1)
+            _, As = _run_pair_sums(scratches, board, h_dummy, cpix, cscr, cvalid, need_D=False,
+                                   need_A=True, **kw)
+        cov = As[None] / S
+    rad = shade(D_P, cov, views, board)
+    return rad.reshape(M, board.H, board.W)
+
+
+def _compact(pix: np.ndarray, scr: np.ndarray, valid: np.ndarray, length: int):
+    keep = np.flatnonzero(valid)
+    out_pix = np.zeros(length, np.int32)
+    out_scr = np.full(length, -1, np.int32)
+    out_val = np.zeros(length, bool)
+    out_pix[: keep.size] = pix[keep]
+    out_scr[: keep.size] = scr[keep]
+    out_val[: keep.size] = True
+    return out_pix, out_scr, out_val
+
+
+def _bucket(n: int, chunk: int) -> int:
+    """Pair-list length for ``n`` pairs: a multiple of 1024 (small) or of ``chunk``, and within
+    ~12% of ``n`` by rounding to 8 steps per octave, so repeated renders of similar scenes reuse
+    compilations."""
+    n = max(n, 1)
+    step = 2 ** max(0, n.bit_length() - 4)
+    return _round_up(_round_up(n, step), min(chunk, 1024))
+
+
+@functools.lru_cache(maxsize=None)
+def _jitted_render_pairs(chunk, mesh, axis_names):
+    return eqx.filter_jit(functools.partial(render_pairs, chunk=chunk, mesh=mesh,
+                                            axis_names=axis_names))
+
+
+def render(scratches: Scratches, views: Views, board: Board, *, eps: float = 0.0,
+           chunk: int = DEFAULT_CHUNK, mesh: jax.sharding.Mesh | None = None,
+           axis_names: str | Sequence[str] | None = None, return_pairs: bool = False):
+    """Bin, cull and render: the convenience driver (host code; not for inside jit).
+
+    Bins with ``bvh.build_pairs``; when ``eps > 0`` culls every view's pairs with ``bvh.cull``
+    (pairs whose rigorous ``D_hat`` bound is below ``eps A / (pi alpha^2)``); compacts the lists to
+    their valid pairs on the host; renders with a jitted `render_pairs`. Coverage always uses the
+    unculled list.
+
+    **Arguments:** `scratches`, `views`, `board`; `eps` culling tolerance (0 keeps every pair);
+    `chunk`, `mesh`, `axis_names` as in `render_pairs`; `return_pairs` also return the pair
+    lists used.
+
+    **Returns:** radiance ``(M, H, W)`` (W/(sr m^2)); with `return_pairs`, ``(radiance, pairs,
+    coverage_pairs)``.
+    """
+    from jscratch import bvh
+
+    if eps < 0 or not math.isfinite(eps):
+        raise ValueError(f"render: `eps` must be finite and >= 0; got {eps}")
+    full, _ = bvh.build_pairs(scratches.p0, scratches.p1, scratches.width, scratches.depth,
+                              board=(board.Sx, board.Sy), shape=board.shape)
+    fpix = np.asarray(full.pixel).reshape(-1)
+    fscr = np.asarray(full.scratch).reshape(-1)
+    fval = np.asarray(full.valid).reshape(-1)
+    L = _bucket(int(fval.sum()), chunk)
+    cpix, cscr, cval = _compact(fpix, fscr, fval, L)
+    cscr[~cval] = scratches.n
+    full_c = bvh.Pairs(pixel=jnp.asarray(cpix), scratch=jnp.asarray(cscr),
+                       valid=jnp.asarray(cval), overflow=jnp.asarray(False))
+    if eps == 0:
+        pairs, cov_pairs = full_c, None
+    else:
+        hs = half_vectors(views, board, scratches.dtype)
+        lists = []
+        for j in range(views.m):
+            cj = bvh.cull(full_c, scratches.p0, scratches.p1, scratches.width, scratches.depth,
+                          scratches.alpha, hs[j], eps)
+            lists.append(np.asarray(cj.valid))
+        Lv = _bucket(max(int(v.sum()) for v in lists), chunk)
+        stacks = [_compact(cpix, cscr, v, Lv) for v in lists]
+        spix, sscr, sval = (np.stack(s) for s in zip(*stacks))
+        sscr[~sval] = scratches.n
+        pairs = bvh.Pairs(pixel=jnp.asarray(spix), scratch=jnp.asarray(sscr),
+                          valid=jnp.asarray(sval), overflow=jnp.asarray(False))
+        cov_pairs = full_c
+    axis_names = tuple(axis_names) if isinstance(axis_names, list) else axis_names
+    fn = _jitted_render_pairs(chunk, mesh, axis_names)
+    rad = fn(scratches, views, board, pairs, cov_pairs)
+    if return_pairs:
+        return rad, pairs, (full_c if cov_pairs is None else cov_pairs)
+    return rad
+
+
+def render_reference(scratches: Scratches, views: Views, board: Board, *,
+                     pixel_batch: int = 64) -> Float[Array, "m h w"]:
+    """All-pairs reference: every scratch against every pixel, ``D_P`` and ``c`` as dense sums of
+    `ndf.pair_integral` (no binning, no custom VJP: plain autodiff), then `shade`.
+
+    Cost ``M * H*W * N`` pair integrals: small scenes only. Use float64 scratches for a reference.
+
+    **Arguments:** the scene; `pixel_batch` pixels per `lax.map` step.
+
+    **Returns:** radiance ``(M, H, W)`` (W/(sr m^2)).
+    """
+    from jscratch import ndf
+
+    dtype = scratches.dtype
+    scratches, views = _check_values(scratches, views)
+    views = jax.tree_util.tree_map(lambda x: x.astype(dtype), views)
+    fps = pixel_footprints(board, dtype)  # (P, 4, 2)
+    hs = jnp.swapaxes(half_vectors(views, board, dtype), 0, 1)  # (P, M, 3)
+    s = scratches
+
+    def one_pixel(args):
+        fp, h = args
+        over_scratches = jax.vmap(ndf.pair_integral, in_axes=(None, None, 0, 0, 0, 0, 0))
+        over_views = jax.vmap(over_scratches, in_axes=(0, None, None, None, None, None, None))
+        D, A = over_views(h, fp, s.p0, s.p1, s.width, s.depth, s.alpha)  # (M, N)
+        return D.sum(-1), A[0].sum(-1)
+
+    if s.n == 0:
+        D = jnp.zeros((board.n_pixels, views.m), dtype)
+        A = jnp.zeros((board.n_pixels,), dtype)
+    else:
+        D, A = jax.lax.map(one_pixel, (fps, hs), batch_size=pixel_batch)
+    S = board.pixel_area
+    rad = shade(D.T / S, A[None] / S, views, board)
+    return rad.reshape(views.m, board.H, board.W)
