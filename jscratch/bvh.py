@@ -32,14 +32,48 @@ corners); while it does, the old list still holds every pair (the extra pairs co
 [`maybe_update`][] skips the rebin. A pure translation by less than `skin` along and across never
 needs a rebin.
 
-**View culling.** [`cull`][] clears pairs whose rigorous upper bound on `D_hat` is below
-`eps * A / (pi alpha^2)` (`eps` times the most the pair could contribute); see [`cull_ratio`][] and
-`docs/culling.md` for the bound and the per-pixel error it implies. [`compact`][] re-packs a culled
-list into fewer slots so that the culling saves shading time.
+**View culling: the bound.** For one view, pixel `P` with half vector `h` and scratch `i`, SPEC
+section 3 gives `D_hat = ∫∫_{F ∩ groove} D_x(h, n(x)) dx dy <= A * max_x D_x(h, n(x))`. In the
+scratch-local frame the groove normals are `n(psi) = (-sin psi, 0, cos psi)` for `|psi| <= psi_max`
+(Eq. 5 with `tan(psi/2) = 2u`, `u = x/w`), and the wall is steepest at the groove edge:
+`tan(psi_max/2) = 2 x_max / w = sqrt(s)`, `s = 1 - exp(-2d/w)`, so `cos psi_max = (1-s)/(1+s)` and
+`sin psi_max = 2 sqrt(s)/(1+s)`. With `h = (hx, hy, hz)` in that frame, `n.h = hz cos psi - hx sin psi`,
+whose maximum over the arc is
+
+    c_max = sqrt(hx^2 + hz^2)                       if atan2(|hx|, hz) <= psi_max (peak on the arc)
+          = hz cos psi_max + |hx| sin psi_max       otherwise,
+
+and `c_max <= sqrt(1 - hy^2)` always: this is the "scratch direction far from perpendicular to `h`"
+case (large `|hy|`), the second branch the "every groove normal far from `h`" case. For `alpha < 1`
+the GGX `D(c) = chi+(c) alpha^2 / (pi (c^2 (alpha^2 - 1) + 1)^2)` increases on `[0, 1]` from
+`alpha^2/pi` to its peak `1/(pi alpha^2)`, so
+
+    D_hat <= A D(c_max) = rho A / (pi alpha^2),    rho = alpha^4 / (c_max^2 (alpha^2 - 1) + 1)^2
+
+(`rho = 0` when `c_max <= 0`: chi+ zeroes every wall; for `alpha >= 1` GGX peaks at `c -> 0+` and
+`rho = alpha^4` bounds it). `rho` is in `[0, 1]`: the fraction of the most the pair could ever
+contribute. `c_max` gets 4 ulps added so that the bound survives rounding. [`cull_ratio`][] computes
+`rho` per pair in O(1) (no integral); [`cull`][] drops the pair when `rho < eps`. `eps = 0` keeps all.
+
+**View culling: the rendered error.** Per pixel the dropped pairs lower `D_P = sum_i D_hat_i / S_P`
+(never raise it) by
+
+    0 <= D_P - D_P_culled < eps * sum_dropped A_i / (pi alpha_i^2 S_P) <= eps * c / (pi alpha_min^2),
+
+with `c = sum_i A_i / S_P` the pixel's coverage. The coverage must come from the *unculled* list
+(a culled pair still covers the board; `render.render` does this), so the board term of SPEC 4 is
+unchanged and the radiance error is the same bound times the shading factor:
+`0 <= radiance - radiance_culled < eps * (I wi_z / r^2) G F / (4 wi_z wo_z) * sum_dropped A_i /
+(pi alpha_i^2 S_P)`, i.e. at most `eps` times the radiance the pixel would have if every groove in
+it were a mirror at its GGX peak. `tests/test_bvh.py` checks the per-pixel bound by independent
+quadrature on random scenes. [`compact`][] re-packs a culled list into fewer slots so that the
+culling saves shading time. The default [`DEFAULT_EPS`][] comes from the time-against-error table
+in `benchmarks/results/bvh.md`.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 
 import equinox as eqx
@@ -386,6 +420,7 @@ def _bin(p0, p1, width, depth, *, board, shape, skin, strip_capacity, rows, pair
     return pairs, (strips_needed, max_rows, pairs_needed)
 
 
+@jax.jit
 def update(
     spec: GridSpec,
     p0: Float[ArrayLike, "N 2"],
@@ -418,7 +453,7 @@ def update(
     return pairs
 
 
-_update_jit = jax.jit(update)
+_update_jit = update  # already jitted; the name marks host-driver calls
 
 
 @eqx.filter_jit
@@ -549,6 +584,7 @@ def build_pairs(
 # Rebinning test
 
 
+@jax.jit
 def needs_rebin(
     pairs: Pairs,
     p0: Float[ArrayLike, "N 2"],
@@ -595,11 +631,14 @@ def needs_rebin(
     # Half the binning slack absorbs rounding (an unchanged scene must not ask for a rebin); the
     # list holds every cell within the full slack of the old rectangle.
     slack = 0.5 * pairs.bin_tol.astype(p0.dtype)
-    inside = (reach(b_o) <= half_w_o + slack) & (reach(t_o) <= half_l_o + slack)
+    # A groove binned with zero area (no skin) got no pairs at all: any area now needs a rebin.
+    binned = (half_w_o > 0) & (half_l_o > 0)
+    inside = binned & (reach(b_o) <= half_w_o + slack) & (reach(t_o) <= half_l_o + slack)
     nonempty = (length > 0) & (x_max > 0)
     return jnp.any(nonempty & ~inside) | pairs.overflow
 
 
+@jax.jit
 def maybe_update(
     spec: GridSpec,
     pairs: Pairs,
@@ -622,6 +661,7 @@ def maybe_update(
 # View culling
 
 
+@jax.jit
 def cull_ratio(
     pairs: Pairs,
     p0: Float[ArrayLike, "N 2"],
@@ -640,7 +680,7 @@ def cull_ratio(
     `D_hat <= A D_ggx(c_max) = rho A / (pi alpha^2)` with
     `rho = alpha^4 / (c_max^2 (alpha^2 - 1) + 1)^2` (and `rho = 0` when `c_max <= 0`: the groove
     faces away and chi+ zeroes it). For `alpha >= 1` GGX peaks at `n.h -> 0+` and `rho = alpha^4`.
-    `c_max` gets 4 ulps added so that the bound survives rounding. Derivation: `docs/culling.md`.
+    `c_max` gets 4 ulps added so that the bound survives rounding. Derivation: module docstring.
 
     **Arguments:** `pairs`; current `p0`, `p1` `(N, 2)`, `width`, `depth`, `alpha` (`(N,)` or
     scalar); `h_pixel` `(P, 3)` unit board-frame half vector per pixel (`P = H * W`).
@@ -684,6 +724,7 @@ def cull_ratio(
     return jnp.where(pairs.valid, rho, 0.0)
 
 
+@jax.jit
 def cull(
     pairs: Pairs,
     p0: Float[ArrayLike, "N 2"],
@@ -699,8 +740,8 @@ def cull(
     A pair is dropped when `rho < eps` ([`cull_ratio`][]); `eps = 0` keeps every pair. Per pixel
     the dropped pairs change `D_P` by at most `(1/S_P) sum_dropped rho_i A_i / (pi alpha_i^2)
     < eps (1/S_P) sum_dropped A_i / (pi alpha_i^2)` (and never increase it). The coverage `c` of
-    SPEC 4 must still come from the unculled list, else the board term adds its own error (see
-    `docs/culling.md`). Use [`compact`][] to turn the dropped slots into saved time.
+    SPEC 4 must still come from the unculled list, else the board term adds its own error (module
+    docstring). Use [`compact`][] to turn the dropped slots into saved time.
 
     **Arguments:** as [`cull_ratio`][], plus `eps >= 0` (scalar; may be traced).
 
@@ -715,6 +756,7 @@ def cull(
     return eqx.tree_at(lambda p: p.valid, pairs, valid)
 
 
+@functools.partial(jax.jit, static_argnames="capacity")
 def compact(pairs: Pairs, capacity: int) -> Pairs:
     """Re-pack the valid pairs of `pairs` (order kept) into `capacity` slots (jittable).
 
