@@ -14,8 +14,8 @@ differentiable in ``render``.
   default) or ``VGG19Features`` (from a local weights file, ``load_vgg19``).
 - ``total_loss``, ``LossConfig``, ``make_loss``: the weighted sum ``lambda_p E_p + lambda_g E_g``.
 
-The design of the filter bank, the VGG file format and the calibration of ``LAMBDA_G`` are in
-``docs/losses.md``. NaN detection is the optimiser's job: these functions propagate NaN.
+The design of the filter bank is in ``FilterBank``, the VGG file format in ``load_vgg19`` and the
+calibration of ``LAMBDA_G`` next to it (and ``calibrate_lambda_g``). NaN detection is the optimiser's job: these functions propagate NaN.
 """
 
 from __future__ import annotations
@@ -64,7 +64,7 @@ BLUR_SIGMA = 1.0
 #: over 18 pairs of 256x256 natural targets and scratch-like renders, of the value making
 #: ``lambda_g E_g = E_p / 4`` (measured medians 120-390 by render kind; the gradient norms are
 #: then 0.3-1 times those of ``E_p``). ``E_g`` is small in absolute terms because the Gram entries
-#: are divided by channels times positions. Measurements in ``docs/losses.md``. Not valid for VGG
+#: are divided by channels times positions. Not valid for VGG
 #: features (different scale; see ``calibrate_lambda_g``).
 LAMBDA_G = 200.0
 
@@ -248,6 +248,28 @@ def _avg_pool2(x: Array) -> Array:
     return x.mean(axis=(-3, -1))
 
 
+def _level_kernels() -> np.ndarray:
+    """``(9, 1, 3, 3)`` cross-correlation kernels ``L, D1_0..3, D2_0..3`` of ``FilterBank``.
+
+    ``K[a, b]`` weighs the padded pixel at row offset ``a - 1``, column offset ``b - 1``; a
+    separable stencil ``row (x) col`` is ``np.outer(row, col)``.
+    """
+    s = np.array([0.25, 0.5, 0.25])
+    d = np.array([-0.5, 0.0, 0.5])
+    dd = np.array([1.0, -2.0, 1.0])
+    gx, gy = np.outer(s, d), -np.outer(d, s)  # y points up: rows grow downwards
+    gxx, gyy, gxy = np.outer(s, dd), np.outer(dd, s), -np.outer(d, d)
+    ident = np.zeros((3, 3))
+    ident[1, 1] = 1.0
+    ks = [ident]
+    ks += [c * gx + s_ * gy for c, s_ in zip(_COS8[:4], _SIN8[:4])]
+    ks += [c * c * gxx + 2.0 * c * s_ * gxy + s_ * s_ * gyy for c, s_ in zip(_COS8[:4], _SIN8[:4])]
+    return np.stack(ks)[:, None]
+
+
+_LEVEL_KERNELS = _level_kernels()
+
+
 class FilterBank(eqx.Module):
     """Weight-free multi-scale oriented filter bank, the default ``phi`` of ``E_g``.
 
@@ -266,9 +288,9 @@ class FilterBank(eqx.Module):
     The 17 channels per level, in order: ``L`` (local mean intensity), ``relu(D1_k)`` for
     ``k = 0..7`` (half-wave rectified edges, 8 directions), then ``relu(-D2_k), relu(D2_k)`` for
     ``k = 0..3`` (bright ridges, dark valleys). Properties (tested): every channel except ``L`` is
-    exactly zero on a constant image; rotating the image by +90 degrees (``np.rot90``) maps
-    ``D1_k -> D1_{k+2 mod 8}`` and ``D2_k -> D2_{k+2 mod 4}`` exactly (even sizes at every level),
-    so ``E_g`` is invariant under rotating render and target together.
+    zero on a constant image (to rounding: below ``1e-16`` times the intensity); rotating the
+    image by +90 degrees (``np.rot90``) maps ``D1_k -> D1_{k+2 mod 8}`` and
+    ``D2_k -> D2_{k+2 mod 4}`` (to rounding; even sizes at every level), so ``E_g`` is invariant under rotating render and target together.
 
     **Fields:**
 
@@ -290,25 +312,22 @@ class FilterBank(eqx.Module):
         """Smallest allowed image side: the coarsest level must be at least 2x2."""
         return 2**self.n_scales
 
-    def level(self, x: Float[Array, "... H W"]) -> Float[Array, "... 17 H W"]:
-        """The 17 feature channels of one pyramid level ``x``."""
-        p = _pad1(x)
-        sc = _cols(p, 0.25, 0.5, 0.25)  # smooth along columns, (.., H+2, W)
-        dc = _cols(p, -0.5, 0.0, 0.5)
-        ddc = _cols(p, 1.0, -2.0, 1.0)
-        gx = _rows(dc, 0.25, 0.5, 0.25)
-        gy = -_rows(sc, -0.5, 0.0, 0.5)  # rows grow downwards, y grows upwards
-        gxx = _rows(ddc, 0.25, 0.5, 0.25)
-        gyy = _rows(sc, 1.0, -2.0, 1.0)
-        gxy = -_rows(dc, -0.5, 0.0, 0.5)
-        chans = [x]
-        for c, s in zip(_COS8, _SIN8):
-            chans.append(jax.nn.relu(c * gx + s * gy))
-        for c, s in zip(_COS8[:4], _SIN8[:4]):
-            d2 = (c * c) * gxx + (2.0 * c * s) * gxy + (s * s) * gyy
-            chans.append(jax.nn.relu(-d2))
-            chans.append(jax.nn.relu(d2))
-        return jnp.stack(chans, axis=-3)
+    def level(self, x: Float[Array, "M H W"]) -> Float[Array, "M 17 H W"]:
+        """The 17 feature channels of one pyramid level ``x``.
+
+        The 9 linear maps (``L``, ``D1_0..3``, ``D2_0..3``; ``D1_{k+4} = -D1_k`` exactly) are one
+        3x3 convolution of the edge-padded level (few XLA ops: fast to compile and to run).
+        """
+        dt = x.dtype
+        p = _pad1(x)[:, None]  # (M, 1, H+2, W+2)
+        k = jnp.asarray(_LEVEL_KERNELS, dt)  # (9, 1, 3, 3)
+        y = jax.lax.conv_general_dilated(
+            p, k, (1, 1), "VALID", dimension_numbers=("NCHW", "OIHW", "NCHW")
+        )
+        d1, d2 = y[:, 1:5], y[:, 5:9]
+        relu = jax.nn.relu
+        ridge_valley = jnp.stack([relu(-d2), relu(d2)], axis=2).reshape(d2.shape[0], 8, *d2.shape[2:])
+        return jnp.concatenate([x[:, None], relu(d1), relu(-d1), ridge_valley], axis=1)
 
     def __call__(self, images: Float[Array, "M H W"]) -> list[Float[Array, "M 17 h w"]]:
         """Feature maps of each view at each pyramid level.
@@ -361,7 +380,7 @@ _IMAGENET_STD = (0.229, 0.224, 0.225)
 class VGG19Features(eqx.Module):
     """VGG-19 feature extractor (ReLU outputs of conv1_1, conv2_1, conv3_1, conv4_1, conv5_1).
 
-    Built by ``load_vgg19`` from a local ``.npz`` file (format in ``docs/losses.md``). Grayscale
+    Built by ``load_vgg19`` from a local ``.npz`` file (format in ``load_vgg19``). Grayscale
     display values are replicated to RGB and normalised with the ImageNet mean/std; then the
     torchvision ``vgg19().features`` stack: 3x3 convolutions (stride 1, zero padding 1), ReLU, and
     2x2 max pooling (stride 2, floor) between blocks. Channel widths are whatever the file holds
@@ -532,7 +551,7 @@ def total_loss(
     - `render`, `target`: ``(M, H, W)`` display values.
     - `lambda_p`: weight of ``perceptual_loss``.
     - `lambda_g`: weight of ``gram_loss``; default ``LAMBDA_G`` is calibrated for the default
-      ``FilterBank`` (see ``docs/losses.md``); VGG features need their own value.
+      ``FilterBank``; VGG features need their own value.
     - `features`: ``phi`` of ``gram_loss``; default ``FilterBank()``.
 
     **Returns:**
@@ -553,7 +572,7 @@ def calibrate_lambda_g(
 ) -> float:
     """The ``lambda_g`` for which ``lambda_g E_g = ratio * E_p`` on the given images (host side).
 
-    This is how ``LAMBDA_G`` was chosen for the filter bank (``docs/losses.md``); use it with a
+    This is how ``LAMBDA_G`` was chosen for the filter bank; use it with a
     representative render (e.g. a scratch design's current render) to pick ``lambda_g`` for VGG
     weights.
 
@@ -614,7 +633,7 @@ class LossConfig:
             if self.kind == "perceptual+gram" and self.lambda_g is None:
                 raise ValueError(
                     "lambda_g must be given with vgg_weights: LAMBDA_G is calibrated for the "
-                    "filter bank only (see jscratch.loss.calibrate_lambda_g and docs/losses.md)"
+                    "filter bank only (see jscratch.loss.calibrate_lambda_g)"
                 )
 
 

@@ -1,0 +1,441 @@
+"""Tests of jscratch.loss: hand-computed values, finite-difference gradients, filter-bank
+properties, the VGG-19 loader against a scipy reference, and the converter script."""
+
+import dataclasses
+import importlib.util
+import math
+import pathlib
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.ndimage
+import scipy.signal
+
+from jscratch import loss as L
+
+SHAPE = (2, 32, 32)  # one image shape for (almost) everything: few compilations
+R = math.sqrt(0.5)
+E = math.exp(-0.5)
+K1 = np.array([E, 1.0, E]) / (1.0 + 2.0 * E)  # 1D weights of g, sigma = 1 px
+
+
+def _rand(seed, shape=SHAPE, dtype=np.float64):
+    return np.random.default_rng(seed).random(shape).astype(dtype)
+
+
+def _smooth(seed, shape=SHAPE):
+    """Smooth random images in [0, 1] (natural-image-like, no exact ReLU ties)."""
+    x = scipy.ndimage.gaussian_filter(_rand(seed, shape), (0, 2, 2))
+    return (x - x.min()) / (x.max() - x.min())
+
+
+# ----------------------------------------------------------------------------------------------
+# E_p, blur, L2
+
+
+def test_gaussian_kernel3_values():
+    g = np.asarray(L.gaussian_kernel3(), dtype=np.float64)
+    np.testing.assert_allclose(g, np.outer(K1, K1), rtol=1e-15)
+    assert g.sum() == pytest.approx(1.0, abs=1e-15)
+    np.testing.assert_allclose(K1, [0.27406862, 0.45186276, 0.27406862], atol=1e-8)
+    with pytest.raises(ValueError, match="sigma"):
+        L.gaussian_kernel3(0.0)
+
+
+def test_blur3_matches_scipy_nearest():
+    x = _rand(0)
+    ref = np.stack([scipy.ndimage.convolve(v, np.outer(K1, K1), mode="nearest") for v in x])
+    np.testing.assert_allclose(np.asarray(L.blur3(jnp.asarray(x))), ref, rtol=1e-13, atol=1e-15)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_perceptual_constant_offset(dtype):
+    # Edge-replicate boundary: a constant stays constant, so E_p = M c^2 exactly.
+    t = _rand(1, dtype=dtype)
+    c = dtype(0.3)
+    ep = L.perceptual_loss(jnp.asarray(t + c), jnp.asarray(t))
+    assert ep.dtype == dtype
+    # float32: XLA's CPU reduction over 1024 pixels is sequential (error up to ~n eps/2).
+    tol = 1e-4 if dtype == np.float32 else 1e-12
+    assert float(ep) == pytest.approx(SHAPE[0] * 0.09, rel=tol)
+
+
+def test_perceptual_delta_interior_and_corner():
+    h = w = 8
+    a = 0.7
+    t = np.zeros((2, h, w))
+    i = t.copy()
+    i[0, 4, 3] = a  # interior delta: every tap of g lands inside
+    i[1, 0, 0] = a  # corner delta: edge replication folds the outside taps back
+    ep = float(L.perceptual_loss(jnp.asarray(i), jnp.asarray(t)))
+    interior = a**2 * np.sum(K1**2) ** 2 / (h * w)
+    corner = a**2 * ((K1[0] + K1[1]) ** 2 + K1[0] ** 2) ** 2 / (h * w)
+    assert ep == pytest.approx(interior + corner, rel=1e-13)
+
+
+def test_l2_hand():
+    t = np.zeros((2, 4, 4))
+    i = t.copy()
+    i[0] = 0.5
+    i[1, 1, 2] = 2.0
+    assert float(L.l2_loss(jnp.asarray(i), jnp.asarray(t))) == pytest.approx(0.25 + 4.0 / 16)
+
+
+# ----------------------------------------------------------------------------------------------
+# Gram and the filter bank
+
+
+def test_gram_hand():
+    f = np.array([[[1.0, 2.0], [3.0, 4.0]], [[0.0, 1.0], [0.0, 1.0]]])  # (C=2, 2, 2)
+    expected = np.array([[30.0, 6.0], [6.0, 2.0]]) / (2 * 4)
+    np.testing.assert_allclose(np.asarray(L.gram(jnp.asarray(f))), expected, rtol=1e-15)
+    # batched over leading axes
+    g2 = L.gram(jnp.stack([jnp.asarray(f), 2 * jnp.asarray(f)]))
+    np.testing.assert_allclose(np.asarray(g2[1]), 4 * expected, rtol=1e-15)
+
+
+def test_filter_bank_constant_images():
+    fb = L.FilterBank()
+    x = np.full(SHAPE, 0.6)
+    x[1] = 0.2
+    feats = fb(jnp.asarray(x))
+    assert [f.shape for f in feats] == [(2, 17, 32 >> s, 32 >> s) for s in range(4)]
+    for f in feats:
+        f = np.asarray(f)
+        assert np.all(np.abs(f[:, 1:]) <= 1e-16)  # every oriented channel is zero (to rounding)
+        np.testing.assert_allclose(f[:, 0], x[:, :1, :1] * np.ones_like(f[:, 0]), rtol=1e-15)
+    # Gram of a constant c: only G[0, 0] = c^2 / 17; E_g(c1 vs c2) = (c1^2 - c2^2)^2 / 17^2.
+    eg = float(L.gram_loss(jnp.asarray(x), jnp.asarray(x[::-1].copy()), fb))
+    assert eg == pytest.approx(2 * (0.36 - 0.04) ** 2 / 289, rel=1e-12)
+
+
+def test_filter_bank_step_edges():
+    fb = L.FilterBank()
+    x = np.zeros(SHAPE)
+    x[0, :, 16:] = 1.0  # view 0: dark left, bright right (intensity grows along +x)
+    x[1, :16, :] = 1.0  # view 1: bright top (intensity grows along +y = up)
+    f = np.asarray(fb(jnp.asarray(x))[0])
+    ex = np.zeros((17, 32, 32))
+    ex[0] = x[0]
+    edge = np.s_[:, 15:17]
+    ex[1][edge] = 0.5  # D1 at 0 deg: central difference 1/2 on both sides of the step
+    ex[2][edge] = ex[8][edge] = 0.5 * R  # 45 and 315 deg
+    # D2 across the step: +1 (dark side, column 15), -1 (bright side, column 16); 45/135 deg: 1/2.
+    for k, scale in ((0, 1.0), (1, 0.5), (3, 0.5)):
+        ex[10 + 2 * k][:, 15] = scale  # relu(D2): valley on the dark side
+        ex[9 + 2 * k][:, 16] = scale  # relu(-D2): ridge on the bright side
+    np.testing.assert_allclose(f[0], ex, atol=1e-15)
+    # The horizontal step: rotated copy (the up direction is channel D1 at 90 deg).
+    ey = np.zeros((17, 32, 32))
+    ey[0] = x[1]
+    ey[3][15:17] = 0.5
+    ey[2][15:17] = ey[4][15:17] = 0.5 * R
+    np.testing.assert_allclose(f[1, :9], ey[:9], atol=1e-15)
+
+
+def _rot_perm():
+    return (
+        [0]
+        + [1 + (k - 2) % 8 for k in range(8)]
+        + [9 + 2 * ((k - 2) % 4) + s for k in range(4) for s in range(2)]
+    )
+
+
+def test_filter_bank_rotation_permutes_channels():
+    fb = L.FilterBank()
+    x = _rand(2)
+    xr = np.rot90(x, axes=(-2, -1)).copy()  # +90 degrees (counter-clockwise)
+    fa, fr = fb(jnp.asarray(x)), fb(jnp.asarray(xr))
+    perm = _rot_perm()
+    for a, b in zip(fa, fr):
+        np.testing.assert_allclose(
+            np.asarray(b), np.rot90(np.asarray(a)[:, perm], axes=(-2, -1)), atol=1e-13
+        )
+        ga, gb = np.asarray(L.gram(a)), np.asarray(L.gram(b))
+        np.testing.assert_allclose(gb, ga[:, perm][:, :, perm], atol=1e-13)
+    t = _smooth(3)
+    tr = np.rot90(t, axes=(-2, -1)).copy()
+    eg = float(L.gram_loss(jnp.asarray(x), jnp.asarray(t), fb))
+    egr = float(L.gram_loss(jnp.asarray(xr), jnp.asarray(tr), fb))
+    assert egr == pytest.approx(eg, rel=1e-12)
+    assert eg > 0
+
+
+def test_filter_bank_odd_size_and_too_small():
+    fb = L.FilterBank(n_scales=2)
+    f = fb(jnp.zeros((1, 9, 7)))
+    assert [v.shape for v in f] == [(1, 17, 9, 7), (1, 17, 4, 3)]
+    with pytest.raises(ValueError, match="too small"):
+        L.FilterBank()(jnp.zeros((1, 15, 32)))
+    with pytest.raises(ValueError, match="n_scales"):
+        L.FilterBank(n_scales=0)
+
+
+# ----------------------------------------------------------------------------------------------
+# Gradients against float64 central differences
+
+
+def _weighted(r, t, w):
+    """``w[0] E_p + w[1] E_g``: one compilation checks both terms (weights are traced)."""
+    return w[0] * L.perceptual_loss(r, t) + w[1] * L.gram_loss(r, t)
+
+
+_VG = jax.jit(jax.value_and_grad(_weighted))
+
+
+def _fd_check(vg, x, *args, seeds=(0, 1), eps=1e-6, rtol=1e-6):
+    """Directional derivative of ``vg`` (a jitted value_and_grad in its first argument) against
+    float64 central differences along random directions."""
+    val, g = vg(x, *args)
+    g = np.asarray(g)
+    assert np.all(np.isfinite(g)) and np.any(g != 0)
+    for s in seeds:
+        v = np.random.default_rng(100 + s).standard_normal(x.shape)
+        fd = (float(vg(x + eps * v, *args)[0]) - float(vg(x - eps * v, *args)[0])) / (2 * eps)
+        assert float(np.sum(g * v)) == pytest.approx(fd, rel=rtol, abs=1e-12 * abs(float(val)))
+
+
+def test_gradients_match_finite_differences():
+    t = jnp.asarray(_smooth(4))
+    i = jnp.asarray(_smooth(5) * 0.8 + 0.1 * _rand(6))
+    for w in ([1.0, 0.0], [0.0, 1.0], [1.0, L.LAMBDA_G]):  # E_p, E_g, the default total
+        _fd_check(_VG, i, t, jnp.asarray(w))
+
+
+def test_float32_follows_input_and_agrees_with_float64():
+    t64, i64 = _smooth(7), _smooth(8)
+    w = jnp.asarray([1.0, L.LAMBDA_G])
+    v64, g64 = _VG(jnp.asarray(i64), jnp.asarray(t64), w)
+    ref = float(L.make_loss()(jnp.asarray(i64), jnp.asarray(t64)))  # eager, the public path
+    assert float(v64) == pytest.approx(ref, rel=1e-12)
+    v32, g32 = _VG(jnp.asarray(i64, jnp.float32), jnp.asarray(t64), w.astype(jnp.float32))
+    assert v32.dtype == jnp.float32 and g32.dtype == jnp.float32
+    assert float(v32) == pytest.approx(float(v64), rel=1e-4)
+    g64 = np.asarray(g64)
+    assert np.linalg.norm(np.asarray(g32) - g64) <= 1e-3 * np.linalg.norm(g64)
+    # a float64 target is cast to the render's float32
+    assert L.perceptual_loss(jnp.asarray(i64, jnp.float32), jnp.asarray(t64)).dtype == jnp.float32
+
+
+# ----------------------------------------------------------------------------------------------
+# Config, make_loss, bind, calibration
+
+
+def test_make_loss_kinds_and_bind():
+    t, i = jnp.asarray(_smooth(9)), jnp.asarray(_smooth(10))
+    ep, eg, l2 = L.perceptual_loss(i, t), L.gram_loss(i, t), L.l2_loss(i, t)
+    loss_l2 = L.make_loss(L.LossConfig(kind="l2", lambda_p=2.0))
+    assert float(loss_l2(i, t)) == pytest.approx(2.0 * float(l2), rel=1e-14)
+    assert float(loss_l2.terms(i, t)["l2"]) == pytest.approx(float(l2), rel=1e-14)
+    loss_p = L.make_loss(L.LossConfig(kind="perceptual"))
+    assert loss_p.features is None
+    assert float(loss_p(i, t)) == pytest.approx(float(ep), rel=1e-14)
+    loss = L.make_loss(L.LossConfig(lambda_g=3.0))
+    expected = float(ep) + 3.0 * float(eg)
+    assert float(loss(i, t)) == pytest.approx(expected, rel=1e-13)
+    assert float(L.make_loss()(i, t)) == pytest.approx(float(ep) + L.LAMBDA_G * float(eg), 1e-13)
+    assert float(L.total_loss(i, t, lambda_g=3.0)) == pytest.approx(expected, rel=1e-13)
+    terms = loss.terms(i, t)
+    assert set(terms) == {"total", "E_p", "E_g"}
+    bound = loss.bind(t)
+    assert float(eqx.filter_jit(bound)(i)) == pytest.approx(expected, rel=1e-12)
+    assert float(eqx.filter_jit(lambda f, a, b: f(a, b))(loss, i, t)) == pytest.approx(
+        expected, rel=1e-12
+    )
+    assert set(dataclasses.asdict(L.LossConfig())) == {"kind", "lambda_p", "lambda_g", "vgg_weights"}
+
+
+def test_calibrate_lambda_g():
+    t, i = jnp.asarray(_smooth(11)), jnp.asarray(_rand(12))
+    lam = L.calibrate_lambda_g(i, t, ratio=0.5)
+    assert lam * float(L.gram_loss(i, t)) == pytest.approx(0.5 * float(L.perceptual_loss(i, t)))
+    with pytest.raises(ValueError, match="E_g"):
+        L.calibrate_lambda_g(t, t)
+    with pytest.raises(ValueError, match="ratio"):
+        L.calibrate_lambda_g(i, t, ratio=-1.0)
+
+
+def test_bad_inputs():
+    t = jnp.zeros(SHAPE)
+    with pytest.raises(ValueError, match=r"render must have shape \(M, H, W\)"):
+        L.perceptual_loss(jnp.zeros((32, 32)), jnp.zeros((32, 32)))
+    with pytest.raises(ValueError, match="target must have the same shape"):
+        L.l2_loss(t, jnp.zeros((3, 32, 32)))
+    with pytest.raises(TypeError, match="render must be a floating"):
+        L.gram_loss(jnp.zeros(SHAPE, jnp.int32), t)
+    with pytest.raises(TypeError, match="target must be floating"):
+        L.perceptual_loss(t, np.zeros(SHAPE, np.uint8))
+    with pytest.raises(ValueError, match="kind must be one of"):
+        L.LossConfig(kind="vgg")
+    with pytest.raises(ValueError, match="lambda_p"):
+        L.LossConfig(lambda_p=float("nan"))
+    with pytest.raises(ValueError, match="lambda_g must be given with vgg_weights"):
+        L.LossConfig(vgg_weights="x.npz")
+    with pytest.raises(TypeError, match="LossConfig"):
+        L.make_loss({"kind": "l2"})
+    with pytest.raises(FileNotFoundError, match="not found"):
+        L.make_loss(L.LossConfig(vgg_weights="/nonexistent/vgg.npz", lambda_g=1.0))
+
+
+# ----------------------------------------------------------------------------------------------
+# VGG-19 loader on a tiny random file
+
+WIDTHS = {"conv1": 4, "conv2": 5, "conv3": 6, "conv4": 6, "conv5": 7}
+
+
+def _tiny_vgg(seed=0) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    out, prev = {}, 3
+    for name, _ in L.VGG19_LAYERS:
+        o = WIDTHS[name[:5]]
+        out[f"{name}.weight"] = (rng.standard_normal((o, prev, 3, 3)) * np.sqrt(2 / (9 * prev))).astype(
+            np.float32
+        )
+        out[f"{name}.bias"] = rng.uniform(0.0, 0.1, o).astype(np.float32)
+        prev = o
+    return out
+
+
+@pytest.fixture(scope="module")
+def tiny_vgg_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp("vgg") / "tiny_vgg19.npz"
+    np.savez(path, **_tiny_vgg(), **{"conv5_2.weight": np.zeros(1, np.float32)})  # extra: ignored
+    return path
+
+
+def _vgg_reference(arrays, images):
+    """Direct numpy/scipy VGG forward pass (cross-correlation, zero padding, floor max pool)."""
+    mean = np.array([0.485, 0.456, 0.406])[:, None, None]
+    std = np.array([0.229, 0.224, 0.225])[:, None, None]
+    outs = []
+    for img in images:
+        x = (np.repeat(img[None], 3, axis=0) - mean) / std
+        taps = []
+        for name, _ in L.VGG19_LAYERS:
+            if name.endswith("_1") and name != "conv1_1":
+                c, h, w = x.shape
+                x = x[:, : h // 2 * 2, : w // 2 * 2].reshape(c, h // 2, 2, w // 2, 2).max((2, 4))
+            wgt = arrays[f"{name}.weight"].astype(np.float64)
+            b = arrays[f"{name}.bias"].astype(np.float64)
+            y = np.stack(
+                [
+                    b[o]
+                    + sum(
+                        scipy.signal.correlate2d(x[i], wgt[o, i], mode="same", boundary="fill")
+                        for i in range(x.shape[0])
+                    )
+                    for o in range(wgt.shape[0])
+                ]
+            )
+            x = np.maximum(y, 0.0)
+            if name in L.VGG19_TAPS:
+                taps.append(x)
+        outs.append(taps)
+    return [np.stack([o[l] for o in outs]) for l in range(len(L.VGG19_TAPS))]
+
+
+def _np_gram(f):
+    m, c, h, w = f.shape
+    f = f.reshape(m, c, h * w)
+    return np.einsum("man,mbn->mab", f, f) / (c * h * w)
+
+
+def test_vgg_features_loss_and_gradient_match_scipy(tiny_vgg_file):
+    # One compilation: value_and_grad of the configured loss, with the features and terms as aux.
+    loss = L.make_loss(L.LossConfig(vgg_weights=str(tiny_vgg_file), lambda_g=0.5))
+    assert isinstance(loss.features, L.VGG19Features)
+
+    def f(r, t, loss):
+        terms = loss.terms(r, t)
+        return terms["total"], (loss.features(r), terms)
+
+    vg = eqx.filter_jit(jax.value_and_grad(f, has_aux=True))
+    images = _smooth(13, (2, 32, 34))  # odd pooled sizes exercise the floor
+    target = _smooth(14, (2, 32, 34))
+    (total, (got, terms)), _ = vg(jnp.asarray(images), jnp.asarray(target), loss)
+    ref = _vgg_reference(_tiny_vgg(), images)
+    assert [g.shape for g in got] == [
+        (2, WIDTHS[f"conv{b}"], h, w)
+        for b, (h, w) in zip(range(1, 6), [(32, 34), (16, 17), (8, 8), (4, 4), (2, 2)])
+    ]
+    for g, r in zip(got, ref):
+        assert g.dtype == jnp.float64
+        np.testing.assert_allclose(np.asarray(g), r, rtol=1e-10, atol=1e-12)
+    assert float(jnp.max(got[-1])) > 0  # the deepest tap is not all zero
+    # E_g and E_p from the scipy features / scipy blur, independently of jscratch.
+    ref_t = _vgg_reference(_tiny_vgg(), target)
+    eg = np.sum(np.mean([np.sum((_np_gram(a) - _np_gram(b)) ** 2, (1, 2)) for a, b in zip(ref, ref_t)], 0))
+    g2 = np.outer(K1, K1)
+    ep = sum(np.mean(scipy.ndimage.convolve(a - b, g2, mode="nearest") ** 2) for a, b in zip(images, target))
+    assert float(terms["E_g"]) == pytest.approx(eg, rel=1e-9)
+    assert float(terms["E_p"]) == pytest.approx(ep, rel=1e-12)
+    assert float(total) == pytest.approx(ep + 0.5 * eg, rel=1e-9)
+    _fd_check(lambda r, t, l: (vg(r, t, l)[0][0], vg(r, t, l)[1]), jnp.asarray(images), jnp.asarray(target), loss, seeds=(0,))
+
+
+@pytest.mark.parametrize(
+    "edit, match",
+    [
+        (lambda a: a.pop("conv3_2.bias"), "lacks key conv3_2.bias"),
+        (lambda a: a.__setitem__("conv2_1.weight", np.zeros((5, 4, 5, 5), np.float32)), "conv2_1.weight must have shape"),
+        (lambda a: a.__setitem__("conv4_1.weight", np.zeros((6, 3, 3, 3), np.float32)), "conv4_1.weight has 3 input channels"),
+        (lambda a: a.__setitem__("conv1_1.weight", np.zeros((4, 1, 3, 3), np.float32)), "conv1_1.weight has 1 input channels"),
+        (lambda a: a.__setitem__("conv5_1.bias", np.zeros(3, np.float32)), r"conv5_1.bias must have shape \(7,\)"),
+        (lambda a: a["conv1_2.weight"].__setitem__((0, 0, 0, 0), np.nan), "conv1_2 has non-finite"),
+    ],
+)
+def test_vgg_loader_structure_errors(tmp_path, edit, match):
+    arrays = _tiny_vgg()
+    edit(arrays)
+    path = tmp_path / "bad.npz"
+    np.savez(path, **arrays)
+    with pytest.raises(ValueError, match=match):
+        L.load_vgg19(path)
+
+
+def test_vgg_loader_unreadable_file(tmp_path):
+    path = tmp_path / "junk.npz"
+    path.write_bytes(b"not a zip file")
+    with pytest.raises(ValueError, match="not a readable .npz"):
+        L.load_vgg19(path)
+
+
+def _converter():
+    path = pathlib.Path(__file__).resolve().parents[1] / "scripts" / "convert_vgg19.py"
+    spec = importlib.util.spec_from_file_location("convert_vgg19", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_converter_maps_torchvision_keys(tmp_path):
+    conv = _converter()
+    arrays = _tiny_vgg(seed=3)
+    rng = np.random.default_rng(4)
+    state, prev = {}, WIDTHS["conv5"]
+    for name, idx in conv.TORCHVISION_VGG19_CONVS.items():
+        if f"{name}.weight" in arrays:
+            w, b = arrays[f"{name}.weight"], arrays[f"{name}.bias"]
+        else:  # conv5_2 .. conv5_4
+            w = rng.standard_normal((prev, prev, 3, 3)).astype(np.float32)
+            b = np.zeros(prev, np.float32)
+        state[f"features.{idx}.weight"], state[f"features.{idx}.bias"] = w, b
+    state["classifier.0.weight"] = np.zeros((2, 2), np.float32)
+    assert {k: v for k, v in L.VGG19_LAYERS} == {
+        k: v for k, v in conv.TORCHVISION_VGG19_CONVS.items() if k in dict(L.VGG19_LAYERS)
+    }
+    out = conv.convert_state_dict(state)
+    assert len(out) == 32 and "classifier.0.weight" not in out
+    path = tmp_path / "converted.npz"
+    np.savez(path, **out)
+    feats = L.load_vgg19(path)
+    for got, want in zip(feats.weights, (arrays[f"{n}.weight"] for n, _ in L.VGG19_LAYERS)):
+        np.testing.assert_array_equal(np.asarray(got), want)
+    with pytest.raises(ValueError, match="vgg19_bn"):
+        conv.convert_state_dict({**state, "features.1.running_mean": np.zeros(4)})
+    del state["features.10.bias"]
+    with pytest.raises(ValueError, match=r"lacks features\.10\.bias \(for conv3_1\)"):
+        conv.convert_state_dict(state)
