@@ -1,0 +1,123 @@
+"""Image quality metrics of a multi-view design (SPEC section 7), host side (numpy/scikit-image).
+
+Per view ``j``, with ``g`` a Gaussian of sigma 1 px (``skimage.filters.gaussian``, boundary mode
+``"nearest"``) applied to the display images ``I_j`` and the targets ``T_j``:
+
+- ``ssim[j] = SSIM(g * I_j, g * T_j)`` (``skimage.metrics.structural_similarity``, 7x7 uniform
+  window, ``data_range = 1``);
+- ``psnr[j] = PSNR(g * T_j, g * I_j)`` in dB (``data_range = 1``; ``inf`` for identical images);
+- ``ghosting[j] = max_{k != j} SSIM(g * I_j, g * T_k)``: how much view ``j`` resembles another
+  view's target (lower is better; compare with ``ssim[j]``); ``ghosting_from[j]`` is that ``k``.
+  With a single view there is no other target: ``nan`` and ``-1``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from skimage.filters import gaussian
+from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+
+__all__ = ["METRIC_SIGMA", "image_metrics"]
+
+#: Gaussian sigma (pixels) applied to renders and targets before the metrics.
+METRIC_SIGMA = 1.0
+_SSIM_WIN = 7  # skimage's default window side; images must be at least this large
+
+
+def _as_stack(x, name: str) -> np.ndarray:
+    x = np.asarray(x)
+    if x.dtype == object or not np.issubdtype(x.dtype, np.number):
+        raise TypeError(f"{name} must be a numeric array, got dtype {x.dtype}")
+    if np.issubdtype(x.dtype, np.integer):
+        raise TypeError(f"{name} must be floating display values in [0, 1], got dtype {x.dtype}")
+    if x.ndim != 3:
+        raise ValueError(f"{name} must have shape (M, H, W) (views, rows, columns), got {x.shape}")
+    bad = ~np.isfinite(x)
+    if bad.any():
+        j, r, c = np.argwhere(bad)[0]
+        raise ValueError(
+            f"{name} has {int(bad.sum())} non-finite values (first: view {j}, pixel ({r}, {c}) "
+            f"= {x[j, r, c]})"
+        )
+    return x.astype(np.float64)
+
+
+def image_metrics(
+    display_images,
+    targets,
+    sigma: float = METRIC_SIGMA,
+    clip: bool = True,
+) -> dict[str, list]:
+    """SSIM, PSNR and cross-view ghosting per view (SPEC section 7).
+
+    **Arguments:**
+
+    - `display_images`: ``(M, H, W)`` rendered display values (``render.display`` of the radiance;
+      numpy or JAX array, floating).
+    - `targets`: ``(M, H, W)`` target display values in ``[0, 1]``.
+    - `sigma`: Gaussian sigma in pixels applied to both before comparing (SPEC: 1).
+    - `clip`: clip the display images to ``[0, 1]`` first (what a screen or PNG shows); default
+      True.
+
+    **Returns:**
+
+    ``{"ssim": [M floats], "psnr": [M floats, dB], "ghosting": [M floats],
+    "ghosting_from": [M ints]}`` (plain Python types, ready for JSON; ``psnr`` may be ``inf``,
+    ``ghosting`` is ``nan`` when ``M == 1``).
+
+    **Raises:**
+
+    ``ValueError`` for shape mismatches, non-finite values, targets outside ``[0, 1]``, images
+    smaller than 7x7 or a bad ``sigma``; ``TypeError`` for non-float arrays.
+    """
+    if not (isinstance(sigma, (int, float)) and np.isfinite(sigma) and sigma >= 0):
+        raise ValueError(f"sigma must be a finite number >= 0 (pixels), got {sigma!r}")
+    imgs = _as_stack(display_images, "display_images")
+    tgts = _as_stack(targets, "targets")
+    if imgs.shape != tgts.shape:
+        raise ValueError(
+            f"display_images {imgs.shape} and targets {tgts.shape} must have the same shape"
+        )
+    if tgts.min() < 0.0 or tgts.max() > 1.0:
+        raise ValueError(
+            f"targets must be display values in [0, 1], got range [{tgts.min()}, {tgts.max()}]"
+        )
+    m, h, w = imgs.shape
+    if min(h, w) < _SSIM_WIN:
+        raise ValueError(f"images must be at least {_SSIM_WIN}x{_SSIM_WIN} px for SSIM, got {h}x{w}")
+    if clip:
+        imgs = np.clip(imgs, 0.0, 1.0)
+
+    def blur(x):
+        if sigma == 0:
+            return x
+        return gaussian(x, sigma=sigma, mode="nearest", preserve_range=True)
+
+    bi = [blur(x) for x in imgs]
+    bt = [blur(x) for x in tgts]
+    # SSIM of every (render j, target k) pair: diagonal = ssim, off-diagonal = ghosting candidates.
+    s = np.array(
+        [[structural_similarity(bi[j], bt[k], data_range=1.0) for k in range(m)] for j in range(m)]
+    )
+    psnr = []
+    for j in range(m):
+        if np.array_equal(bi[j], bt[j]):
+            psnr.append(float("inf"))  # skimage would divide by zero
+        else:
+            psnr.append(float(peak_signal_noise_ratio(bt[j], bi[j], data_range=1.0)))
+    ghosting, ghosting_from = [], []
+    for j in range(m):
+        if m == 1:
+            ghosting.append(float("nan"))
+            ghosting_from.append(-1)
+            continue
+        others = [k for k in range(m) if k != j]
+        k = others[int(np.argmax(s[j, others]))]
+        ghosting.append(float(s[j, k]))
+        ghosting_from.append(int(k))
+    return {
+        "ssim": [float(s[j, j]) for j in range(m)],
+        "psnr": psnr,
+        "ghosting": ghosting,
+        "ghosting_from": ghosting_from,
+    }

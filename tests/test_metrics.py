@@ -1,0 +1,115 @@
+"""Tests of jscratch.metrics (SPEC section 7): SSIM against an independent numpy implementation,
+PSNR by hand, ghosting bookkeeping, the sigma-1 blur, clipping and errors. Host code only (no JAX
+compilation)."""
+
+import math
+
+import numpy as np
+import pytest
+import scipy.ndimage
+
+from jscratch.metrics import image_metrics
+
+
+def _rng_images(seed, shape=(3, 24, 28)):
+    x = np.random.default_rng(seed).random(shape)
+    return scipy.ndimage.gaussian_filter(x, (0, 1.5, 1.5))
+
+
+def _ssim_ref(a, b, win=7, data_range=1.0):
+    """SSIM (Wang et al. 2004) with a win x win uniform window, sample covariance, mean over the
+    window positions fully inside the image: written from the definition, not from skimage."""
+    k1, k2 = 0.01, 0.03
+    c1, c2 = (k1 * data_range) ** 2, (k2 * data_range) ** 2
+    h, w = a.shape
+    vals = []
+    n = win * win
+    for r in range(h - win + 1):
+        for c in range(w - win + 1):
+            x = a[r : r + win, c : c + win].ravel()
+            y = b[r : r + win, c : c + win].ravel()
+            mx, my = x.mean(), y.mean()
+            vx = np.sum((x - mx) ** 2) / (n - 1)
+            vy = np.sum((y - my) ** 2) / (n - 1)
+            cxy = np.sum((x - mx) * (y - my)) / (n - 1)
+            vals.append(
+                (2 * mx * my + c1) * (2 * cxy + c2) / ((mx * mx + my * my + c1) * (vx + vy + c2))
+            )
+    return float(np.mean(vals))
+
+
+def test_ssim_psnr_against_independent_reference_without_blur():
+    t = _rng_images(0)
+    i = np.clip(t + 0.05 * np.random.default_rng(1).standard_normal(t.shape), 0, 1)
+    m = image_metrics(i, t, sigma=0)
+    for j in range(3):
+        assert m["ssim"][j] == pytest.approx(_ssim_ref(i[j], t[j]), abs=1e-9)
+        mse = np.mean((i[j] - t[j]) ** 2)
+        assert m["psnr"][j] == pytest.approx(10 * math.log10(1.0 / mse), rel=1e-12)
+
+
+def test_blur_is_gaussian_sigma_one_nearest():
+    t = _rng_images(2)
+    i = _rng_images(3)
+    m = image_metrics(i, t)  # sigma = 1 px (SPEC 7)
+    blur = lambda x: np.stack([scipy.ndimage.gaussian_filter(v, 1.0, mode="nearest") for v in x])
+    bi, bt = blur(i), blur(t)
+    for j in range(3):
+        assert m["ssim"][j] == pytest.approx(_ssim_ref(bi[j], bt[j]), abs=1e-9)
+        mse = np.mean((bi[j] - bt[j]) ** 2)
+        assert m["psnr"][j] == pytest.approx(10 * math.log10(1.0 / mse), rel=1e-9)
+
+
+def test_constant_offset_psnr_and_identical_images():
+    t = np.full((2, 16, 16), 0.4)
+    t[1] = 0.7
+    m = image_metrics(t + 0.1, t)
+    assert m["psnr"] == pytest.approx([20.0, 20.0], rel=1e-9)  # 10 log10(1 / 0.01)
+    same = image_metrics(t, t)
+    assert same["ssim"] == [1.0, 1.0]
+    assert same["psnr"] == [math.inf, math.inf]
+
+
+def test_ghosting_picks_the_other_target_a_view_resembles():
+    t = _rng_images(4)
+    # View 0 shows target 2 exactly, view 1 its own target, view 2 a mix of targets 2 and 0.
+    i = np.stack([t[2], t[1], 0.5 * t[2] + 0.5 * t[0]])
+    m = image_metrics(i, t)
+    assert m["ghosting"][0] == pytest.approx(1.0)
+    assert m["ghosting_from"][0] == 2
+    assert m["ssim"][1] == pytest.approx(1.0)
+    assert m["ghosting_from"][1] in (0, 2)
+    blur = lambda x: scipy.ndimage.gaussian_filter(x, 1.0, mode="nearest")
+    cand = {k: _ssim_ref(blur(i[2]), blur(t[k])) for k in (0, 1)}
+    k = max(cand, key=cand.get)
+    assert m["ghosting_from"][2] == k
+    assert m["ghosting"][2] == pytest.approx(cand[k], abs=1e-9)
+
+
+def test_single_view_and_clipping():
+    t = _rng_images(5, (1, 16, 16))
+    m = image_metrics(t, t)
+    assert math.isnan(m["ghosting"][0]) and m["ghosting_from"] == [-1]
+    # Display values above 1 are clipped (what a PNG shows) unless clip=False.
+    over = np.ones((1, 16, 16))
+    over[0, :8] = 3.0
+    tgt = np.ones((1, 16, 16))
+    assert image_metrics(over, tgt)["psnr"] == [math.inf]
+    assert image_metrics(over, tgt, clip=False)["psnr"][0] < 10.0
+
+
+@pytest.mark.parametrize(
+    "images, targets, kw, err, match",
+    [
+        (np.zeros((2, 16, 16)), np.zeros((3, 16, 16)), {}, ValueError, "same shape"),
+        (np.zeros((16, 16)), np.zeros((16, 16)), {}, ValueError, r"display_images must have shape \(M, H, W\)"),
+        (np.zeros((1, 16, 16)), np.full((1, 16, 16), 1.5), {}, ValueError, r"targets must be display values in \[0, 1\]"),
+        (np.full((1, 16, 16), np.nan), np.zeros((1, 16, 16)), {}, ValueError, "display_images has 256 non-finite"),
+        (np.zeros((1, 16, 16)), np.zeros((1, 16, 16), np.uint8), {}, TypeError, "targets must be floating"),
+        (np.zeros((1, 5, 16)), np.zeros((1, 5, 16)), {}, ValueError, "at least 7x7"),
+        (np.zeros((1, 16, 16)), np.zeros((1, 16, 16)), {"sigma": -1.0}, ValueError, "sigma"),
+    ],
+)
+def test_errors(images, targets, kw, err, match):
+    with pytest.raises(err, match=match):
+        image_metrics(images, targets, **kw)
