@@ -1,4 +1,4 @@
-"""Test and benchmark cases for the scratch pair integral `jscratch.ndf.pair_integral`.
+"""Test and benchmark cases (pair populations) for the scratch pair integral `jscratch.ndf.pair_integral`.
 
 A case is one (pixel footprint, scratch, half vector) pair; a `Cases` batch holds numpy float64
 arrays with a leading batch axis, in the argument order of the kernel. Everything is deterministic
