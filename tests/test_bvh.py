@@ -207,6 +207,18 @@ def test_no_missed_pairs_float64(board, shape, n, wide):
     assert len(extra) < 0.05 * len(must)
     # padding efficiency: real pairs over slots, close to 1/margin
     assert int(np.asarray(pairs.valid).sum()) / spec.pair_capacity > 0.6
+    # per-scratch work follows the scratch's own extent, not the image size: at most
+    # (extent of the groove along its major grid axis, in pixels) + 2 strips per scratch
+    t, b, length = _local_frame(p0, p1)
+    xm = _x_max(width, depth)
+    kx, ky = shape[1] / board[0], shape[0] / board[1]
+    ext = np.maximum(
+        (length * np.abs(t[:, 0]) + 2 * xm * np.abs(b[:, 0])) * kx,
+        (length * np.abs(t[:, 1]) + 2 * xm * np.abs(b[:, 1])) * ky,
+    )
+    area = (length > 0) & (xm > 0)
+    bound = np.sum(np.where(area, np.floor(ext) + 2, 0))
+    assert spec.strip_capacity <= bvh.DEFAULT_MARGIN * bound + 64
 
 
 def test_no_missed_pairs_float32_and_jit():
@@ -214,7 +226,7 @@ def test_no_missed_pairs_float32_and_jit():
     rng = np.random.default_rng(7)
     p0, p1, width, depth = (a.astype(np.float32) for a in make_scene(rng, 320, board, shape))
     spec = bvh.allocate(p0, p1, width, depth, board=board, shape=shape)
-    pairs = jax.jit(bvh.update)(spec, p0, p1, width, depth)
+    pairs = bvh.update(spec, p0, p1, width, depth)  # bvh.update is jax.jit-compiled
     assert pairs.bin_p0.dtype == jnp.float32 and pairs.bin_half_width.dtype == jnp.float32
     got, must, _ = check_against_brute(
         pairs, p0, p1, width, depth, board, shape, bvh.pair_tolerance(board, jnp.float32)
@@ -258,7 +270,7 @@ def test_overflow_flag_in_jit_and_driver_regrows():
     long_ = (mid - 0.04 * u, mid + 0.04 * u)
     width, depth = np.full(n, 2.5e-4), np.full(n, 1.28e-4)
     spec = bvh.allocate(*short, width, depth, board=board, shape=shape)
-    update = jax.jit(bvh.update)
+    update = bvh.update  # a jax.jit-compiled function: the flag is raised inside jit
     assert not bool(update(spec, *short, width, depth).overflow)
     assert bool(update(spec, *long_, width, depth).overflow)  # too many strips and pairs
     # wider grooves need more cells per strip than measured
@@ -292,7 +304,7 @@ def test_needs_rebin_and_maybe_update():
     width, depth = np.full(n, 2.5e-4), np.full(n, 1.28e-4)
     skin = 1e-3
     pairs, spec = bvh.build_pairs(p0, p1, width, depth, board=board, shape=shape, skin=skin)
-    needs = jax.jit(bvh.needs_rebin)
+    needs = bvh.needs_rebin  # jax.jit-compiled
     assert not bool(needs(pairs, p0, p1, width, depth))
     # the list with skin holds every pair of the unmoved scene
     check_against_brute_superset(pairs, p0, p1, width, depth, board, shape)
@@ -334,7 +346,7 @@ def test_needs_rebin_and_maybe_update():
     assert not bool(needs(pairs_flat, p0, p1, width, flat))
     assert bool(needs(pairs_flat, p0, p1, width, depth))
     # maybe_update in jit: keeps the list when not needed, rebins when needed
-    mu = jax.jit(bvh.maybe_update)
+    mu = bvh.maybe_update  # jax.jit-compiled
     same = mu(spec, pairs, p0 + shift, p1 + shift, width, depth)
     np.testing.assert_array_equal(same.bin_p0, pairs.bin_p0)
     np.testing.assert_array_equal(same.pixel, pairs.pixel)
@@ -457,7 +469,7 @@ def test_cull_keeps_all_at_zero_and_obeys_the_error_bound():
     alpha = rng.uniform(0.03, 0.3, n)
     pairs, _ = bvh.build_pairs(p0, p1, width, depth, board=board, shape=shape)
     valid = np.asarray(pairs.valid)
-    cull = jax.jit(bvh.cull)
+    cull = bvh.cull  # jax.jit-compiled
     s_p = board[0] * board[1] / (shape[0] * shape[1])
     total_dropped = 0
     for light_az, cam_az in ((0.0, 2.0), (1.0, 3.5)):
@@ -544,7 +556,7 @@ def test_errors():
     with pytest.raises(ValueError, match=r"width must be a scalar or have shape \(3,\)"):
         bvh.update(spec, p0, p1, np.ones(4), 1e-4)
     # inside jit: NaN and bad values raise at run time with the argument's name
-    upd = jax.jit(bvh.update)
+    upd = bvh.update
     with pytest.raises(Exception, match="p1 has non-finite entries"):
         upd(spec, p0, np.where(np.eye(3, 2) > 0, np.nan, p1), 1e-4, 1e-4)
     with pytest.raises(Exception, match="depth must be finite and >= 0"):
