@@ -1,0 +1,734 @@
+"""Fabrication: order a design's scratches, fit the cutter, write GRBL 1.1 G-code, stream it.
+
+A separate, imperative stage (SPEC section 8): it reads a design file (SPEC section 9) and drives a
+3-axis carver with a ball-end cutter for hours, so every step is checked before any motion and the
+progress survives crashes.
+
+- :func:`fit_plunge`: plunge depth of a ball-end cutter of radius `R` that best matches each
+  scratch's groove profile (least squares with optimistix), with the fit error.
+- :func:`make_program`: ordered G-code (mm, absolute) with a line map (line -> scratch).
+- :func:`carve`: stream a G-code file to GRBL over a serial port with a journal and resume.
+- ``python -m jscratch.fabricate --help``: the command line.
+
+G-code layout (one block per scratch, at most 79 characters a line)::
+
+    G0 X.. Y..        travel, at safe Z          (role "travel")
+    G1 Z-p F..        plunge                     (role "plunge")
+    G1 X.. Y.. F..    cut                        (role "cut")
+    G0 Z..            retract to safe Z          (role "retract")
+    G4 P0             sync: its ok means the scratch is carved (role "sync")
+
+GRBL answers ``G4 P0`` only once the planner is empty, so the journal records a scratch as carved
+when that ``ok`` arrives; at a fault, only the scratch after the last confirmed one can be partly cut.
+
+Bounds: every X/Y emitted lies in ``[offset - margin, offset + S + margin]`` mm (``margin_mm``,
+default 0: design endpoints within the load tolerance are clamped onto the board), every Z in
+``[-max plunge, safe_z]``; :func:`make_program` checks each line before returning.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import json
+import math
+import os
+import sys
+import time
+from typing import NamedTuple
+
+import numpy as np
+
+from .designfile import Design, DesignError, demo_design, groove_half_width, load_design
+from .toolpath import order_scratches
+
+__all__ = [
+    "MachineConfig", "CutterFit", "fit_plunge", "Program", "make_program", "write_program",
+    "read_program", "write_preview", "summarize", "carve", "CarveError", "main",
+]
+
+MAX_LINE = 79  # characters, without the newline (GRBL's line buffer is 80 bytes)
+
+
+@dataclasses.dataclass
+class MachineConfig:
+    """Machine settings (millimetres, mm/min). All can come from options or a TOML config file.
+
+    - `feed_mm_min`: cutting feed (paper: 1.5 cm/s = 900 mm/min).
+    - `plunge_mm_min`: plunge feed.
+    - `rapid_mm_min`: rapid rate, for time estimates only (GRBL uses its `$110`.. max rates).
+    - `safe_z_mm`: travel height above the board surface (Z = 0 on the surface).
+    - `cutter_radius_mm`: ball-end radius `R`.
+    - `plunge_mm`: fixed plunge depth for every scratch, or None to fit it (see `fit`).
+    - `fit`: `"per-scratch"` or `"global"` plunge fit.
+    - `board_offset_mm`: work coordinates of the board corner `(0, 0)`.
+    - `margin_mm`: how far outside the board a coordinate may be (design endpoints are clamped).
+    - `min_length_mm`: shorter scratches are an error (or dropped with `drop_short`).
+    - `spindle_rpm`: 0 for no spindle commands, else `M3 S..` / `M5`.
+    - `overhead_s`: per-scratch acceleration and settling time, for the estimate.
+    """
+
+    feed_mm_min: float = 900.0
+    plunge_mm_min: float = 300.0
+    rapid_mm_min: float = 3000.0
+    safe_z_mm: float = 1.0
+    cutter_radius_mm: float = 0.125
+    plunge_mm: float | None = None
+    fit: str = "per-scratch"
+    board_offset_mm: tuple = (0.0, 0.0)
+    margin_mm: float = 0.0
+    min_length_mm: float = 0.01
+    drop_short: bool = False
+    spindle_rpm: float = 0.0
+    overhead_s: float = 0.2
+
+    def __post_init__(self):
+        for name in ("feed_mm_min", "plunge_mm_min", "rapid_mm_min", "safe_z_mm", "cutter_radius_mm"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"machine setting {name} must be a finite number > 0, got {v!r}")
+        for name in ("margin_mm", "min_length_mm", "spindle_rpm", "overhead_s"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"machine setting {name} must be a finite number >= 0, got {v!r}")
+        if self.plunge_mm is not None and not (math.isfinite(self.plunge_mm) and 0 < self.plunge_mm <= self.cutter_radius_mm):
+            raise ValueError(f"plunge_mm must lie in (0, cutter_radius_mm = {self.cutter_radius_mm}], got {self.plunge_mm!r}")
+        if self.fit not in ("per-scratch", "global"):
+            raise ValueError(f"fit must be 'per-scratch' or 'global', got {self.fit!r}")
+        off = tuple(float(v) for v in self.board_offset_mm)
+        if len(off) != 2 or not all(math.isfinite(v) for v in off):
+            raise ValueError(f"board_offset_mm must be two finite numbers, got {self.board_offset_mm!r}")
+        self.board_offset_mm = off
+
+    @classmethod
+    def from_toml(cls, path, **overrides):
+        """Read settings from a TOML file (keys as the field names), then apply `overrides` (not None)."""
+        import tomllib
+
+        with open(path, "rb") as f:
+            data = tomllib.load(f)
+        data = data.get("machine", data)
+        unknown = set(data) - {f.name for f in dataclasses.fields(cls)}
+        if unknown:
+            raise ValueError(f"{path}: unknown machine setting(s) {sorted(unknown)}")
+        data.update({k: v for k, v in overrides.items() if v is not None})
+        return cls(**data)
+
+
+# ----------------------------------------------------------------------------------------------
+# Cutter fit.
+
+
+class CutterFit(NamedTuple):
+    """Plunge fit of a ball-end cutter to the design's groove profiles (all lengths metres).
+
+    - `plunge`: `(N,)` plunge depth per scratch.
+    - `rms`: `(N,)` RMS height error between the cut and the design profile over `|x| <= 1.25 x_max`.
+    - `rel_rms`: `(N,)` `rms / depth`.
+    - `groove_width`, `cut_width`: `(N,)` design groove width `2 x_max` and the cut's `2 sqrt(2Rp - p^2)`.
+    - `unreachable`: `(N,)` bool, the cutter cannot make this groove well (`rel_rms > 0.25` or the
+      plunge hit the cutter's radius).
+    """
+
+    plunge: np.ndarray
+    rms: np.ndarray
+    rel_rms: np.ndarray
+    groove_width: np.ndarray
+    cut_width: np.ndarray
+    unreachable: np.ndarray
+
+
+_FIT_SAMPLES = 64
+_fit_cache = {}
+
+
+def _fit_solver():
+    """The jitted, vmapped optimistix least-squares plunge fit (built once)."""
+    if "f" in _fit_cache:
+        return _fit_cache["f"]
+    import jax
+    import jax.numpy as jnp
+    import optimistix as optx
+
+    s = jnp.linspace(-1.0, 1.0, _FIT_SAMPLES)
+
+    def residual(theta, args):
+        # Units of R: groove w, d, x_max; plunge p = sigmoid(theta) in (0, 1).
+        w, d, xm, weight = args
+        x = 1.25 * xm * s
+        p = jax.nn.sigmoid(theta)
+        inside = jnp.abs(x) < xm
+        xs = jnp.where(inside, x, 0.0)
+        h = jnp.where(inside, -0.5 * w * jnp.log1p(-4.0 * xs**2 / w**2) - d, 0.0)
+        ball = 1.0 - p - jnp.sqrt(jnp.maximum(1.0 - x**2, 1e-12))
+        cut = jnp.minimum(ball, 0.0)
+        return weight[..., None] * (cut - jnp.minimum(h, 0.0))
+
+    solver = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-10)
+
+    def one(theta0, args):
+        sol = optx.least_squares(residual, solver, theta0, args=args, max_steps=200, throw=False)
+        r = residual(sol.value, args)
+        return jax.nn.sigmoid(sol.value), jnp.sqrt(jnp.mean((r / args[3][..., None]) ** 2, axis=-1))
+
+    per = jax.jit(jax.vmap(one))
+    glob = jax.jit(one)
+    _fit_cache["f"] = (per, glob)
+    return per, glob
+
+
+def fit_plunge(width, depth, radius: float, *, mode: str = "per-scratch") -> CutterFit:
+    """Fit the plunge depth `p` of a ball-end cutter of radius `radius` to groove profiles.
+
+    The cut of a ball plunged to `p` has height `min(0, R - p - sqrt(R^2 - x^2))` (surface width
+    `2 sqrt(2Rp - p^2)`, SPEC section 8); the design groove is `min(0, h(x))` of SPEC section 2. The
+    plunge minimises the squared height difference over `|x| <= 1.25 x_max` (optimistix
+    Levenberg-Marquardt on `p = R sigmoid(theta)`, so `0 < p < R`); `"global"` fits one plunge for all
+    scratches. Unique `(w, d)` pairs are fitted once.
+
+    **Arguments:** `width`, `depth` `(N,)` metres; `radius` metres; `mode` `"per-scratch"` or `"global"`.
+
+    **Returns:** a :class:`CutterFit`.
+    """
+    import jax.numpy as jnp
+
+    width = np.asarray(width, np.float64)
+    depth = np.asarray(depth, np.float64)
+    if not (math.isfinite(radius) and radius > 0):
+        raise ValueError(f"radius must be a finite positive length in metres, got {radius!r}")
+    if mode not in ("per-scratch", "global"):
+        raise ValueError(f"mode must be 'per-scratch' or 'global', got {mode!r}")
+    n = width.shape[0]
+    xm_all = groove_half_width(width, depth)
+    if n == 0:
+        z = np.zeros(0)
+        return CutterFit(z, z, z, z, z, np.zeros(0, bool))
+    pairs, inv, counts = np.unique(np.stack([width, depth], 1), axis=0, return_inverse=True, return_counts=True)
+    inv = inv.reshape(-1)
+    w, d = pairs[:, 0] / radius, pairs[:, 1] / radius
+    xm = groove_half_width(w, d)
+    a = np.minimum(xm, 0.999)
+    p0 = np.clip(1.0 - np.sqrt(1.0 - a**2), 1e-4, 0.999)
+    theta0 = np.log(p0 / (1.0 - p0))
+    per, glob = _fit_solver()
+    dt = jnp.float64 if jnp.zeros(()).dtype == jnp.float64 else jnp.float32
+    if mode == "per-scratch":
+        args = tuple(jnp.asarray(v, dt) for v in (w, d, xm, np.ones_like(w)))
+        p, rms = per(jnp.asarray(theta0, dt), args)
+        p_u, rms_u = np.asarray(p, np.float64), np.asarray(rms, np.float64)
+    else:
+        wt = np.sqrt(counts / counts.sum())
+        args = tuple(jnp.asarray(v, dt) for v in (w, d, xm, wt))
+        theta_g = float(np.average(theta0, weights=counts))
+        pg, _ = glob(jnp.asarray(theta_g, dt), args)
+        p_u = np.full(len(w), float(pg))
+        # Per-groove RMS at the shared plunge (no extra solve: evaluate with max_steps=0 equivalent).
+        theta = np.full(len(w), math.log(float(pg) / (1 - float(pg))))
+        _, rms = per(jnp.asarray(theta, dt), tuple(jnp.asarray(v, dt) for v in (w, d, xm, np.ones_like(w))))
+        rms_u = np.asarray(rms, np.float64)
+        p_u = np.full(len(w), float(pg))
+    plunge = p_u[inv] * radius
+    rms_m = rms_u[inv] * radius
+    rel = rms_m / depth
+    cut_w = 2.0 * np.sqrt(np.maximum(2.0 * radius * plunge - plunge**2, 0.0))
+    unreachable = (rel > 0.25) | (plunge > 0.98 * radius)
+    return CutterFit(plunge, rms_m, rel, 2.0 * xm_all, cut_w, unreachable)
+
+
+# ----------------------------------------------------------------------------------------------
+# G-code.
+
+
+class Program(NamedTuple):
+    """G-code with its line map.
+
+    - `lines`: the G-code lines (no line endings); file line `i + 1` is `lines[i]`.
+    - `k`: `(L,)` int, position in the cutting order of the scratch a line belongs to, -1 for the
+      preamble and postamble.
+    - `scratch`: `(L,)` int, design index of that scratch, -1 outside scratches.
+    - `role`: `(L,)` str: `comment`, `pre`, `travel`, `plunge`, `cut`, `retract`, `sync`, `post`.
+    - `info`: dict of summary numbers (see :func:`summarize`).
+    """
+
+    lines: list
+    k: np.ndarray
+    scratch: np.ndarray
+    role: list
+    info: dict
+
+
+def _num(v: float) -> str:
+    s = f"{v:.3f}"
+    return "0.000" if s == "-0.000" else s
+
+
+def check_design_for_cutting(design: Design, cfg: MachineConfig):
+    """Scratches long enough to cut; raises :class:`DesignError` naming the first too-short scratch.
+
+    **Returns:** `(N,)` bool mask of scratches to cut (all True unless `cfg.drop_short`).
+    """
+    length_mm = 1000.0 * design.length
+    short = length_mm < cfg.min_length_mm
+    if short.any() and not cfg.drop_short:
+        i = int(np.flatnonzero(short)[0])
+        raise DesignError(
+            f"scratch {i} has length {length_mm[i]:.4g} mm (< min_length_mm = {cfg.min_length_mm:g} mm; "
+            f"{int(short.sum())} such scratches): a zero-length scratch cannot be cut; pass --drop-short to skip them"
+        )
+    return ~short
+
+
+def make_program(design: Design, cfg: MachineConfig, *, improve: bool = True, time_limit: float | None = 40.0,
+                 quiet: bool = True) -> Program:
+    """Order the scratches, fit the plunge and write GRBL 1.1 G-code with its line map.
+
+    **Arguments:** `design` a :class:`~jscratch.designfile.Design`; `cfg` machine settings;
+    `improve`/`time_limit` for :func:`~jscratch.toolpath.order_scratches`; `quiet`.
+
+    **Returns:** a :class:`Program`. **Raises:** `DesignError` for scratches too short to cut,
+    `ValueError` if a coordinate would leave the board (+ margin).
+    """
+    keep = check_design_for_cutting(design, cfg)
+    idx = np.flatnonzero(keep)
+    board_mm = 1000.0 * design.board
+    p0 = np.clip(1000.0 * design.p0[idx], 0.0, board_mm)
+    p1 = np.clip(1000.0 * design.p1[idx], 0.0, board_mm)
+    ordering = order_scratches(p0, p1, (0.0, 0.0), improve=improve, time_limit=time_limit)
+    if cfg.plunge_mm is not None:
+        plunge = np.full(len(idx), cfg.plunge_mm)
+        fit = None
+    else:
+        fit = fit_plunge(design.width[idx], design.depth[idx], cfg.cutter_radius_mm / 1000.0, mode=cfg.fit)
+        plunge = 1000.0 * fit.plunge
+    ox, oy = cfg.board_offset_mm
+    safe = cfg.safe_z_mm
+    lines, ks, ss, roles = [], [], [], []
+
+    def emit(text, k=-1, s=-1, role="pre"):
+        lines.append(text)
+        ks.append(k)
+        ss.append(s)
+        roles.append(role)
+
+    n = len(idx)
+    emit(f"(jscratch: {n} scratches, board {_num(board_mm[0])} x {_num(board_mm[1])} mm)", role="comment")
+    emit(f"(ball R {_num(cfg.cutter_radius_mm)} mm, feed {cfg.feed_mm_min:g} mm/min)", role="comment")
+    emit("G21 G90 G94 G17")
+    if cfg.spindle_rpm > 0:
+        emit(f"M3 S{cfg.spindle_rpm:g}")
+    emit(f"G0 Z{_num(safe)}")
+    for k, j in enumerate(ordering.order.tolist()):
+        a, b = (p1[j], p0[j]) if ordering.flipped[j] else (p0[j], p1[j])
+        s = int(idx[j])
+        emit(f"G0 X{_num(a[0] + ox)} Y{_num(a[1] + oy)}", k, s, "travel")
+        emit(f"G1 Z{_num(-plunge[j])} F{cfg.plunge_mm_min:g}", k, s, "plunge")
+        emit(f"G1 X{_num(b[0] + ox)} Y{_num(b[1] + oy)} F{cfg.feed_mm_min:g}", k, s, "cut")
+        emit(f"G0 Z{_num(safe)}", k, s, "retract")
+        emit("G4 P0", k, s, "sync")
+    emit(f"G0 Z{_num(safe)}", role="post")
+    emit(f"G0 X{_num(ox)} Y{_num(oy)}", role="post")
+    if cfg.spindle_rpm > 0:
+        emit("M5", role="post")
+    emit("M2", role="post")
+
+    # Every coordinate, re-read from the text, must lie in bounds.
+    lo = (ox - cfg.margin_mm, oy - cfg.margin_mm, -float(plunge.max(initial=0.0)) - 1e-9)
+    hi = (ox + board_mm[0] + cfg.margin_mm, oy + board_mm[1] + cfg.margin_mm, safe)
+    for ln, text in enumerate(lines, start=1):
+        if len(text) > MAX_LINE:
+            raise ValueError(f"G-code line {ln} is {len(text)} characters (> {MAX_LINE}): {text!r}")
+        if text.startswith("("):
+            continue
+        for word in text.split():
+            axis = "XYZ".find(word[0])
+            if axis >= 0:
+                v = float(word[1:])
+                if not (lo[axis] - 5e-4 <= v <= hi[axis] + 5e-4):
+                    raise ValueError(f"G-code line {ln} {text!r}: {word[0]} = {v} outside [{lo[axis]:.3f}, {hi[axis]:.3f}] mm")
+    cut_len = float(np.hypot(*(p1 - p0).T).sum())
+    est = (ordering.travel / cfg.rapid_mm_min + cut_len / cfg.feed_mm_min
+           + float(plunge.sum()) / cfg.plunge_mm_min + n * 2 * safe / cfg.rapid_mm_min
+           + n * safe / cfg.plunge_mm_min) * 60.0 + n * cfg.overhead_s
+    info = {
+        "scratches": n,
+        "dropped_short": int((~keep).sum()),
+        "cut_length_mm": cut_len,
+        "travel_input_mm": ordering.travel_input,
+        "travel_greedy_mm": ordering.travel_greedy,
+        "travel_mm": ordering.travel,
+        "travel_reduction": 1.0 - ordering.travel / ordering.travel_input if ordering.travel_input > 0 else 0.0,
+        "ordering_seconds": ordering.seconds,
+        "estimated_seconds": est,
+        "bounds_mm": {"x": [lo[0], hi[0]], "y": [lo[1], hi[1]], "z": [lo[2], hi[2]]},
+        "plunge_mm": [float(plunge.min()) if n else 0.0, float(plunge.max()) if n else 0.0],
+        "cutter_radius_mm": cfg.cutter_radius_mm,
+    }
+    if fit is not None and n:
+        info["fit"] = {
+            "mode": cfg.fit,
+            "rms_um_max": 1e6 * float(fit.rms.max()),
+            "rel_rms_max": float(fit.rel_rms.max()),
+            "groove_width_mm": [1e3 * float(fit.groove_width.min()), 1e3 * float(fit.groove_width.max())],
+            "cut_width_mm": [1e3 * float(fit.cut_width.min()), 1e3 * float(fit.cut_width.max())],
+            "unreachable": int(fit.unreachable.sum()),
+        }
+    return Program(lines, np.asarray(ks), np.asarray(ss), roles, info)
+
+
+def write_program(prog: Program, gcode_path) -> str:
+    """Write `gcode_path` and its line map `gcode_path + '.map.csv'` (line, k, scratch, role).
+
+    **Returns:** the map's path.
+    """
+    gcode_path = os.fspath(gcode_path)
+    with open(gcode_path, "w", encoding="ascii", newline="\n") as f:
+        f.write("\n".join(prog.lines) + "\n")
+    map_path = gcode_path + ".map.csv"
+    with open(map_path, "w", encoding="ascii", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["line", "k", "scratch", "role"])
+        for ln, (k, s, r) in enumerate(zip(prog.k.tolist(), prog.scratch.tolist(), prog.role), start=1):
+            w.writerow([ln, k, s, r])
+    return map_path
+
+
+def read_program(gcode_path) -> Program:
+    """Read a G-code file and its line map (as written by :func:`write_program`); checks they agree."""
+    gcode_path = os.fspath(gcode_path)
+    if not os.path.exists(gcode_path):
+        raise FileNotFoundError(f"G-code file {gcode_path!r} does not exist")
+    map_path = gcode_path + ".map.csv"
+    if not os.path.exists(map_path):
+        raise FileNotFoundError(f"line map {map_path!r} does not exist (write it with the G-code)")
+    with open(gcode_path, encoding="ascii") as f:
+        lines = f.read().split("\n")
+    if lines and lines[-1] == "":
+        lines.pop()
+    with open(map_path, encoding="ascii", newline="") as f:
+        rows = list(csv.reader(f))[1:]
+    if len(rows) != len(lines):
+        raise ValueError(f"line map {map_path!r} has {len(rows)} rows for {len(lines)} G-code lines")
+    ks, ss, roles = [], [], []
+    for i, row in enumerate(rows, start=1):
+        if int(row[0]) != i:
+            raise ValueError(f"line map {map_path!r}: row {i} names line {row[0]}")
+        ks.append(int(row[1]))
+        ss.append(int(row[2]))
+        roles.append(row[3])
+    k = np.asarray(ks)
+    syncs = [i for i, r in enumerate(roles) if r == "sync"]
+    if [int(k[i]) for i in syncs] != list(range(len(syncs))):
+        raise ValueError(f"line map {map_path!r}: scratch blocks are not numbered 0..{len(syncs) - 1} in order")
+    return Program(lines, k, np.asarray(ss), roles, {"scratches": len(syncs)})
+
+
+# ----------------------------------------------------------------------------------------------
+# Preview and summary.
+
+
+def write_preview(prog: Program, path, board_mm, offset_mm=(0.0, 0.0)):
+    """Toolpath preview PNG: cuts in dark blue, rapid travels in light red, board outline in grey."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection
+
+    cuts, travels = [], []
+    pos = (0.0, 0.0)
+    for text, role in zip(prog.lines, prog.role):
+        if role in ("travel", "cut") or (role == "post" and "X" in text):
+            w = dict((t[0], float(t[1:])) for t in text.split() if t[0] in "XY")
+            new = (w["X"] - offset_mm[0], w["Y"] - offset_mm[1])
+            (cuts if role == "cut" else travels).append([pos, new])
+            pos = new
+    fig, ax = plt.subplots(figsize=(7, 7), dpi=120)
+    ax.add_collection(LineCollection(travels, colors="#e8a0a0", linewidths=0.4, label="travel"))
+    ax.add_collection(LineCollection(cuts, colors="#1f3b73", linewidths=0.8, label="cut"))
+    ax.plot([0, board_mm[0], board_mm[0], 0, 0], [0, 0, board_mm[1], board_mm[1], 0], color="0.6", lw=0.8)
+    ax.set_xlim(-0.02 * board_mm[0], 1.02 * board_mm[0])
+    ax.set_ylim(-0.02 * board_mm[1], 1.02 * board_mm[1])
+    ax.set_aspect("equal")
+    ax.set_xlabel("X (mm)")
+    ax.set_ylabel("Y (mm)")
+    ax.set_title(f"{len(cuts)} cuts (blue), travels (red)")
+    ax.legend(loc="upper right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(os.fspath(path))
+    plt.close(fig)
+
+
+def summarize(info: dict) -> str:
+    """Human-readable summary of :attr:`Program.info`."""
+    t = info["estimated_seconds"]
+    b = info["bounds_mm"]
+    out = [
+        f"scratches        {info['scratches']}" + (f" ({info['dropped_short']} too short, dropped)" if info.get("dropped_short") else ""),
+        f"cut length       {info['cut_length_mm'] / 1000:.3f} m",
+        f"travel           {info['travel_mm'] / 1000:.3f} m (input order {info['travel_input_mm'] / 1000:.3f} m, "
+        f"greedy {info['travel_greedy_mm'] / 1000:.3f} m; reduction {100 * info['travel_reduction']:.1f}%, "
+        f"ordering {info['ordering_seconds']:.1f} s)",
+        f"estimated time   {t / 3600:.2f} h ({t:.0f} s)",
+        f"bounds (mm)      X [{b['x'][0]:.3f}, {b['x'][1]:.3f}]  Y [{b['y'][0]:.3f}, {b['y'][1]:.3f}]  "
+        f"Z [{b['z'][0]:.3f}, {b['z'][1]:.3f}]",
+        f"plunge           {info['plunge_mm'][0]:.4f}-{info['plunge_mm'][1]:.4f} mm (ball R {info['cutter_radius_mm']} mm)",
+    ]
+    f = info.get("fit")
+    if f:
+        out.append(
+            f"cutter fit       {f['mode']}: RMS error <= {f['rms_um_max']:.2f} um ({100 * f['rel_rms_max']:.1f}% of depth); "
+            f"groove width {f['groove_width_mm'][0]:.4f}-{f['groove_width_mm'][1]:.4f} mm, "
+            f"cut width {f['cut_width_mm'][0]:.4f}-{f['cut_width_mm'][1]:.4f} mm"
+        )
+        if f["unreachable"]:
+            out.append(f"WARNING          {f['unreachable']} grooves are unreachable with this cutter "
+                       "(fit error > 25% of depth or plunge at the ball's radius); consider a smaller ball")
+    return "\n".join(out)
+
+
+# ----------------------------------------------------------------------------------------------
+# Streaming with a journal.
+
+
+class CarveError(RuntimeError):
+    """Carving stopped (fault, lost device, interrupt); the message says where and how to resume."""
+
+
+def _strip(text: str) -> str:
+    if "(" in text or ";" in text:
+        out, depth = [], 0
+        for ch in text:
+            if ch == ";" and depth == 0:
+                break
+            if ch == "(":
+                depth += 1
+            elif ch == ")":
+                depth -= 1
+            elif depth == 0:
+                out.append(ch)
+        text = "".join(out)
+    return text.strip()
+
+
+def carve(gcode_path, port: str, *, baud: int = 115200, resume: bool = False, counting: bool = False,
+          check: bool = False, home: bool = False, unlock: bool = False, safe_z_mm: float | None = None,
+          journal_path=None, quiet: bool = False, banner_timeout: float = 5.0, stall_timeout: float = 30.0,
+          poll_interval: float = 0.25, on_scratch=None) -> dict:
+    """Stream a G-code file (with its line map) to GRBL, journalling carved scratches.
+
+    Before any motion: the G-code and map are read and checked, the journal opened (new, or on
+    `resume` matched to the G-code's SHA-256), the port opened and GRBL 1.1 recognised; an Alarm
+    state stops the run unless `home` (`$H`) or `unlock` (`$X`). With `check`, the lines first run
+    through GRBL's `$C` check mode. Then the preamble and the scratches from the first unconfirmed
+    one are sent; each scratch is journalled when its `G4 P0` is answered `ok`.
+
+    On `error:N`: feed hold, soft reset, retract. On `ALARM:N`: stop (the controller is locked). On a
+    lost device: stop. On Ctrl-C: feed hold, reset, retract. Each raises :class:`CarveError` (or
+    `KeyboardInterrupt` after the retract) naming the G-code line and scratch; run again with
+    `resume=True`.
+
+    **Arguments:** `gcode_path`; `port`; `baud`; `resume`; `counting` (character counting instead of
+    send-and-wait); `check`; `home`; `unlock`; `safe_z_mm` for the retract (default: read from the
+    G-code's first `G0 Z`); `journal_path` (default `gcode_path + '.journal'`); `quiet`; timeouts in
+    seconds; `on_scratch(k, scratch)` called after each journalled scratch.
+
+    **Returns:** dict with `done`, `total`, `sent_lines`.
+    """
+    from .grbl import DeviceLost, Grbl, GrblError, JobFault, Journal, sha256_file
+
+    prog = read_program(gcode_path)
+    digest = sha256_file(gcode_path)
+    n = prog.info["scratches"]
+    journal_path = os.fspath(journal_path or os.fspath(gcode_path) + ".journal")
+    if safe_z_mm is None:
+        z = [w for text, r in zip(prog.lines, prog.role) if r == "pre" for w in text.split() if w.startswith("Z")]
+        safe_z_mm = float(z[0][1:]) if z else 5.0
+    journal = Journal(journal_path, digest, n, resume=resume)
+    try:
+        k0 = journal.done
+        if k0 >= n:
+            return {"done": n, "total": n, "sent_lines": 0}
+        first = next((i for i, k in enumerate(prog.k.tolist()) if k >= 0), len(prog.lines))
+        sel = [i for i, (k, r) in enumerate(zip(prog.k.tolist(), prog.role))
+               if (r != "comment") and (i < first or k >= k0 or r == "post")]
+        sel = [i for i in sel if _strip(prog.lines[i])]
+        items = [_strip(prog.lines[i]) for i in sel]
+        roles = [prog.role[i] for i in sel]
+        barrier = [r == "plunge" or (j > 0 and roles[j - 1] == "sync") for j, r in enumerate(roles)]
+
+        def say(msg):
+            if not quiet:
+                print(msg, file=sys.stderr)
+
+        try:
+            grbl = Grbl(port, baud, banner_timeout=banner_timeout, stall_timeout=stall_timeout,
+                        poll_interval=poll_interval, log=say)
+        except GrblError as exc:
+            raise CarveError(str(exc)) from None
+        bar = None
+        try:
+            try:
+                grbl.connect(home=home, unlock=unlock)
+            except GrblError as exc:
+                raise CarveError(f"{exc} (no motion was sent)") from None
+            if check:
+                try:
+                    grbl.check_mode(items, counting=counting)
+                except JobFault as exc:
+                    i = sel[exc.index] if exc.index >= 0 else -1
+                    raise CarveError(f"check mode ($C): {exc} at G-code line {i + 1}: {prog.lines[i]!r} "
+                                     "(no motion was sent)") from None
+            journal.event("start", k=k0, port=port, counting=counting)
+            from tqdm.auto import tqdm
+
+            bar = tqdm(total=n, initial=k0, unit="scratch", disable=quiet, desc="carving", dynamic_ncols=True)
+
+            def on_ok(j):
+                if roles[j] == "sync":
+                    i = sel[j]
+                    k, s = int(prog.k[i]), int(prog.scratch[i])
+                    journal.confirm(k, s)
+                    bar.update(1)
+                    if on_scratch is not None:
+                        on_scratch(k, s)
+
+            def where(j):
+                i = sel[j] if 0 <= j < len(sel) else -1
+                k = int(prog.k[i]) if i >= 0 else -1
+                what = f"scratch position {k} (design scratch {int(prog.scratch[i])})" if k >= 0 else "outside scratches"
+                return i, f"G-code line {i + 1} {prog.lines[i]!r}, {what}" if i >= 0 else "no line"
+
+            try:
+                grbl.stream(items, barrier=barrier, counting=counting, on_ok=on_ok)
+            except JobFault as exc:
+                i, loc = where(exc.index)
+                journal.event("fault", reply=exc.reply, line=i + 1, done=journal.done)
+                action = ""
+                if exc.reply.startswith("error"):
+                    try:
+                        action = "; " + grbl.hold_and_retract(safe_z_mm)
+                    except GrblError as e2:
+                        action = f"; hold/retract failed: {e2}"
+                elif exc.reply.startswith("ALARM"):
+                    action = "; machine stopped by the controller (re-home with --home or --unlock)"
+                raise CarveError(f"{exc} at {loc}{action}. {journal.done} of {n} scratches are journalled; "
+                                 f"fix the cause and run again with --resume") from None
+            except DeviceLost as exc:
+                journal.event("lost", error=str(exc), done=journal.done)
+                raise CarveError(f"{exc}. {journal.done} of {n} scratches are journalled; reconnect and run "
+                                 "again with --resume (the scratch in progress will be cut again)") from None
+            except KeyboardInterrupt:
+                msg = "interrupted"
+                try:
+                    msg += ": " + grbl.hold_and_retract(safe_z_mm)
+                except GrblError as e2:
+                    msg += f": hold/retract failed: {e2}"
+                journal.event("interrupt", done=journal.done)
+                say(f"{msg}. {journal.done} of {n} scratches are journalled; run again with --resume")
+                raise
+            journal.event("finished", done=journal.done)
+            return {"done": journal.done, "total": n, "sent_lines": len(grbl.lines_sent)}
+        finally:
+            if bar is not None:
+                bar.close()
+            grbl.close()
+    finally:
+        journal.close()
+
+
+# ----------------------------------------------------------------------------------------------
+# Command line.
+
+
+def _parser():
+    p = argparse.ArgumentParser(
+        prog="python -m jscratch.fabricate",
+        description="Order a scratch design, write GRBL 1.1 G-code (mm, absolute) with a line map and a toolpath "
+                    "preview, and optionally stream it to a GRBL controller with a crash-safe journal.",
+    )
+    p.add_argument("design", nargs="?", help="design .npz (SPEC section 9); default: a built-in demo design")
+    p.add_argument("--dry-run", action="store_true", help="write G-code, preview and summary; never open a port")
+    p.add_argument("--out", help="output prefix (default: the design path without .npz, or ./jscratch_demo); "
+                                 "writes PREFIX.gcode, PREFIX.gcode.map.csv, PREFIX.preview.png, PREFIX.summary.json")
+    p.add_argument("--gcode", help="stream this existing G-code file (with its .map.csv) instead of generating one")
+    p.add_argument("--config", help="TOML file of machine settings (keys as the options below, underscores)")
+    p.add_argument("--demo-n", type=int, default=400, help="scratches in the demo design (default 400)")
+    m = p.add_argument_group("machine (defaults from MachineConfig)")
+    m.add_argument("--feed", dest="feed_mm_min", type=float, help="cutting feed, mm/min (default 900 = 1.5 cm/s)")
+    m.add_argument("--plunge-feed", dest="plunge_mm_min", type=float, help="plunge feed, mm/min (default 300)")
+    m.add_argument("--rapid", dest="rapid_mm_min", type=float, help="rapid rate for estimates, mm/min (default 3000)")
+    m.add_argument("--safe-z", dest="safe_z_mm", type=float, help="travel height, mm above the surface (default 1)")
+    m.add_argument("--cutter-radius", dest="cutter_radius_mm", type=float, help="ball-end radius R, mm (default 0.125)")
+    m.add_argument("--plunge", dest="plunge_mm", type=float, help="fixed plunge depth, mm (default: fitted)")
+    m.add_argument("--fit", choices=["per-scratch", "global"], help="plunge fit (default per-scratch)")
+    m.add_argument("--offset", dest="board_offset_mm", type=float, nargs=2, metavar=("X", "Y"),
+                   help="work coordinates of the board corner, mm (default 0 0)")
+    m.add_argument("--margin", dest="margin_mm", type=float, help="allowed excursion outside the board, mm (default 0)")
+    m.add_argument("--min-length", dest="min_length_mm", type=float, help="shortest cuttable scratch, mm (default 0.01)")
+    m.add_argument("--drop-short", dest="drop_short", action="store_const", const=True,
+                   help="skip scratches shorter than --min-length instead of failing")
+    m.add_argument("--spindle", dest="spindle_rpm", type=float, help="spindle rpm, 0 for none (default 0)")
+    m.add_argument("--no-improve", action="store_true", help="greedy ordering only (no 2-opt/Or-opt)")
+    m.add_argument("--order-time", type=float, default=40.0, help="time limit for the ordering's local search, s (default 40)")
+    s = p.add_argument_group("streaming")
+    s.add_argument("--port", help="serial device of the GRBL controller, e.g. /dev/ttyUSB0")
+    s.add_argument("--baud", type=int, default=115200, help="baud rate (default 115200)")
+    s.add_argument("--resume", action="store_true", help="continue the job recorded in the G-code's journal")
+    s.add_argument("--counting", action="store_true", help="character-counting streaming (default: send-and-wait)")
+    s.add_argument("--check", action="store_true", help="run the G-code through GRBL's $C check mode first")
+    s.add_argument("--home", action="store_true", help="run the homing cycle ($H) if the controller is in Alarm")
+    s.add_argument("--unlock", action="store_true", help="clear an Alarm with $X (position may be wrong!)")
+    s.add_argument("--banner-timeout", type=float, default=5.0, help="seconds to wait for the GRBL banner (default 5)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    return p
+
+
+def main(argv=None) -> int:
+    """Command line entry point; returns the exit status (0 ok, 1 error, 130 interrupted)."""
+    args = _parser().parse_args(argv)
+    names = [f.name for f in dataclasses.fields(MachineConfig)]
+    over = {k: getattr(args, k) for k in names if hasattr(args, k) and getattr(args, k) is not None}
+    if args.dry_run and args.port:
+        print("error: --dry-run never opens a port; drop --port or --dry-run", file=sys.stderr)
+        return 1
+    try:
+        cfg = MachineConfig.from_toml(args.config, **over) if args.config else MachineConfig(**over)
+        if args.gcode:
+            gcode = args.gcode
+        else:
+            if args.design:
+                design = load_design(args.design)
+                prefix = args.out or os.path.splitext(args.design)[0]
+            else:
+                design = demo_design(args.demo_n)
+                prefix = args.out or "jscratch_demo"
+            gcode = prefix + ".gcode"
+            if args.resume:
+                if not os.path.exists(gcode):
+                    raise FileNotFoundError(f"--resume: G-code {gcode!r} does not exist")
+            else:
+                prog = make_program(design, cfg, improve=not args.no_improve, time_limit=args.order_time)
+                write_program(prog, gcode)
+                write_preview(prog, prefix + ".preview.png", 1000.0 * design.board, cfg.board_offset_mm)
+                with open(prefix + ".summary.json", "w") as f:
+                    json.dump(prog.info, f, indent=1)
+                if not args.quiet:
+                    print(summarize(prog.info))
+                    print(f"wrote {gcode}, {gcode}.map.csv, {prefix}.preview.png, {prefix}.summary.json")
+        if args.port:
+            res = carve(gcode, args.port, baud=args.baud, resume=args.resume, counting=args.counting,
+                        check=args.check, home=args.home, unlock=args.unlock, safe_z_mm=cfg.safe_z_mm,
+                        quiet=args.quiet, banner_timeout=args.banner_timeout)
+            if not args.quiet:
+                print(f"carved {res['done']} of {res['total']} scratches")
+    except KeyboardInterrupt:
+        return 130
+    except (DesignError, CarveError, FileNotFoundError, ValueError, RuntimeError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,550 @@
+"""GRBL 1.1 serial protocol: reply grammar, a streaming client over pyserial, and the carve journal.
+
+pyserial is imported here (lazily, when a port is opened), never at ``import jscratch``.
+
+Protocol notes (GRBL 1.1 interface documentation):
+
+- every line the host sends is answered by exactly one ``ok`` or ``error:N``, in order;
+- ``ALARM:N``, ``[MSG:...]``/``[...]`` feedback, ``<status>`` reports and the ``Grbl 1.1x ['$' for
+  help]`` banner (after a reset) arrive unasked;
+- the real-time bytes ``?`` (status), ``!`` (feed hold), ``~`` (cycle start) and ``0x18`` (soft
+  reset) bypass the receive buffer and are never answered with ``ok``;
+- the receive buffer holds ``rx_size - 1`` bytes (``rx_size`` from ``$I``'s ``[OPT:...,blocks,rx]``);
+  character counting keeps the bytes of unanswered lines within it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import queue
+import re
+import threading
+import time
+from collections import deque
+from typing import Callable, NamedTuple, Sequence
+
+__all__ = [
+    "Reply", "classify", "GrblError", "PortError", "NotGrblError", "AlarmLocked", "DeviceLost",
+    "JobFault", "Grbl", "Journal", "JournalError", "sha256_file",
+]
+
+BANNER_RE = re.compile(r"^Grbl (\d+)\.(\d+)(\w*) \['\$' for help\]$")
+
+
+class Reply(NamedTuple):
+    """One classified line from the controller.
+
+    `kind` is one of `ok`, `error`, `alarm`, `status`, `msg` (any `[...]` feedback), `banner`,
+    `unknown`; `code` the number of `error:N`/`ALARM:N` (else None); `text` the line.
+    """
+
+    kind: str
+    code: int | None
+    text: str
+
+
+def classify(line: str) -> Reply:
+    """Classify one line (without its line ending) under the GRBL 1.1 reply grammar."""
+    if line == "ok":
+        return Reply("ok", None, line)
+    m = re.fullmatch(r"error:(\d+)", line)
+    if m:
+        return Reply("error", int(m.group(1)), line)
+    m = re.fullmatch(r"ALARM:(\d+)", line)
+    if m:
+        return Reply("alarm", int(m.group(1)), line)
+    if re.fullmatch(r"<[A-Za-z]+(:\d)?(\|[A-Za-z]+:[^|<>]*)*>", line):
+        return Reply("status", None, line)
+    if re.fullmatch(r"\[[A-Z]+:[\x20-\x7e]*\]", line):
+        return Reply("msg", None, line)
+    if BANNER_RE.match(line):
+        return Reply("banner", None, line)
+    return Reply("unknown", None, line)
+
+
+def parse_status(line: str) -> dict:
+    """Fields of a `<State|Key:val|...>` report: `state` (e.g. `Idle`, `Run`, `Hold:0`, `Alarm`) and the keys."""
+    body = line[1:-1].split("|")
+    out = {"state": body[0]}
+    for field in body[1:]:
+        k, _, v = field.partition(":")
+        out[k] = v
+    return out
+
+
+class GrblError(RuntimeError):
+    """Base class of controller and streaming errors."""
+
+
+class PortError(GrblError):
+    """The serial port cannot be opened."""
+
+
+class NotGrblError(GrblError):
+    """The device did not answer like GRBL 1.1."""
+
+
+class AlarmLocked(GrblError):
+    """The controller is in Alarm state and neither homing nor unlock was requested."""
+
+
+class DeviceLost(GrblError):
+    """The device vanished or stopped answering."""
+
+
+class JobFault(GrblError):
+    """The controller reported `error:N` or `ALARM:N` (or reset) while streaming.
+
+    `index` is the stream item the fault belongs to (for `ALARM`, the oldest unanswered line), `reply`
+    the controller's line.
+    """
+
+    def __init__(self, message, index, reply):
+        super().__init__(message)
+        self.index = index
+        self.reply = reply
+
+
+ERROR_TEXT = {
+    1: "expected command letter", 2: "bad number format", 3: "invalid $ statement",
+    9: "G-code locked out during alarm or jog", 14: "line too long", 15: "travel exceeds max travel",
+    20: "unsupported or invalid g-code command", 21: "modal group violation", 22: "undefined feed rate",
+    24: "two G-code commands need axis words", 25: "repeated word", 26: "no axis words",
+    33: "invalid motion target",
+}
+ALARM_TEXT = {
+    1: "hard limit triggered, position likely lost", 2: "soft limit: target outside travel",
+    3: "reset while in motion, position likely lost", 4: "probe fail", 5: "probe fail",
+    6: "homing fail: reset during cycle", 7: "homing fail: door opened", 8: "homing fail: pull-off",
+    9: "homing fail: limit switch not found",
+}
+
+
+class Grbl:
+    """A GRBL 1.1 controller on a serial port.
+
+    Opening starts a reader thread that classifies every reply and a poller that sends `?` every
+    `poll_interval` s. Use :meth:`connect` (wake, reset, banner, `$I`, alarm check) before
+    :meth:`stream`.
+
+    **Arguments:** `port` device path; `baud` rate; `banner_timeout` s to wait for the banner;
+    `stall_timeout` s without any reply (status reports included) before the device counts as lost;
+    `poll_interval` s between status polls; `log` a callable taking a string (warnings, unknown lines).
+    """
+
+    def __init__(self, port: str, baud: int = 115200, *, banner_timeout: float = 5.0,
+                 stall_timeout: float = 30.0, poll_interval: float = 0.25,
+                 log: Callable[[str], None] | None = None):
+        import serial  # only here: pyserial is not needed to import jscratch
+
+        self._serial_mod = serial
+        self.port = port
+        self.banner_timeout = banner_timeout
+        self.stall_timeout = stall_timeout
+        self.poll_interval = poll_interval
+        self.log = log or (lambda s: None)
+        if not os.path.exists(port) and "://" not in port:
+            raise PortError(f"serial port {port!r} does not exist")
+        try:
+            self.ser = serial.Serial(port, baud, timeout=0.02, write_timeout=2.0)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise PortError(f"cannot open serial port {port!r}: {exc}") from None
+        self.rx_size = 128
+        self.version = None
+        self.banner = None
+        self.status: dict = {}
+        self.messages: list[str] = []
+        self.unknown: list[str] = []
+        self.lines_sent: list[str] = []
+        self._acks: queue.Queue = queue.Queue()
+        self._banner_event = threading.Event()
+        self._status_event = threading.Event()
+        self._last_reply = time.monotonic()
+        self._lost: BaseException | None = None
+        self._stop = threading.Event()
+        self._wlock = threading.Lock()
+        self._polling = threading.Event()
+        self._reader = threading.Thread(target=self._read_loop, name="grbl-reader", daemon=True)
+        self._poller = threading.Thread(target=self._poll_loop, name="grbl-poller", daemon=True)
+        self._reader.start()
+        self._poller.start()
+
+    # -- low level ---------------------------------------------------------------------------
+
+    def close(self):
+        """Stop the threads and close the port."""
+        self._stop.set()
+        for t in (self._poller, self._reader):
+            if t.is_alive() and t is not threading.current_thread():
+                t.join(timeout=1.0)
+        try:
+            self.ser.close()
+        except Exception:
+            pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def _write(self, data: bytes):
+        if self._lost is not None:
+            raise DeviceLost(f"device on {self.port} lost: {self._lost}")
+        try:
+            with self._wlock:
+                self.ser.write(data)
+        except (self._serial_mod.SerialException, OSError) as exc:
+            self._lost = exc
+            raise DeviceLost(f"device on {self.port} lost while writing: {exc}") from None
+
+    def realtime(self, byte: bytes):
+        """Send a real-time command byte (`b'?'`, `b'!'`, `b'~'`, `b'\\x18'`)."""
+        self._write(byte)
+
+    def _read_loop(self):
+        buf = b""
+        while not self._stop.is_set():
+            try:
+                data = self.ser.read(max(1, self.ser.in_waiting))
+            except Exception as exc:  # SerialException, OSError (EIO when the device vanishes)
+                if not self._stop.is_set():
+                    self._lost = exc
+                    self._acks.put(Reply("lost", None, str(exc)))
+                return
+            if not data:
+                continue
+            buf += data
+            while b"\n" in buf:
+                raw, buf = buf.split(b"\n", 1)
+                self._handle(raw.rstrip(b"\r").decode("ascii", "replace").strip())
+            if len(buf) > 1024:
+                self._handle(buf.decode("ascii", "replace"))
+                buf = b""
+
+    def _handle(self, line: str):
+        if not line:
+            return
+        self._last_reply = time.monotonic()
+        r = classify(line)
+        if r.kind in ("ok", "error", "alarm"):
+            self._acks.put(r)
+        elif r.kind == "status":
+            self.status = parse_status(line)
+            self._status_event.set()
+        elif r.kind == "banner":
+            self.banner = line
+            self._banner_event.set()
+            self._acks.put(r)
+        elif r.kind == "msg":
+            self.messages.append(line)
+        else:
+            self.unknown.append(line)
+            self.log(f"ignored unexpected line from controller: {line!r}")
+
+    def _poll_loop(self):
+        while not self._stop.wait(self.poll_interval):
+            if self._polling.is_set() and self._lost is None:
+                try:
+                    self._write(b"?")
+                except DeviceLost:
+                    return
+
+    def _check_alive(self):
+        if self._lost is not None:
+            raise DeviceLost(f"device on {self.port} lost: {self._lost}")
+        if time.monotonic() - self._last_reply > self.stall_timeout:
+            raise DeviceLost(f"device on {self.port} sent nothing for {self.stall_timeout:g} s")
+
+    def _next(self, timeout=None) -> Reply:
+        """Next ok/error/alarm/banner reply; raises DeviceLost when the device is gone or silent."""
+        t_end = None if timeout is None else time.monotonic() + timeout
+        while True:
+            try:
+                r = self._acks.get(timeout=0.02)
+            except queue.Empty:
+                self._check_alive()
+                if t_end is not None and time.monotonic() > t_end:
+                    raise DeviceLost(f"no reply from {self.port} within {timeout:g} s") from None
+                continue
+            if r.kind == "lost":
+                raise DeviceLost(f"device on {self.port} lost: {r.text}")
+            return r
+
+    def query_status(self, timeout: float = 2.0) -> dict:
+        """Send `?` and return the next status report's fields."""
+        self._status_event.clear()
+        self._write(b"?")
+        if not self._status_event.wait(timeout):
+            self._check_alive()
+            raise DeviceLost(f"no status report from {self.port} within {timeout:g} s")
+        return dict(self.status)
+
+    def command(self, line: str, timeout: float = 10.0) -> Reply:
+        """Send one line and wait for its `ok`/`error:N` (ALARM raises :class:`JobFault`)."""
+        self._write((line + "\n").encode("ascii"))
+        self.lines_sent.append(line)
+        while True:
+            r = self._next(timeout)
+            if r.kind == "banner":
+                raise JobFault(f"controller reset while waiting for {line!r}", -1, r.text)
+            if r.kind == "alarm":
+                raise JobFault(f"ALARM:{r.code} ({ALARM_TEXT.get(r.code, '?')}) after {line!r}", -1, r.text)
+            return r
+
+    # -- session -----------------------------------------------------------------------------
+
+    def connect(self, *, home: bool = False, unlock: bool = False):
+        """Wake and reset the controller, wait for the GRBL 1.1 banner, read `$I`, handle Alarm.
+
+        **Raises:** :class:`NotGrblError` without a banner (nothing but wake bytes and a reset was
+        sent), :class:`AlarmLocked` when in Alarm and neither `home` nor `unlock` is set.
+        """
+        self._banner_event.clear()
+        self._write(b"\r\n\r\n")
+        time.sleep(0.05)
+        self._write(b"\x18")
+        if not self._banner_event.wait(self.banner_timeout):
+            if self._lost is not None:
+                raise DeviceLost(f"device on {self.port} lost: {self._lost}")
+            heard = (self.unknown[-3:] or ["nothing"])
+            raise NotGrblError(
+                f"device on {self.port} did not answer like GRBL: no \"Grbl 1.1 ['$' for help]\" banner within "
+                f"{self.banner_timeout:g} s after a soft reset (heard: {heard})"
+            )
+        m = BANNER_RE.match(self.banner)
+        if (int(m.group(1)), int(m.group(2))) != (1, 1):
+            raise NotGrblError(f"device on {self.port} is {self.banner!r}; this streamer speaks GRBL 1.1")
+        time.sleep(0.02)
+        while not self._acks.empty():  # oks to the wake newlines, the banner itself
+            self._acks.get_nowait()
+        self.messages.clear()
+        r = self.command("$I")
+        if r.kind != "ok":
+            raise NotGrblError(f"device on {self.port} answered $I with {r.text!r}")
+        for msg in self.messages:
+            if msg.startswith("[VER:"):
+                self.version = msg[5:-1]
+            if msg.startswith("[OPT:"):
+                parts = msg[5:-1].split(",")
+                if len(parts) >= 3 and parts[2].isdigit():
+                    self.rx_size = int(parts[2])
+        if self.version is None:
+            raise NotGrblError(f"device on {self.port} gave no [VER:...] to $I")
+        self._polling.set()
+        st = self.query_status()
+        if st["state"].startswith("Alarm"):
+            if home:
+                r = self.command("$H", timeout=120.0)
+            elif unlock:
+                r = self.command("$X")
+            else:
+                raise AlarmLocked(
+                    f"controller on {self.port} is in Alarm state (position may be lost); pass --home to "
+                    "run the homing cycle ($H) or --unlock to clear the lock ($X), then run again"
+                )
+            if r.kind != "ok":
+                raise GrblError(f"could not leave Alarm: {r.text}")
+        return self
+
+    def stream(self, items: Sequence[str], *, barrier: Sequence[bool] | None = None,
+               counting: bool = False, on_ok: Callable[[int], None] | None = None):
+        """Send lines, in order, each answered before the stream moves on.
+
+        Send-and-wait by default; with `counting` the bytes of unanswered lines stay within
+        `rx_size - 1`. A line with `barrier[i]` is only sent once every earlier line has been
+        answered `ok` (the caller puts barriers before plunges and after sync points, so that an
+        `error` can never let a later scratch run).
+
+        **Arguments:** `items` G-code lines (no comments, no line endings); `barrier` per item;
+        `counting` character counting; `on_ok(i)` called for each `ok`, in order.
+
+        **Raises:** :class:`JobFault` on `error:N`, `ALARM:N` or an unexpected reset;
+        :class:`DeviceLost`; `KeyboardInterrupt` passes through (the caller holds and retracts).
+        """
+        cap = self.rx_size - 1
+        pending: deque = deque()
+        used = 0
+        i = 0
+        n = len(items)
+        while i < n or pending:
+            while i < n:
+                data = (items[i] + "\n").encode("ascii")
+                if len(data) > cap:
+                    raise GrblError(f"line {items[i]!r} is longer than the controller's buffer")
+                if pending and (not counting or used + len(data) > cap or (barrier is not None and barrier[i])):
+                    break
+                self._write(data)
+                self.lines_sent.append(items[i])
+                pending.append((i, len(data)))
+                used += len(data)
+                i += 1
+            r = self._next()
+            idx = pending[0][0]
+            if r.kind == "ok":
+                pending.popleft()
+                used -= len((items[idx] + "\n").encode("ascii"))
+                if on_ok is not None:
+                    on_ok(idx)
+            elif r.kind == "error":
+                raise JobFault(f"error:{r.code} ({ERROR_TEXT.get(r.code, 'see GRBL error codes')})", idx, r.text)
+            elif r.kind == "alarm":
+                raise JobFault(f"ALARM:{r.code} ({ALARM_TEXT.get(r.code, 'see GRBL alarm codes')})", idx, r.text)
+            else:
+                raise JobFault("controller reset unexpectedly (banner mid-job)", idx, r.text)
+
+    def wait_state(self, accept: Callable[[str], bool], timeout: float) -> str:
+        """Poll status until `accept(state)` or `timeout` s; returns the last state."""
+        t_end = time.monotonic() + timeout
+        state = ""
+        while time.monotonic() < t_end:
+            state = self.query_status()["state"]
+            if accept(state):
+                return state
+            time.sleep(0.01)
+        return state
+
+    def hold_and_retract(self, safe_z_mm: float, *, timeout: float = 10.0) -> str:
+        """Feed hold, wait until stopped, soft reset (flushes buffers; no alarm when stopped), retract.
+
+        **Returns:** a short description of what was done (for the report).
+        """
+        self.realtime(b"!")
+        state = self.wait_state(lambda s: s in ("Hold:0", "Idle") or s.startswith("Alarm"), timeout)
+        if state.startswith("Alarm"):
+            return "controller in Alarm: no retract sent (clear the alarm, then --resume)"
+        self._banner_event.clear()
+        self.realtime(b"\x18")
+        if not self._banner_event.wait(timeout):
+            raise DeviceLost(f"no banner from {self.port} after the soft reset")
+        time.sleep(0.02)
+        while not self._acks.empty():
+            self._acks.get_nowait()
+        if self.query_status()["state"].startswith("Alarm"):
+            return "controller in Alarm after reset: no retract sent"
+        for line in ("G21 G90", f"G0 Z{safe_z_mm:.3f}", "G4 P0"):
+            r = self.command(line, timeout=60.0)
+            if r.kind != "ok":
+                return f"retract refused: {line!r} -> {r.text}"
+        return f"held, reset and retracted to Z{safe_z_mm:.3f}"
+
+    def check_mode(self, items: Sequence[str], *, counting: bool = False):
+        """Run `items` through GRBL's `$C` check mode (parsed, not moved), then leave check mode.
+
+        **Raises:** :class:`JobFault` at the first `error:N` (check mode is left first).
+        """
+        r = self.command("$C")
+        if r.kind != "ok" or not any("Enabled" in m for m in self.messages[-3:]):
+            raise GrblError(f"could not enter check mode: {r.text}")
+        fault = None
+        try:
+            self.stream(items, counting=counting)
+        except JobFault as exc:
+            fault = exc
+        self._banner_event.clear()
+        self.command("$C")
+        if not self._banner_event.wait(self.banner_timeout):
+            raise DeviceLost("no banner after leaving check mode")
+        time.sleep(0.02)
+        while not self._acks.empty():
+            self._acks.get_nowait()
+        if fault is not None:
+            raise fault
+
+
+def sha256_file(path) -> str:
+    """Hex SHA-256 of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+class JournalError(RuntimeError):
+    """A journal that does not belong to this G-code, or cannot be continued."""
+
+
+class Journal:
+    """Append-only record of scratches confirmed carved, keyed to the G-code's SHA-256.
+
+    One JSON object per line: a `header` (`gcode_sha256`, `n_scratches`), then `done` records
+    (`k` the position in the cutting order, `scratch` the design index) and `event` records. Each
+    record is flushed and fsynced before the call returns. A torn last line (power lost mid-write)
+    is ignored on reading.
+
+    **Arguments:** `path`; `gcode_sha256`; `n_scratches`; `resume`: continue an existing journal
+    (it must exist and match); otherwise the journal must not hold any `done` record yet.
+    """
+
+    def __init__(self, path, gcode_sha256: str, n_scratches: int, *, resume: bool):
+        self.path = os.fspath(path)
+        self.done = 0
+        exists = os.path.exists(self.path) and os.path.getsize(self.path) > 0
+        if resume:
+            if not exists:
+                raise JournalError(f"--resume: journal {self.path!r} does not exist; nothing to resume")
+            header, done = self.read(self.path)
+            if header.get("gcode_sha256") != gcode_sha256:
+                raise JournalError(
+                    f"journal {self.path!r} belongs to G-code {header.get('gcode_sha256', '?')[:12]}..., not to "
+                    f"this G-code ({gcode_sha256[:12]}...); refusing to resume a different job"
+                )
+            self.done = done
+        else:
+            if exists:
+                _, done = self.read(self.path)
+                raise JournalError(
+                    f"journal {self.path!r} already exists ({done} scratches done); pass --resume to continue "
+                    "that job, or move the journal away to start again"
+                )
+        self._f = open(self.path, "a", encoding="utf-8")
+        if not resume:
+            self._append({"type": "header", "gcode_sha256": gcode_sha256, "n_scratches": int(n_scratches),
+                          "time": time.time()})
+
+    @staticmethod
+    def read(path):
+        """Parse a journal: returns `(header dict, number of consecutive done records from k = 0)`."""
+        with open(path, encoding="utf-8") as f:
+            lines = f.read().split("\n")
+        recs = []
+        for n, line in enumerate(lines):
+            if not line.strip():
+                continue
+            try:
+                recs.append(json.loads(line))
+            except json.JSONDecodeError:
+                if any(x.strip() for x in lines[n + 1:]):
+                    raise JournalError(f"journal {path!r}: line {n + 1} is corrupt") from None
+                break  # torn final record
+        if not recs or recs[0].get("type") != "header":
+            raise JournalError(f"journal {path!r} has no header record")
+        done = 0
+        for r in recs[1:]:
+            if r.get("type") == "done":
+                if r.get("k") != done:
+                    raise JournalError(f"journal {path!r}: done record k={r.get('k')} out of order (expected {done})")
+                done += 1
+        return recs[0], done
+
+    def _append(self, rec):
+        self._f.write(json.dumps(rec) + "\n")
+        self._f.flush()
+        os.fsync(self._f.fileno())
+
+    def confirm(self, k: int, scratch: int):
+        """Record that order position `k` (design scratch `scratch`) is carved."""
+        if k != self.done:
+            raise JournalError(f"confirming scratch position {k} but {self.done} is next")
+        self._append({"type": "done", "k": int(k), "scratch": int(scratch), "time": time.time()})
+        self.done += 1
+
+    def event(self, kind: str, **info):
+        """Record a session event (start, fault, interrupt)."""
+        self._append({"type": "event", "event": kind, "time": time.time(), **info})
+
+    def close(self):
+        self._f.close()
