@@ -155,7 +155,7 @@ def _fit_solver():
 
     def residual(theta, args):
         # Units of R: groove w, d, x_max; plunge p = sigmoid(theta) in (0, 1).
-        w, d, xm, weight = args
+        w, d, xm, weight = (jnp.asarray(a)[..., None] for a in args)
         x = 1.25 * xm * s
         p = jax.nn.sigmoid(theta)
         inside = jnp.abs(x) < xm
@@ -163,7 +163,7 @@ def _fit_solver():
         h = jnp.where(inside, -0.5 * w * jnp.log1p(-4.0 * xs**2 / w**2) - d, 0.0)
         ball = 1.0 - p - jnp.sqrt(jnp.maximum(1.0 - x**2, 1e-12))
         cut = jnp.minimum(ball, 0.0)
-        return weight[..., None] * (cut - jnp.minimum(h, 0.0))
+        return weight * (cut - jnp.minimum(h, 0.0))
 
     solver = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-10)
 

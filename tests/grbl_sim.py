@@ -94,6 +94,8 @@ def check_line(line: str, state: dict | None = None) -> dict:
     if any(ord(c) < 32 or ord(c) > 126 for c in line):
         raise GcodeError(1, "non-printable character")
     body = strip_comments(line)
+    if body != line:  # the text around a comment may keep its spaces
+        body = " ".join(body.split())
     if body != body.strip() or "  " in body:
         raise GcodeError(1, "stray whitespace")
     words = {"G": [], "M": []}

@@ -1,0 +1,416 @@
+"""Fabrication: ordering, cutter fit, G-code validity and line map, streaming to a simulated GRBL 1.1
+controller on a real pty with fault injection, journal and resume, bad inputs, the CLI."""
+
+import itertools
+import json
+import os
+import sys
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, os.path.dirname(__file__))
+
+from grbl_sim import GcodeError, GrblSim, Workpiece, check_line  # noqa: E402
+
+from jscratch.designfile import DesignError, demo_design, save_design  # noqa: E402
+from jscratch.fabricate import (  # noqa: E402
+    CarveError, MachineConfig, carve, fit_plunge, main, make_program, read_program, write_program,
+)
+from jscratch.grbl import Journal, JournalError, classify, sha256_file  # noqa: E402
+from jscratch.toolpath import (  # noqa: E402
+    best_directions, greedy_order, improve_order, knn_grid, order_scratches, path_travel,
+)
+
+FAST = dict(quiet=True, banner_timeout=1.0, poll_interval=0.05, stall_timeout=5.0)
+
+
+# ----------------------------------------------------------------------------------------------
+# Ordering.
+
+
+def _travel_loop(p0, p1, order, flipped, start):
+    pos, t = np.asarray(start, float), 0.0
+    for s in order:
+        a, b = (p1[s], p0[s]) if flipped[s] else (p0[s], p1[s])
+        t += float(np.linalg.norm(a - pos))
+        pos = b
+    return t
+
+
+def test_travel_greedy_improve_directions_against_brute_force():
+    rng = np.random.default_rng(0)
+    p0, p1 = rng.uniform(0, 1, (7, 2)), rng.uniform(0, 1, (7, 2))
+    order = rng.permutation(7)
+    fl = rng.uniform(size=7) < 0.5
+    assert abs(path_travel(p0, p1, order, fl, (0.2, 0.1)) - _travel_loop(p0, p1, order, fl, (0.2, 0.1))) < 1e-12
+    # Best directions: exact DP equals exhaustive search over 2^7 direction sets.
+    best = min(_travel_loop(p0, p1, order, np.array(f), (0, 0)) for f in itertools.product([0, 1], repeat=7))
+    assert abs(path_travel(p0, p1, order, best_directions(p0, p1, order), (0, 0)) - best) < 1e-12
+    # Greedy: first pick is the nearest endpoint to the start, entered there.
+    o, f = greedy_order(p0, p1, (0.0, 0.0))
+    assert sorted(o.tolist()) == list(range(7))
+    ends = np.concatenate([p0, p1])
+    e = int(np.argmin(np.linalg.norm(ends, axis=1)))
+    assert o[0] == e % 7 and f[o[0]] == (e >= 7)
+
+
+def test_order_improves_and_is_a_permutation():
+    d = demo_design(3000, seed=4)
+    r = order_scratches(d.p0, d.p1, time_limit=None)
+    assert sorted(r.order.tolist()) == list(range(3000))
+    assert r.travel <= r.travel_greedy + 1e-12 < r.travel_input
+    assert r.travel < 0.97 * r.travel_greedy  # the local search does real work
+    assert abs(r.travel - _travel_loop(d.p0, d.p1, r.order, r.flipped, (0, 0))) < 1e-9
+    # improve_order never increases travel, also from a bad (input) order.
+    o, f = improve_order(d.p0[:500], d.p1[:500], np.arange(500), np.zeros(500, bool), time_limit=None)
+    assert sorted(o.tolist()) == list(range(500))
+    assert path_travel(d.p0[:500], d.p1[:500], o, f) < 0.5 * path_travel(d.p0[:500], d.p1[:500], np.arange(500), np.zeros(500, bool))
+
+
+def test_knn_grid_matches_brute_force():
+    pts = np.random.default_rng(1).uniform(0, 1, (2000, 2))
+    nb = knn_grid(pts, 4)
+    d = np.linalg.norm(pts[:, None] - pts[None], axis=2)
+    np.fill_diagonal(d, np.inf)
+    ref = np.argsort(d, axis=1)[:, :4]
+    assert np.mean(np.all(nb == ref, axis=1)) > 0.98
+
+
+# ----------------------------------------------------------------------------------------------
+# Cutter fit.
+
+
+def _brute_plunge(w, dd, R):
+    xm = 0.5 * w * np.sqrt(-np.expm1(-2 * dd / w))
+    x = 1.25 * xm * np.linspace(-1, 1, 64)
+    inside = np.abs(x) < xm
+    h = np.where(inside, -0.5 * w * np.log1p(-4 * np.where(inside, x, 0) ** 2 / w**2) - dd, 0.0)
+    ps = np.linspace(1e-4, 0.999, 200001) * R
+    cut = np.minimum(R - ps[:, None] - np.sqrt(np.maximum(R**2 - x**2, 0)), 0)
+    err = np.sqrt(np.mean((cut - np.minimum(h, 0)) ** 2, axis=1))
+    i = int(np.argmin(err))
+    return ps[i], err[i]
+
+
+def test_fit_plunge_matches_grid_search_and_flags_unreachable():
+    w = np.array([2.5e-4, 1e-4, 2.5e-4, 3e-4])
+    dd = np.array([1.28e-4, 1e-4, 1.28e-4, 0.5e-4])
+    R = 1.25e-4
+    fit = fit_plunge(w, dd, R)
+    for i in range(4):
+        p, e = _brute_plunge(w[i], dd[i], R)
+        assert abs(fit.plunge[i] - p) < 2e-3 * R, (i, fit.plunge[i], p)
+        assert abs(fit.rms[i] - e) < 1e-3 * e + 1e-12
+    assert fit.plunge[0] == fit.plunge[2]
+    np.testing.assert_allclose(fit.cut_width, 2 * np.sqrt(2 * R * fit.plunge - fit.plunge**2))
+    assert not fit.unreachable[0] and fit.unreachable[1]  # w = d = 1e-4: far too narrow for R = 0.125 mm
+    g = fit_plunge(w, dd, R, mode="global")
+    assert np.all(g.plunge == g.plunge[0]) and fit.plunge.min() <= g.plunge[0] <= fit.plunge.max()
+    with pytest.raises(ValueError, match="radius must be"):
+        fit_plunge(w, dd, -1.0)
+
+
+# ----------------------------------------------------------------------------------------------
+# G-code.
+
+
+@pytest.fixture(scope="module")
+def small():
+    d = demo_design(24, seed=2)
+    prog = make_program(d, MachineConfig(plunge_mm=0.1, safe_z_mm=1.0), time_limit=5)
+    return d, prog
+
+
+def _check_program(d, prog, cfg):
+    state = {}
+    n = d.n
+    seen = []
+    for ln, (text, k, s, role) in enumerate(zip(prog.lines, prog.k, prog.scratch, prog.role), start=1):
+        words = check_line(text, state)  # strict GRBL 1.1 grammar, modal state carried
+        assert len(text) < 80
+        for a, lo, hi in (("X", 0, 1000 * d.board[0]), ("Y", 0, 1000 * d.board[1]), ("Z", -cfg.cutter_radius_mm, cfg.safe_z_mm)):
+            if a in words:
+                assert lo - 1e-9 <= words[a] <= hi + 1e-9, (ln, text)
+        if role == "travel":
+            entry = (words["X"], words["Y"])
+            seen.append(s)
+            ends = 1000 * np.array([d.p0[s], d.p1[s]])
+            side = int(np.argmin(np.linalg.norm(ends - entry, axis=1)))
+            assert np.allclose(ends[side], entry, atol=6e-4), (ln, text)
+        if role == "cut":
+            assert np.allclose(ends[1 - side], (words["X"], words["Y"]), atol=6e-4), (ln, text)
+        if role in ("travel", "plunge", "cut", "retract", "sync"):
+            assert k == len(seen) - 1 and s == seen[-1]
+        if role == "plunge":
+            assert words["Z"] < 0 and set(words) >= {"Z", "F"}
+        if role == "sync":
+            assert text == "G4 P0"
+    assert sorted(seen) == list(range(n))
+    assert state["units"] == 21 and state["distance"] == 90
+
+
+def test_gcode_grammar_bounds_and_line_map(tmp_path, small):
+    d, prog = small
+    _check_program(d, prog, MachineConfig(plunge_mm=0.1))
+    write_program(prog, tmp_path / "p.gcode")
+    back = read_program(tmp_path / "p.gcode")
+    assert back.lines == prog.lines and np.array_equal(back.k, prog.k) and back.role == prog.role
+    # Fitted plunge, offset board and a margin: still in grammar and bounds.
+    cfg = MachineConfig(board_offset_mm=(10.0, 20.0), cutter_radius_mm=0.125, fit="global")
+    p2 = make_program(d, cfg, time_limit=2)
+    xs = [float(w[1:]) for t in p2.lines if not t.startswith("(") for w in t.split() if w[0] == "X"]
+    assert min(xs) >= 10.0 and max(xs) <= 310.0
+    assert p2.info["fit"]["mode"] == "global"
+
+
+def test_grammar_checker_rejects_bad_lines():
+    bad = {"G1 X1 Y2": 22, "G0 X1 X2": 25, "G0 G1 X1": 21, "G4": 26, "G4 P-1": 4, "g0 x1": 1, "G0  X1": 1,
+           "G0 X1.2.3": 2, "G7 X1": 20, "Q1": 20, "G0 X" + "1" * 80: 14, "G0 (X1": 1, "X1": 31}
+    for line, code in bad.items():
+        with pytest.raises(GcodeError) as e:
+            check_line(line, {})
+        assert e.value.code == code, line
+    check_line("G1 X1 Y2 F900 (comment) ; more", {})
+
+
+def test_reply_grammar():
+    assert classify("ok").kind == "ok"
+    assert classify("error:20") == ("error", 20, "error:20")
+    assert classify("ALARM:1").code == 1
+    assert classify("<Hold:0|MPos:1.000,2.000,3.000|FS:0,0>").kind == "status"
+    assert classify("[MSG:Reset to continue]").kind == "msg"
+    assert classify("Grbl 1.1h ['$' for help]").kind == "banner"
+    for junk in ("okay", "error:", "\ufffd#garbage%", "<Idle", "Marlin 2.1"):
+        assert classify(junk).kind == "unknown"
+
+
+def test_zero_length_and_bad_design_give_clear_errors(tmp_path, capsys):
+    d = demo_design(10, seed=1)
+    p1 = d.p1.copy()
+    p1[6] = d.p0[6]
+    save_design(tmp_path / "z.npz", d.p0, p1, d.width, d.depth, d.alpha, d.board)
+    assert main([str(tmp_path / "z.npz"), "--dry-run", "--quiet", "--plunge", "0.1"]) == 1
+    assert "scratch 6 has length 0 mm" in capsys.readouterr().err
+    assert not (tmp_path / "z.gcode").exists()
+    # --drop-short skips it.
+    assert main([str(tmp_path / "z.npz"), "--dry-run", "--quiet", "--plunge", "0.1", "--drop-short"]) == 0
+    assert read_program(tmp_path / "z.gcode").info["scratches"] == 9
+    arr = {k: v for k, v in d._asdict().items() if v is not None}
+    arr["p0"] = arr["p0"].copy()
+    arr["p0"][3, 1] = np.nan
+    np.savez(tmp_path / "nan.npz", **arr)
+    assert main([str(tmp_path / "nan.npz"), "--dry-run", "--quiet"]) == 1
+    assert "scratch 3: p0" in capsys.readouterr().err
+    arr["p0"][3, 1] = 0.5
+    np.savez(tmp_path / "off.npz", **arr)
+    assert main([str(tmp_path / "off.npz"), "--dry-run", "--quiet"]) == 1
+    assert "off the board" in capsys.readouterr().err
+
+
+def test_cli_dry_run_demo(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main(["--dry-run", "--demo-n", "60", "--order-time", "2"]) == 0
+    out = capsys.readouterr().out
+    for key in ("scratches        60", "travel", "reduction", "estimated time", "bounds (mm)", "cutter fit"):
+        assert key in out
+    for f in ("jscratch_demo.gcode", "jscratch_demo.gcode.map.csv", "jscratch_demo.preview.png", "jscratch_demo.summary.json"):
+        assert (tmp_path / f).stat().st_size > 0
+    import skimage.io
+
+    img = skimage.io.imread(tmp_path / "jscratch_demo.preview.png")
+    assert img.ndim == 3 and img.shape[0] > 300
+    info = json.loads((tmp_path / "jscratch_demo.summary.json").read_text())
+    assert info["travel_mm"] < info["travel_input_mm"]
+
+
+# ----------------------------------------------------------------------------------------------
+# Streaming against the simulator.
+
+
+def _program_cuts(prog):
+    """Per k: entry (x, y), exit (x, y), plunge depth, from the G-code text."""
+    out = {}
+    for text, k, role in zip(prog.lines, prog.k.tolist(), prog.role):
+        if k < 0:
+            continue
+        w = {t[0]: float(t[1:]) for t in text.split()[1:]}
+        if role == "travel":
+            out[k] = [(w["X"], w["Y"]), None, None]
+        elif role == "plunge":
+            out[k][2] = w["Z"]
+        elif role == "cut":
+            out[k][1] = (w["X"], w["Y"])
+    return out
+
+
+def _verify(prog, wp, in_progress=()):
+    """Every scratch carved completely exactly once, except the ones in progress at a fault (at most
+    twice); plunges and cuts in program order; everything in bounds; the host never overflowed RX."""
+    assert wp.faults == []
+    cuts = _program_cuts(prog)
+    by_entry = {tuple(np.round(v[0], 3)): k for k, v in cuts.items()}
+    n = len(cuts)
+    xs = np.array([m[2] for m in wp.moves] + [m[1] for m in wp.moves])
+    zmin = min(v[2] for v in cuts.values())
+    assert np.all(xs[:, 0] >= -1e-9) and np.all(xs[:, 0] <= 300 + 1e-9)
+    assert np.all(xs[:, 1] >= -1e-9) and np.all(xs[:, 1] <= 300 + 1e-9)
+    assert np.all(xs[:, 2] >= zmin - 1e-9) and np.all(xs[:, 2] <= 5 + 1e-9)
+    complete, touched = [], []
+    for kind, s, e, f in wp.moves:
+        if s[2] < 0 and e[2] >= s[2] and s[:2] == e[:2]:
+            continue  # a vertical retract, from wherever the tool stopped
+        if e[2] < 0 or s[2] < 0:  # any other move with the tool below the surface
+            k = by_entry.get(tuple(np.round(s[:2], 3)))
+            assert k is not None, ("material removed away from any scratch entry", s, e)
+            if s[:2] == e[:2]:
+                touched.append(k)  # plunge
+            else:
+                assert kind == "G1"
+                if f == 1.0:
+                    assert np.allclose(e[:2], cuts[k][1], atol=1e-6) and np.isclose(e[2], cuts[k][2])
+                    complete.append(k)
+                touched.append(k)
+    counts = np.bincount(complete, minlength=n)
+    again = set(np.flatnonzero(counts != 1).tolist())
+    assert np.all(counts >= 1), f"never carved: {np.flatnonzero(counts == 0)}"
+    assert again <= set(in_progress) and np.all(counts <= 2), (again, in_progress)
+    # Order: the sequence of scratches touched never goes back, except to re-cut one in progress.
+    seq = [k for i, k in enumerate(touched) if i == 0 or k != touched[i - 1]]
+    backs = [(a, b) for a, b in zip(seq, seq[1:]) if b < a]
+    assert all(b in in_progress for _, b in backs), backs
+    assert len(backs) <= len(in_progress)
+
+
+@pytest.fixture
+def job(tmp_path, small):
+    d, prog = small
+    path = tmp_path / "job.gcode"
+    write_program(prog, path)
+    return str(path), prog
+
+
+@pytest.mark.parametrize("counting", [False, True])
+def test_clean_job_and_check_mode(job, counting):
+    path, prog = job
+    sim = GrblSim()
+    try:
+        r = carve(path, sim.port, counting=counting, check=True, **FAST)
+    finally:
+        sim.close()
+    assert r["done"] == r["total"] == 24
+    _verify(prog, sim.wp)
+    # check mode ran every line once before the real pass, and moved nothing
+    code = [t for t in prog.lines if not t.startswith("(")]
+    assert sim.wp.received == code + code
+    header, done = Journal.read(path + ".journal")
+    assert done == 24 and header["gcode_sha256"] == sha256_file(path)
+
+
+def _resume(path, sim, **kw):
+    return carve(path, sim.port, resume=True, **FAST, **kw)
+
+
+def test_error_mid_job_then_resume(job):
+    path, prog = job
+    wp = Workpiece()
+    # line 2 + 5*9 + 3 is the cut of scratch position 9
+    sim = GrblSim(wp, error_at=(2 + 5 * 9 + 3, 33))
+    with pytest.raises(CarveError, match=r"error:33 .* G-code line \d+ 'G1 X.*scratch position 9 .*retracted"):
+        carve(path, sim.port, **FAST)
+    assert Journal.read(path + ".journal")[1] == 9
+    assert sim.pos[2] == 1.0  # retracted to safe Z
+    sim.error_at = None
+    r = _resume(path, sim)
+    sim.close()
+    assert r["done"] == 24
+    _verify(prog, wp, in_progress={9})
+
+
+def test_alarm_mid_job_needs_home_then_resume(job):
+    path, prog = job
+    wp = Workpiece()
+    sim = GrblSim(wp, alarm_at=(1 + 4 * 12 + 3, 1))  # during the cut of position 12
+    with pytest.raises(CarveError, match=r"ALARM:1 .*--resume"):
+        carve(path, sim.port, counting=True, **FAST)
+    assert Journal.read(path + ".journal")[1] == 12
+    sim.alarm_at = None
+    n_recv = len(wp.received)
+    with pytest.raises(CarveError, match="Alarm state .* --home"):
+        _resume(path, sim)
+    assert len(wp.received) == n_recv  # refused: nothing sent
+    r = _resume(path, sim, home=True, counting=True)
+    sim.close()
+    assert r["done"] == 24
+    _verify(prog, wp, in_progress={12})
+
+
+def test_device_vanishes_then_resume_after_power_cycle(job):
+    path, prog = job
+    wp = Workpiece()
+    sim = GrblSim(wp, vanish_at=1 + 4 * 5 + 2)  # during the plunge of position 5
+    with pytest.raises(CarveError, match="lost"):
+        carve(path, sim.port, **FAST)
+    assert Journal.read(path + ".journal")[1] == 5
+    sim.close()
+    sim2 = GrblSim(wp, start_alarm=True)  # powered up again: homing required
+    r = _resume(path, sim2, home=True)
+    sim2.close()
+    assert r["done"] == 24
+    _verify(prog, wp, in_progress={5})
+
+
+def test_ctrl_c_holds_retracts_and_resumes(job):
+    path, prog = job
+    wp = Workpiece()
+    sim = GrblSim(wp)
+
+    def stop(k, s):
+        if k == 6:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        carve(path, sim.port, on_scratch=stop, **FAST)
+    assert Journal.read(path + ".journal")[1] == 7 and sim.pos[2] == 1.0 and sim.state == "Idle"
+    r = _resume(path, sim, counting=True)
+    sim.close()
+    assert r["done"] == 24
+    _verify(prog, wp)
+
+
+def test_garbage_and_slow_device(job):
+    path, prog = job
+    sim = GrblSim(garbage_every=3, reply_delay=0.002, block_time=0.003)
+    try:
+        r = carve(path, sim.port, counting=True, **FAST)
+    finally:
+        sim.close()
+    assert r["done"] == 24
+    _verify(prog, sim.wp)
+
+
+def test_bad_port_non_grbl_device_and_journal_rules(job, tmp_path):
+    path, prog = job
+    with pytest.raises(CarveError, match="does not exist"):
+        carve(path, str(tmp_path / "ttyNOPE"), **FAST)
+    sim = GrblSim(not_grbl=True)
+    try:
+        with pytest.raises(CarveError, match=r"did not answer like GRBL.*no motion was sent"):
+            carve(path, sim.port, resume=True, **FAST)
+    finally:
+        sim.close()
+    assert sim.wp.received == [] and sim.wp.moves == []
+    # A journal from another G-code is refused; an existing journal needs --resume.
+    other = tmp_path / "other.gcode"
+    other.write_text("G0 X1\n")
+    with pytest.raises(JournalError, match="belongs to G-code"):
+        Journal(path + ".journal", sha256_file(other), 24, resume=True)
+    with pytest.raises(JournalError, match="already exists"):
+        Journal(path + ".journal", sha256_file(path), 24, resume=False)
+    # A torn final record (power lost mid-write) is ignored.
+    j = Journal(path + ".journal", sha256_file(path), 24, resume=True)
+    j.confirm(0, int(prog.scratch[prog.k == 0][0]))
+    j.close()
+    with open(path + ".journal", "a") as f:
+        f.write('{"type": "done", "k": 1, "scr')
+    assert Journal.read(path + ".journal")[1] == 1
