@@ -433,7 +433,13 @@ def _step(params: DesignParams, opt_state, pairs: bvh.Pairs, ctx: _Ctx, caps, ad
     updates = jax.tree_util.tree_map(lambda u, lr: (-lr * u).astype(u.dtype), updates, ctx.lrs)
     new = eqx.apply_updates(params, updates)
     s = new.scratches()
-    rebin = bvh.needs_rebin(pairs, s.p0, s.p1, s.width, s.depth)
+    # Non-finite or out-of-range values are reported by the health check (and the host stops);
+    # here they are replaced so that needs_rebin's own checks do not fire first.
+    ok = lambda x: jnp.isfinite(x) & (x > 0)
+    p0 = jnp.where(jnp.isfinite(s.p0), s.p0, 0)
+    p1 = jnp.where(jnp.isfinite(s.p1), s.p1, 0)
+    rebin = bvh.needs_rebin(pairs, p0, p1, jnp.where(ok(s.width), s.width, 1e-4),
+                            jnp.where(ok(s.depth), s.depth, 1e-4))
     return new, opt_state, terms, rebin, counts, _health(value, grads, new)
 
 

@@ -1,0 +1,176 @@
+"""Tests of jscratch.design: the CLI end to end on a tiny scene (outputs, decreasing loss), resume
+giving bitwise the same state as an uninterrupted run, a NaN stopping the run with the last good
+checkpoint kept, the closed-form intensity start, the parameter maps, and the input errors.
+
+Every optimisation here uses one tiny configuration (2 views, 32x32 px, 300 scratches, float32), so
+the jitted step compiles once per process; the heavy checks share one test for the same reason.
+"""
+
+import json
+import math
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jscratch import designfile
+from jscratch import render as R
+from jscratch.design import (
+    DesignConfig,
+    DesignError,
+    DesignParams,
+    NonFiniteError,
+    default_targets,
+    design,
+    load_target,
+    main,
+)
+
+SIZE = 32
+TINY = ["--views", "2", "--size", str(SIZE), "--scratches", "300", "--cull-eps", "0",
+        "--checkpoint-every", "2", "--quiet"]
+
+
+def _ckpt(path):
+    with np.load(path) as z:
+        data = {k: z[k] for k in z.files}
+    meta = json.loads(bytes(data.pop("meta")).decode())
+    return meta, data
+
+
+def _tiny_config(**kw):
+    base = dict(n_scratches=300, iterations=4, cull_eps=0.0, checkpoint_every=2)
+    base.update(kw)
+    return DesignConfig(**base)
+
+
+def test_cli_end_to_end_resume_and_nan(tmp_path):
+    # 1. The CLI on a tiny scene with the skimage.data defaults: every output, a decreasing loss.
+    full = tmp_path / "full"
+    assert main(TINY + ["--iterations", "4", "--out", str(full)]) == 0
+    for name in ("design.npz", "design.svg", "view0_render.png", "view1_target.png",
+                 "comparison.png", "loss.png", "metrics.json", "config.json", "checkpoint.npz"):
+        assert (full / name).is_file(), name
+    metrics = json.loads((full / "metrics.json").read_text())
+    for key in ("ssim", "psnr", "ghosting", "time_total", "pairs_per_view", "discarded", "loss"):
+        assert key in metrics
+    assert len(metrics["ssim"]) == 2 and metrics["iterations"] == 4
+    meta_full, ck_full = _ckpt(full / "checkpoint.npz")
+    hist = meta_full["history"]["total"]
+    assert len(hist) == 4 and hist[-1] < hist[0]  # the optimiser decreases the loss
+    d = designfile.load_design(full / "design.npz")
+    assert d.n == metrics["kept"] == 300 - metrics["discarded"]
+    assert d.camera.shape == (2, 3) and np.all(d.intensity > 0)
+    assert metrics["loss"] <= (1 + 0.01) * metrics["loss_before_discard"] * (1 + 1e-6)
+    cfg = json.loads((full / "config.json").read_text())
+    assert cfg["design"]["n_scratches"] == 300 and cfg["design"]["iterations"] == 4
+
+    # 2. Interrupted after 2 iterations, resumed to 4: bitwise the same state as the full run.
+    part = tmp_path / "part"
+    assert main(TINY + ["--iterations", "2", "--out", str(part)]) == 0
+    assert _ckpt(part / "checkpoint.npz")[0]["iteration"] == 2
+    assert main(["--resume", "--iterations", "4", "--out", str(part), "--quiet"]) == 0
+    meta_part, ck_part = _ckpt(part / "checkpoint.npz")
+    assert meta_part["iteration"] == 4
+    assert meta_part["history"] == meta_full["history"]
+    assert ck_part.keys() == ck_full.keys()
+    for k in ck_full:
+        np.testing.assert_array_equal(ck_part[k], ck_full[k], err_msg=k)
+
+    # 3. A learning rate that blows up the width: stop, name iteration and parameter, keep the
+    #    last good state in the checkpoint.
+    targets, _ = default_targets(2, (SIZE, SIZE))
+    board = R.Board(shape=(SIZE, SIZE))
+    views = R.views_on_circle(2, math.radians(50), board=board)
+    ck = tmp_path / "nan" / "checkpoint.npz"
+    with pytest.raises(NonFiniteError, match=r"updated width at iteration 0 \(first bad scratch"):
+        design(targets, views, board, _tiny_config(lr_width=1e4), checkpoint=ck)
+    meta, data = _ckpt(ck)
+    assert meta["iteration"] == 0  # the last good state: the start
+    assert all(np.all(np.isfinite(v)) for k, v in data.items() if k.startswith("params/"))
+
+
+def test_params_round_trip_and_maps():
+    board = R.Board(shape=(16, 16))
+    s = R.Scratches.random(jax.random.PRNGKey(3), 50, board, dtype=jnp.float64)
+    for kind in ("endpoints", "midpoint"):
+        p = DesignParams.from_physical(s, np.array([2.0, 3.0]), board, kind)
+        back = p.scratches()
+        p0, p1 = np.asarray(back.p0), np.asarray(back.p1)
+        # The only change: endpoints moved at most 1e-6 board widths inside the board.
+        np.testing.assert_allclose(p0, np.asarray(s.p0), atol=2e-6 * 0.3)
+        np.testing.assert_allclose(p1, np.asarray(s.p1), atol=2e-6 * 0.3)
+        np.testing.assert_allclose(np.asarray(back.width), np.asarray(s.width), rtol=1e-12)
+        np.testing.assert_allclose(np.asarray(back.alpha), np.asarray(s.alpha), rtol=1e-12)
+        np.testing.assert_allclose(np.asarray(p.intensity()), [2.0, 3.0], rtol=1e-12)
+    # Endpoint map: unit slope at the board centre, never off the board.
+    p = DesignParams.from_physical(s, 1.0, board, "endpoints")
+    big = DesignParams(p.geom + 1e3 * np.sign(np.asarray(p.geom) - 1e-9), p.log_width, p.log_depth,
+                       p.logit_alpha, p.log_intensity, "endpoints", p.board_size)
+    e0, e1 = big.endpoints()
+    assert np.all((np.asarray(e0) >= 0) & (np.asarray(e0) <= 0.3))
+    assert np.all((np.asarray(e1) >= 0) & (np.asarray(e1) <= 0.3))
+    z = jnp.zeros((1, 4))
+    c = DesignParams(z, jnp.zeros(1), jnp.zeros(1), jnp.zeros(1), jnp.zeros(1))
+    jac = jax.jacfwd(lambda g: c.__class__(g, c.log_width, c.log_depth, c.logit_alpha,
+                                           c.log_intensity).endpoints()[0])(z)
+    np.testing.assert_allclose(np.asarray(jac)[0, :, 0, :2], 0.3 * np.eye(2), rtol=1e-12)
+
+
+def test_config_and_input_errors(tmp_path):
+    board = R.Board(shape=(SIZE, SIZE))
+    views = R.views_on_circle(2, math.radians(50), board=board)
+    targets = np.full((2, SIZE, SIZE), 0.5)
+    with pytest.raises(DesignError, match="got 3 target images for 2 views"):
+        design(np.full((3, SIZE, SIZE), 0.5), views, board)
+    with pytest.raises(DesignError, match=r"target 1 has values outside \[0, 1\]"):
+        design(np.stack([targets[0], targets[1] * 3]), views, board)
+    with pytest.raises(DesignError, match="integer images"):
+        design(np.zeros((2, SIZE, SIZE), np.uint8), views, board)
+    with pytest.raises(DesignError, match=r"targets are 32x32 px but the board's image shape is \(16, 16\)"):
+        design(targets, views, R.Board(shape=(16, 16)))
+    # A camera at the light's mirror direction (azimuth 180 deg from the light, same polar angle).
+    cam = np.array([[0.15 - 0.5, 0.15, 0.8], [0.15, 0.15 + 0.5, 0.8]])
+    light = np.array([[0.15 + 0.5, 0.15, 0.8]] * 2)
+    with pytest.raises(DesignError, match="view 0: the camera is at the light's mirror direction"):
+        design(targets, R.Views(cam, light), board)
+    with pytest.raises(DesignError, match="freeze"):
+        DesignConfig(freeze=("colour",))
+    with pytest.raises(DesignError, match="parameterisation"):
+        DesignConfig(parameterisation="polar")
+    with pytest.raises(DesignError, match="lr_width"):
+        DesignConfig(lr_width=-1.0)
+    with pytest.raises(DesignError, match="resume=True needs a checkpoint"):
+        design(targets, views, board, resume=True)
+
+
+def test_cli_input_errors(tmp_path, capsys):
+    bad = tmp_path / "bad.png"
+    bad.write_bytes(b"this is not a png")
+    assert main([str(bad), "--out", str(tmp_path / "o1"), "--quiet"]) == 2
+    assert "cannot read target image" in capsys.readouterr().err
+    assert main([str(tmp_path / "missing.png"), "--out", str(tmp_path / "o2"), "--quiet"]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    wide = tmp_path / "wide.png"
+    from skimage import io
+
+    io.imsave(wide, np.zeros((20, 40), np.uint8), check_contrast=False)
+    assert main([str(wide), "--size", "16", "--out", str(tmp_path / "o3"), "--quiet"]) == 2
+    assert "aspect" in capsys.readouterr().err
+    assert main([str(wide), str(wide), "--views", "3", "--out", str(tmp_path / "o4"), "--quiet"]) == 2
+    assert "2 target images for --views 3" in capsys.readouterr().err
+    # Cameras below the board (polar angle beyond 90 degrees).
+    assert main(TINY + ["--camera-theta-deg", "95", "--out", str(tmp_path / "o5")]) == 2
+    assert "impossible view set-up" in capsys.readouterr().err
+    # A camera at the light's mirror direction: 2 views with camera 0 at azimuth 180 deg.
+    assert main(TINY + ["--offset-deg", "180", "--out", str(tmp_path / "o6")]) == 2
+    assert "mirror" in capsys.readouterr().err
+    assert main(["--resume", "--out", str(tmp_path / "nothing"), "--quiet"]) == 2
+    assert "--resume: no" in capsys.readouterr().err
+    # A valid image file loads as [0, 1] grayscale of the asked size.
+    sq = tmp_path / "sq.png"
+    io.imsave(sq, np.full((20, 20, 3), 255, np.uint8), check_contrast=False)
+    t = load_target(sq, (16, 16))
+    assert t.shape == (16, 16) and np.allclose(t, 1.0)
