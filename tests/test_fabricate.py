@@ -414,3 +414,23 @@ def test_bad_port_non_grbl_device_and_journal_rules(job, tmp_path):
     with open(path + ".journal", "a") as f:
         f.write('{"type": "done", "k": 1, "scr')
     assert Journal.read(path + ".journal")[1] == 1
+
+
+def test_character_counting_respects_rx_buffer_and_overflow_is_caught():
+    from jscratch.grbl import Grbl
+
+    lines = [f"G1 X{i % 50 + 0.5:.3f} Y{(7 * i) % 50 + 0.25:.3f} F900" for i in range(60)]
+    for rx_size, overflow in ((None, False), (400, True)):
+        sim = GrblSim(block_time=0.004)
+        try:
+            with Grbl(sim.port, banner_timeout=1.0, poll_interval=0.05, stall_timeout=5.0) as grbl:
+                grbl.connect()
+                assert grbl.rx_size == 128 and grbl.version.startswith("1.1h")
+                if rx_size:
+                    grbl.rx_size = rx_size  # a host that believes in a bigger buffer
+                grbl.stream(lines, counting=True)
+                assert grbl.command("G4 P0").kind == "ok"
+        finally:
+            sim.close()
+        assert bool(sim.wp.faults) == overflow, sim.wp.faults[:1]
+        assert sim.wp.received == lines + ["G4 P0"] or overflow
