@@ -394,15 +394,20 @@ def _bin(p0, p1, width, depth, *, board, shape, skin, strip_capacity, rows, pair
     sep_t = jnp.abs(d_t) <= hl + hx * atx + hy * aty + tol
     keep = (cand & sep_x & sep_y & sep_b & sep_t).reshape(-1)
 
-    # Compaction (order preserving) into the pair list.
+    # Compaction (order preserving) into the pair list: one scatter of the candidate index, then
+    # gathers (cheaper on CPU than scattering pixel and scratch separately).
     pos = jnp.cumsum(keep.astype(jnp.int32)) - 1
-    pairs_needed = jnp.sum(keep.astype(jnp.int32))
+    pairs_needed = pos[-1] + 1
     target = jnp.where(keep, pos, pair_capacity)
+    n_cells = keep.shape[0]
+    src = jnp.full(pair_capacity, n_cells, jnp.int32).at[target].set(
+        jnp.arange(n_cells, dtype=jnp.int32), mode="drop"
+    )
+    valid = src < n_cells
+    src = jnp.minimum(src, n_cells - 1)
     pixel = (row * w_px + col).reshape(-1)
-    scratch = jnp.broadcast_to(owner[:, None], row.shape).reshape(-1)
-    pix_out = jnp.zeros(pair_capacity, jnp.int32).at[target].set(pixel, mode="drop")
-    scr_out = jnp.full(pair_capacity, n, jnp.int32).at[target].set(scratch, mode="drop")
-    valid = jnp.arange(pair_capacity, dtype=jnp.int32) < pairs_needed
+    pix_out = jnp.where(valid, pixel[src], 0)
+    scr_out = jnp.where(valid, owner[src // rows], n)
     overflow = (
         (strips_needed > strip_capacity) | (max_rows > rows) | (pairs_needed > pair_capacity)
     )
