@@ -171,7 +171,8 @@ class Scratches(eqx.Module):
     - `p0`, `p1`: endpoints, ``(N, 2)``, board metres.
     - `width`: profile width ``w`` (m), ``(N,)`` or a scalar broadcast to ``(N,)``. Default ``1e-4``.
     - `depth`: depth ``d`` (m), ``(N,)`` or scalar. Default ``1e-4``.
-    - `alpha`: intrinsic GGX roughness in ``(0, 1]``, ``(N,)`` or scalar. Default ``0.04``.
+    - `alpha`: intrinsic GGX roughness in ``(0, 1)`` (the domain of `ndf.pair_integral`),
+      ``(N,)`` or scalar. Default ``0.04``.
 
     All five arrays share one floating dtype (that of ``p0, p1``; integers become the default float).
     Shapes are checked always; values (finite, ``width, depth > 0``, ``0 < alpha <= 1``) when the
@@ -222,9 +223,9 @@ class Scratches(eqx.Module):
                 i = int(np.argmax(a <= 0))
                 raise ValueError(f"Scratches: `{name}` must be > 0; scratch {i} has {a[i]}")
         a = np.asarray(self.alpha)
-        if ((a <= 0) | (a > 1)).any():
-            i = int(np.argmax((a <= 0) | (a > 1)))
-            raise ValueError(f"Scratches: `alpha` must lie in (0, 1]; scratch {i} has {a[i]}")
+        if ((a <= 0) | (a >= 1)).any():
+            i = int(np.argmax((a <= 0) | (a >= 1)))
+            raise ValueError(f"Scratches: `alpha` must lie in (0, 1); scratch {i} has {a[i]}")
 
     @property
     def n(self) -> int:
@@ -367,9 +368,12 @@ def views_on_circle(M: int, theta: float, distance: float = 1.0, offset: float |
     - `M`: number of views (>= 1).
     - `theta`: polar angle of the light (rad), in ``[0, pi/2)``.
     - `distance`: distance of light and cameras from the board centre (m). Default 1.
-    - `offset`: azimuth of camera 0 (rad). Default: the offset that keeps every camera farthest
-      (in azimuth) from both the light and its mirror azimuth, ``pi / (2M)`` for odd ``M`` and
-      ``pi / M`` for even ``M`` (relative to ``light_azimuth``).
+    - `offset`: azimuth of camera 0 relative to ``light_azimuth`` (rad). Default: ``pi / M`` for
+      even ``M`` (the mirror azimuth midway between two cameras, every camera ``pi / M`` from it
+      and from the light); for odd ``M``, ``pi / (2M)`` (every camera at least ``pi / (2M)`` from
+      both the light and its mirror) when that keeps every flat-board highlight off the board,
+      else ``0`` (the mirror midway between two cameras, ``pi / M`` from both; camera 0 then shares
+      the light's azimuth, a retro-reflection view).
     - `board`: the board (its centre and extent). Default `Board()`.
     - `light_azimuth`, `camera_theta`, `intensity` ((M,) or scalar, W/sr), `dtype`.
 
@@ -388,15 +392,23 @@ def views_on_circle(M: int, theta: float, distance: float = 1.0, offset: float |
                              f" above the board; got {v}{hint}")
     if not (math.isfinite(distance) and distance > 0):
         raise ValueError(f"views_on_circle: `distance` must be positive (m); got {distance}")
-    if offset is None:
-        offset = math.pi / (2 * M) if M % 2 else math.pi / M
     centre = np.array([board.Sx / 2, board.Sy / 2, 0.0])
     light = centre + distance * _direction(theta, light_azimuth)
-    azimuths = [2 * math.pi * j / M + offset + light_azimuth for j in range(M)]
-    cameras = np.stack([centre + distance * _direction(camera_theta, a) for a in azimuths])
-    spot = flat_highlight(cameras, light[None])
-    on = ((spot[:, 0] >= 0) & (spot[:, 0] <= board.Sx) & (spot[:, 1] >= 0)
-          & (spot[:, 1] <= board.Sy))
+
+    def layout(offset):
+        azimuths = [2 * math.pi * j / M + offset + light_azimuth for j in range(M)]
+        cameras = np.stack([centre + distance * _direction(camera_theta, a) for a in azimuths])
+        spot = flat_highlight(cameras, light[None])
+        on = ((spot[:, 0] >= 0) & (spot[:, 0] <= board.Sx) & (spot[:, 1] >= 0)
+              & (spot[:, 1] <= board.Sy))
+        return azimuths, cameras, spot, on
+
+    if offset is None:
+        azimuths, cameras, spot, on = layout(math.pi / (2 * M) if M % 2 else math.pi / M)
+        if on.any() and M % 2:
+            azimuths, cameras, spot, on = layout(0.0)
+    else:
+        azimuths, cameras, spot, on = layout(float(offset))
     if on.any():
         j = int(np.argmax(on))
         raise ValueError(
@@ -569,15 +581,20 @@ def _pair_kernel(cfg: _Cfg, xe, ye, p0, p1, w, d, a, h, pix):
     return ndf.pair_integral(h, fp, p0, p1, w, d, a)
 
 
-def _gather(params, h_flat, pix, scr):
+def _gather(params, h_views, pix, scr):
+    """Per-pair parameters ``(chunk, ...)`` and half vectors ``(V, chunk, 3)``."""
     p0, p1, w, d, a = params
     take = lambda x: x.at[scr].get(mode="clip")  # sentinel N -> N-1; masked below
-    return (take(p0), take(p1), take(w), take(d), take(a), h_flat.at[pix].get(mode="clip"))
+    return (take(p0), take(p1), take(w), take(d), take(a),
+            h_views.at[:, pix].get(mode="clip"))
 
 
 def _masked_chunk(cfg: _Cfg, xe, ye, pix, valid, p0, p1, w, d, a, h):
-    """Per-pair ``(D_hat, A)`` for a chunk, zero on padding slots. Padding slots get a benign
-    off-board dummy pair first (double-where), so no value or gradient there can be NaN."""
+    """Per-pair ``D_hat`` ``(V, chunk)`` (one row per view) and ``A`` ``(chunk,)`` for a chunk,
+    zero on padding slots. Padding slots get a benign off-board dummy pair first (double-where),
+    so no value or gradient there can be NaN. ``h`` is ``(V, chunk, 3)``; the scratch geometry
+    and footprint are shared by the views (vmap keeps ``A``, which does not depend on ``h``,
+    unbatched)."""
     dt = w.dtype
     v1 = valid[:, None]
     p0 = jnp.where(v1, p0, jnp.asarray([-1.0, -1.0], dt))
@@ -585,11 +602,14 @@ def _masked_chunk(cfg: _Cfg, xe, ye, pix, valid, p0, p1, w, d, a, h):
     w = jnp.where(valid, w, jnp.asarray(1e-4, dt))
     d = jnp.where(valid, d, jnp.asarray(1e-4, dt))
     a = jnp.where(valid, a, jnp.asarray(0.5, dt))
-    h = jnp.where(v1, h, jnp.asarray([0.0, 0.0, 1.0], dt))
+    h = jnp.where(v1[None], h, jnp.asarray([0.0, 0.0, 1.0], dt))
     kern = functools.partial(_pair_kernel, cfg, xe, ye)
-    D, A = jax.vmap(kern)(p0, p1, w, d, a, h, pix)
+    over_pairs = jax.vmap(kern)
+    D, A = jax.vmap(over_pairs, in_axes=(None, None, None, None, None, 0, None))(
+        p0, p1, w, d, a, h, pix)
+    A = A[0]  # A does not depend on h: vmap left it unbatched and XLA folds the broadcast
     zero = jnp.zeros((), dt)
-    return jnp.where(valid, D, zero), jnp.where(valid, A, zero)
+    return jnp.where(valid[None], D, zero), jnp.where(valid, A, zero)
 
 
 def _edges_in(cfg: _Cfg, dtype):
@@ -608,29 +628,29 @@ def _varying(cfg: _Cfg, tree):
     return jax.tree_util.tree_map(lambda x: jax.lax.pcast(x, cfg.axes, to="varying"), tree)
 
 
-def _fwd_local(cfg: _Cfg, params, h_flat, pix, scr, valid):
+def _fwd_local(cfg: _Cfg, params, h_views, pix, scr, valid):
     dt = params[2].dtype
     xe, ye = _edges_in(cfg, dt)
-    n_out = h_flat.shape[0]
+    V, n_out = h_views.shape[:2]
 
     def body(carry, xs):
         Ds, As = carry
         pc, sc, vc = xs
-        D, A = _masked_chunk(cfg, xe, ye, pc, vc, *_gather(params, h_flat, pc, sc))
+        D, A = _masked_chunk(cfg, xe, ye, pc, vc, *_gather(params, h_views, pc, sc))
         if cfg.need_D:
-            Ds = Ds.at[pc].add(D)
+            Ds = Ds.at[:, pc].add(D)
         if cfg.need_A:
             As = As.at[pc].add(A)
         return (Ds, As), None
 
-    init = _varying(cfg, (jnp.zeros((n_out,), dt), jnp.zeros((n_out,), dt)))
+    init = _varying(cfg, (jnp.zeros((V, n_out), dt), jnp.zeros((n_out,), dt)))
     (Ds, As), _ = jax.lax.scan(body, init, _chunks(cfg, pix, scr, valid))
     if cfg.mesh is not None:
         Ds, As = jax.lax.psum((Ds, As), cfg.axes)
     return Ds, As
 
 
-def _bwd_local(cfg: _Cfg, params, h_flat, pix, scr, valid, gD, gA):
+def _bwd_local(cfg: _Cfg, params, h_views, pix, scr, valid, gD, gA):
     dt = params[2].dtype
     xe, ye = _edges_in(cfg, dt)
     # Differentiate only the outputs the caller uses, so XLA does no dead reverse work.
@@ -644,19 +664,19 @@ def _bwd_local(cfg: _Cfg, params, h_flat, pix, scr, valid, gD, gA):
             out = _masked_chunk(cfg, xe, ye, pc, vc, *gathered)
             return tuple(out[i] for i in pick)
 
-        _, vjp = jax.vjp(f, *_gather(params, h_flat, pc, sc))
-        ct = tuple((gD, gA)[i].at[pc].get(mode="clip") for i in pick)
-        d0, d1, dw, dd, da, dh = vjp(ct)
+        _, vjp = jax.vjp(f, *_gather(params, h_views, pc, sc))
+        cts = (gD.at[:, pc].get(mode="clip"), gA.at[pc].get(mode="clip"))
+        d0, d1, dw, dd, da, dh = vjp(tuple(cts[i] for i in pick))
         # The sentinel index N is out of range: mode="drop" discards padding slots (already zero).
         gp0 = gp0.at[sc].add(d0, mode="drop")
         gp1 = gp1.at[sc].add(d1, mode="drop")
         gw = gw.at[sc].add(dw, mode="drop")
         gd = gd.at[sc].add(dd, mode="drop")
         ga = ga.at[sc].add(da, mode="drop")
-        gh = gh.at[pc].add(dh, mode="drop")
+        gh = gh.at[:, pc].add(dh, mode="drop")
         return (gp0, gp1, gw, gd, ga, gh), None
 
-    init = _varying(cfg, tuple(jnp.zeros_like(x) for x in params) + (jnp.zeros_like(h_flat),))
+    init = _varying(cfg, tuple(jnp.zeros_like(x) for x in params) + (jnp.zeros_like(h_views),))
     grads, _ = jax.lax.scan(body, init, _chunks(cfg, pix, scr, valid))
     if cfg.mesh is not None:
         grads = jax.lax.psum(grads, cfg.axes)
@@ -674,24 +694,24 @@ def _maybe_shard(cfg: _Cfg, fn, n_rep: int, n_pair: int, n_rep_after: int = 0):
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
-def _pair_sums(cfg: _Cfg, params, h_flat, pix, scr, valid):
-    """Per-output-pixel sums ``(sum D_hat, sum A)`` over the pairs, each ``(n_out,)`` with
-    ``n_out = h_flat.shape[0]``. ``pix, scr, valid`` ``(L,)`` with ``L`` a multiple of
-    ``chunk * n_devices``."""
-    return _maybe_shard(cfg, functools.partial(_fwd_local, cfg), 2, 3)(params, h_flat, pix, scr,
+def _pair_sums(cfg: _Cfg, params, h_views, pix, scr, valid):
+    """Per-output-pixel sums over the pairs: ``sum D_hat`` ``(V, n_out)`` and ``sum A``
+    ``(n_out,)``, with ``(V, n_out) = h_views.shape[:2]`` (V views evaluated on every pair).
+    ``pix, scr, valid`` ``(L,)`` with ``L`` a multiple of ``chunk * n_devices``."""
+    return _maybe_shard(cfg, functools.partial(_fwd_local, cfg), 2, 3)(params, h_views, pix, scr,
                                                                         valid)
 
 
-def _pair_sums_fwd(cfg, params, h_flat, pix, scr, valid):
-    out = _pair_sums(cfg, params, h_flat, pix, scr, valid)
-    return out, (params, h_flat, pix, scr, valid)
+def _pair_sums_fwd(cfg, params, h_views, pix, scr, valid):
+    out = _pair_sums(cfg, params, h_views, pix, scr, valid)
+    return out, (params, h_views, pix, scr, valid)
 
 
 def _pair_sums_bwd(cfg, res, g):
-    params, h_flat, pix, scr, valid = res
+    params, h_views, pix, scr, valid = res
     gD, gA = g
     fn = _maybe_shard(cfg, functools.partial(_bwd_local, cfg), 2, 3, 2)
-    dparams, dh = fn(params, h_flat, pix, scr, valid, gD, gA)
+    dparams, dh = fn(params, h_views, pix, scr, valid, gD, gA)
     return dparams, dh, None, None, None
 
 
@@ -716,7 +736,7 @@ def _round_up(x: int, m: int) -> int:
     return -(-x // m) * m
 
 
-def _run_pair_sums(scratches: Scratches, board: Board, h_flat, pix, scr, valid, *, chunk, mesh,
+def _run_pair_sums(scratches: Scratches, board: Board, h_views, pix, scr, valid, *, chunk, mesh,
                    axes, need_D, need_A):
     """Pad the flat pair list and call `_pair_sums`."""
     L = pix.shape[0]
@@ -732,7 +752,7 @@ def _run_pair_sums(scratches: Scratches, board: Board, h_flat, pix, scr, valid, 
         valid = jnp.concatenate([valid, jnp.zeros((pad,), bool)])
     cfg = _Cfg(board.H, board.W, board.Sx, board.Sy, chunk, mesh, axes, need_D, need_A)
     params = (scratches.p0, scratches.p1, scratches.width, scratches.depth, scratches.alpha)
-    return _pair_sums(cfg, params, h_flat, pix, scr, valid)
+    return _pair_sums(cfg, params, h_views, pix, scr, valid)
 
 
 # --------------------------------------------------------------------------------------------
@@ -749,8 +769,8 @@ def _check_values(scratches: Scratches, views: Views):
                       " is NaN or infinite")
     p0 = eqx.error_if(p0, jnp.any(s.width <= 0) | jnp.any(s.depth <= 0),
                       "render: scratch `width` and `depth` must be > 0")
-    p0 = eqx.error_if(p0, jnp.any(s.alpha <= 0) | jnp.any(s.alpha > 1),
-                      "render: scratch `alpha` must lie in (0, 1]")
+    p0 = eqx.error_if(p0, jnp.any(s.alpha <= 0) | jnp.any(s.alpha >= 1),
+                      "render: scratch `alpha` must lie in (0, 1)")
     cam = eqx.error_if(views.camera, ~(jnp.all(jnp.isfinite(views.camera))
                                        & jnp.all(jnp.isfinite(views.light))
                                        & jnp.all(jnp.isfinite(views.intensity))),
@@ -833,24 +853,20 @@ def render_pairs(scratches: Scratches, views: Views, board: Board, pairs,
     geo_h = half_vectors(views, board, dtype)  # (M, P, 3)
 
     pix, scr, valid, overflow, shared = _pair_arrays(pairs, M, P, n, "pairs")
-    if shared:
-        L = pix.shape[0]
-        pix = (pix[None] + (jnp.arange(M, dtype=pix.dtype) * P)[:, None]).reshape(-1)
-        scr = jnp.broadcast_to(scr[None], (M, L)).reshape(-1)
-        valid = jnp.broadcast_to(valid[None], (M, L)).reshape(-1)
-    pix = _checked_pairs(pix, scr, valid, overflow, M * P, n, "pairs")
+    # A shared list is evaluated for every view at once (views vmapped inside the chunk, the
+    # scratch geometry gathered once); per-view lists are flattened to outputs v*P + pixel.
+    h_views = geo_h if shared else geo_h.reshape(1, M * P, 3)
+    pix = _checked_pairs(pix, scr, valid, overflow, h_views.shape[1], n, "pairs")
     kw = dict(chunk=chunk, mesh=mesh, axes=axes)
     if n == 0:
-        Ds = As = jnp.zeros((M * P,), dtype)
+        Ds, As = jnp.zeros(h_views.shape[:2], dtype), jnp.zeros(h_views.shape[1:2], dtype)
     else:
-        Ds, As = _run_pair_sums(scratches, board, geo_h.reshape(M * P, 3), pix, scr, valid,
+        Ds, As = _run_pair_sums(scratches, board, h_views, pix, scr, valid,
                                 need_D=True, need_A=coverage_pairs is None, **kw)
     S = board.pixel_area
     D_P = Ds.reshape(M, P) / S
     if coverage_pairs is None:
-        cov = As.reshape(M, P) / S
-        if shared:
-            cov = cov[:1]
+        cov = (As[None] if shared else As.reshape(M, P)) / S
     else:
         cpix, cscr, cvalid, cover, cshared = _pair_arrays(coverage_pairs, 1, P, n,
                                                           "coverage_pairs")
@@ -860,7 +876,7 @@ def render_pairs(scratches: Scratches, views: Views, board: Board, pairs,
         if n == 0:
             As = jnp.zeros((P,), dtype)
         else:
-            h_dummy = jnp.zeros((P, 3), dtype).at[:, 2].set(1)
+            h_dummy = jnp.zeros((1, P, 3), dtype).at[..., 2].set(1)
             _, As = _run_pair_sums(scratches, board, h_dummy, cpix, cscr, cvalid, need_D=False,
                                    need_A=True, **kw)
         cov = As[None] / S
@@ -976,11 +992,18 @@ def render_reference(scratches: Scratches, views: Views, board: Board, *,
         D, A = over_views(h, fp, s.p0, s.p1, s.width, s.depth, s.alpha)  # (M, N)
         return D.sum(-1), A[0].sum(-1)
 
+    P = board.n_pixels
     if s.n == 0:
-        D = jnp.zeros((board.n_pixels, views.m), dtype)
-        A = jnp.zeros((board.n_pixels,), dtype)
+        D = jnp.zeros((P, views.m), dtype)
+        A = jnp.zeros((P,), dtype)
     else:
-        D, A = jax.lax.map(one_pixel, (fps, hs), batch_size=pixel_batch)
+        # Pad the pixel axis to a multiple of the batch (one compiled kernel, no remainder call).
+        batch = max(1, min(int(pixel_batch), P))
+        pad = _round_up(P, batch) - P
+        fps = jnp.concatenate([fps, jnp.broadcast_to(fps[-1:], (pad, 4, 2))])
+        hs = jnp.concatenate([hs, jnp.broadcast_to(hs[-1:], (pad,) + hs.shape[1:])])
+        D, A = jax.lax.map(one_pixel, (fps, hs), batch_size=batch)
+        D, A = D[:P], A[:P]
     S = board.pixel_area
     rad = shade(D.T / S, A[None] / S, views, board)
     return rad.reshape(views.m, board.H, board.W)
