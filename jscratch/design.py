@@ -645,7 +645,8 @@ class DesignResult:
     - `history`: per-iteration lists ``"total"`` and the loss terms (loss at the parameters the
       iteration started from).
     - `metrics`: SPEC section 7 metrics (`metrics.image_metrics`) plus ``loss``,
-      ``loss_before_discard``, ``discarded``, ``pairs_total``, ``pairs_per_view``, ``rebins``,
+      ``loss_before_discard``, ``metrics_before_discard`` (SPEC 7 metrics with every scratch),
+      ``discarded``, ``kept``, ``pairs_total``, ``pairs_per_view``, ``rebins``,
       timing (s): ``time_total``, ``time_first_step`` (includes compilation),
       ``time_step_median``, ``time_discard``.
     - `config`: the `DesignConfig`.
@@ -838,6 +839,7 @@ def design(
         caps = _measure_caps(params, pairs, ctx, m)
         rad, terms, counts = _evaluate(params, pairs, all_keep, ctx, caps)
     loss_all = float(terms["total"])
+    metrics_all = image_metrics(np.asarray(R.display(rad)), tnp)
     keep = np.ones(config.n_scratches, bool)
     if config.discard and stop_after is None:
         keep, rad, terms = _discard(params, pairs, ctx, caps, loss_all, config.discard_tol,
@@ -854,6 +856,7 @@ def design(
         "loss": float(terms["total"]),
         "loss_terms": {k2: float(v) for k2, v in terms.items()},
         "loss_before_discard": loss_all,
+        "metrics_before_discard": metrics_all,
         "discarded": int((~keep).sum()),
         "kept": int(keep.sum()),
         "pairs_total": int(np.asarray(pairs.valid).sum()),
