@@ -7,6 +7,7 @@ Table 1 (binning): for each scratch count N and image size,
 - `allocate`: host-side measurement (wall, first call, compilations included),
 - `compile`: `jit(bvh.update).lower(...).compile()`,
 - `bin`: median of `block_until_ready` runs of the compiled `update` (a full rebin),
+- `needs_rebin`: the O(N) motion test that lets an optimisation step skip the rebin,
 - `pairs`, `slots` (pair capacity L), padding efficiency `pairs / L` (flat list) against the
   per-pixel `(P, K)` layout with `K` the busiest pixel's count (`pairs / (P K)`),
 - `shade`: median time of `jax.vmap(ndf.pair_integral)` over the L slots of the padded list for
@@ -111,9 +112,9 @@ def bucket(k, chunk):
 def binning_table(counts, sizes, repeats, batch, shade_on):
     rows = []
     header = (
-        "| N | image | allocate (s) | compile (s) | bin (ms) | pairs | slots L | pairs/L "
-        "| (P,K) layout: K, pairs/(P K) | shade 1 view (ms) | bin/shade |\n"
-        "|---|---|---|---|---|---|---|---|---|---|---|"
+        "| N | image | allocate (s) | compile (s) | bin (ms) | needs_rebin (ms) | pairs | slots L "
+        "| pairs/L | (P,K) layout: K, pairs/(P K) | shade 1 view (ms) | bin/shade |\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|"
     )
     for n in counts:
         p0, p1, width, depth, alpha = scene(n)
@@ -128,6 +129,8 @@ def binning_table(counts, sizes, repeats, batch, shade_on):
             pairs = upd(spec, p0, p1, width, depth)
             assert not bool(pairs.overflow)
             t_bin = median_time(lambda: upd(spec, p0, p1, width, depth).pixel, repeats)
+            needs = bvh.needs_rebin.lower(pairs, p0, p1, width, depth).compile()
+            t_needs = median_time(lambda: needs(pairs, p0, p1, width, depth), repeats)
             n_pairs = int(np.asarray(pairs.valid).sum())
             per_pixel = np.bincount(
                 np.asarray(pairs.pixel)[np.asarray(pairs.valid)], minlength=size * size
@@ -135,6 +138,7 @@ def binning_table(counts, sizes, repeats, batch, shade_on):
             k_max = int(per_pixel.max())
             row = (
                 f"| {n} | {size}x{size} | {t_alloc:.2f} | {t_comp:.2f} | {1e3 * t_bin:.1f} "
+                f"| {1e3 * t_needs:.2f} "
                 f"| {n_pairs} | {spec.pair_capacity} | {n_pairs / spec.pair_capacity:.2f} "
                 f"| {k_max}, {n_pairs / (size * size * k_max):.3f} "
             )
@@ -183,24 +187,30 @@ def cull_table(n, size, eps_list, n_views, repeats, batch):
     unit = np.asarray(render.shade(d_ref + 1.0, cover, views, board)) - rad_ref
 
     header = (
-        "| eps | pairs kept | cull (ms, all views) | shade (ms, all views) | time saved "
+        "| eps | pairs kept | cull (ms, all views) | shade (ms, all views) | shading time saved "
         "| max error / peak radiance | max error / bound |\n|---|---|---|---|---|---|---|"
     )
     rows = []
     t_shade0 = None
+    compiled = {}  # one compiled shader per slot count (buckets of `batch` pairs)
+    jax.block_until_ready(cull(full, p0, p1, width, depth, alpha, hs[0], 0.0).valid)  # compile
     for eps in eps_list:
-        t = time.perf_counter()
         culled = [cull(full, p0, p1, width, depth, alpha, hs[j], eps) for j in range(n_views)]
-        jax.block_until_ready([c.valid for c in culled])
-        t_cull = time.perf_counter() - t
+        t_cull = median_time(
+            lambda: [cull(full, p0, p1, width, depth, alpha, hs[j], eps).valid  # noqa: B023
+                     for j in range(n_views)], repeats)
         kept = [int(np.asarray(c.valid).sum()) for c in culled]
-        cap = bucket(max(kept), batch)
-        compacted = [host_compact(c, cap) for c in culled]
-        shader_c = shader.lower(*compacted[0], fps, hs[0], p0, p1, width, depth, alpha).compile()
+        # each view's list compacted to its own bucketed capacity (culling saves per view)
+        compacted = [host_compact(c, bucket(k, batch)) for c, k in zip(culled, kept)]
+        for cp in compacted:
+            cap = cp[0].shape[0]
+            if cap not in compiled:
+                compiled[cap] = shader.lower(*cp, fps, hs[0], p0, p1, width, depth,
+                                             alpha).compile()
 
         def run_all():
-            return [shader_c(*compacted[j], fps, hs[j], p0, p1, width, depth, alpha)[0]
-                    for j in range(n_views)]
+            return [compiled[cp[0].shape[0]](*cp, fps, hs[j], p0, p1, width, depth, alpha)[0]
+                    for j, cp in enumerate(compacted)]  # noqa: B023
 
         d_sums = run_all()
         t_sh = median_time(run_all, repeats)

@@ -103,8 +103,10 @@ DEFAULT_MARGIN = 1.25
 """Default capacity multiplier applied to the measured strip and pair counts."""
 
 DEFAULT_EPS = 1e-3
-"""Default culling threshold (fraction of a pair's largest possible contribution); chosen from the
-time-against-error table in `benchmarks/results/bvh.md`."""
+"""Default culling threshold (fraction of a pair's largest possible contribution), from the
+time-against-error table in `benchmarks/results/bvh.md` (20k SPEC-default scratches, 256x256, 4
+views at 30 deg): `eps = 1e-3` keeps ~55% of the pairs and cuts shading time ~40% for a radiance
+error of ~3e-4 of the image's peak (`1e-2`: ~31% kept, error ~2e-3 of the peak)."""
 
 _ROUND = 64  # capacities are rounded up to a multiple of this (fewer distinct shapes to compile)
 
