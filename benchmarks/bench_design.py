@@ -16,7 +16,8 @@ Usage (from the repository root)::
   ``E_p`` of the final render is reported for every run so that runs trained with different losses
   compare on one scale.
 
-Prints a Markdown table and writes it to ``benchmarks/results/design.md``.
+Prints Markdown tables and writes them to ``benchmarks/results/design.md`` (with ``--only X``:
+``benchmarks/results/design_X.md``).
 """
 
 from __future__ import annotations
@@ -139,13 +140,10 @@ def main():
     text = "\n".join(out) + "\n"
     print(text)
     os.makedirs(os.path.dirname(RESULTS), exist_ok=True)
-    if args.only is not None and os.path.exists(RESULTS):
-        RESULTS_PART = RESULTS.replace(".md", f"_{args.only}.md")
-        with open(RESULTS_PART, "w") as f:
-            f.write(text)
-    else:
-        with open(RESULTS, "w") as f:
-            f.write(text)
+    path = RESULTS if args.only is None else RESULTS.replace(".md", f"_{args.only}.md")
+    with open(path, "w") as f:
+        f.write(text)
+    print(f"wrote {path}")
 
 
 if __name__ == "__main__":

@@ -365,7 +365,11 @@ def _view_lists(params: DesignParams, pairs: bvh.Pairs, ctx: _Ctx, caps: tuple[i
     for j in range(ctx.hs.shape[0]):
         c = bvh.cull(pairs, s.p0, s.p1, s.width, s.depth, s.alpha, ctx.hs[j], ctx.cull_eps)
         counts.append(jnp.sum(c.valid))
-        lists.append(bvh.compact(c, caps[j]))
+        # An overflowing list is incomplete: the host sees ``counts > caps``, throws the result
+        # away and retries with larger capacities. The flag is cleared so that the renderer's own
+        # overflow check does not abort the step first.
+        lists.append(eqx.tree_at(lambda q: q.overflow, bvh.compact(c, caps[j]),
+                                 jnp.zeros((), bool)))
     return lists, jnp.stack(counts)
 
 

@@ -174,3 +174,28 @@ def test_cli_input_errors(tmp_path, capsys):
     io.imsave(sq, np.full((20, 20, 3), 255, np.uint8), check_contrast=False)
     t = load_target(sq, (16, 16))
     assert t.shape == (16, 16) and np.allclose(t, 1.0)
+
+
+def test_view_lists_report_overflow_without_aborting():
+    # Per-view lists too small for the culled pairs: counts exceed the capacities (the host then
+    # retries with larger ones) and the lists carry no overflow flag that would abort the render.
+    from jscratch import bvh, loss
+    from jscratch.design import _Ctx, _group_tree, _view_lists
+
+    board = R.Board(shape=(16, 16))
+    views = R.views_on_circle(2, math.radians(50), board=board)
+    s = R.Scratches.random(jax.random.PRNGKey(1), 60, board, width=2.5e-4, depth=1.28e-4,
+                           dtype=jnp.float32)
+    p = DesignParams.from_physical(s, np.ones(2), board)
+    pairs, _ = bvh.build_pairs(s.p0, s.p1, s.width, s.depth, board=(0.3, 0.3), shape=(16, 16))
+    hs = R.half_vectors(views, board, jnp.float32)
+    bound = loss.make_loss(loss.LossConfig(kind="l2")).bind(jnp.zeros((2, 16, 16), jnp.float32))
+    lrs = _group_tree(p, {g: jnp.float32(0) for g in ("endpoints", "width", "depth", "alpha",
+                                                        "intensity")})
+    ctx = _Ctx(views.camera, views.light, hs, bound, lrs, 1e-3, board, 1024)
+    lists, counts = jax.jit(lambda p, q: _view_lists(p, q, ctx, (4, 4)))(p, pairs)
+    counts = np.asarray(counts)
+    expected = [int(bvh.cull(pairs, s.p0, s.p1, s.width, s.depth, s.alpha, hs[j], 1e-3).valid.sum())
+                for j in range(2)]
+    assert counts.tolist() == expected and min(expected) > 4
+    assert all(not bool(q.overflow) and q.pixel.shape == (4,) for q in lists)
