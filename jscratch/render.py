@@ -18,7 +18,8 @@ is then shaded at its footprint centre (SPEC section 4) into linear radiance.
 - `render(scratches, views, board, *, eps=0.0)`: host driver; bins (``bvh.build_pairs``), culls
   per view when ``eps > 0`` (``bvh.cull``), compacts the pair lists and calls `render_pairs`.
 - `render_pairs(scratches, views, board, pairs)`: the differentiable core, jittable, for use
-  inside a loss; the pair list is integer data computed outside the differentiated function.
+  inside a loss; the pair list is integer data computed outside the differentiated function
+  (`bin_pairs` makes one).
 - `render_reference(scratches, views, board)`: float64 all-pairs reference (every scratch against
   every pixel, dense sum, plain autodiff), for small scenes and tests.
 - `display(radiance)`: the display transform (gamma 2.2 with a finite slope at 0).
@@ -66,6 +67,7 @@ __all__ = [
     "Board",
     "Scratches",
     "Views",
+    "bin_pairs",
     "display",
     "half_vectors",
     "pixel_centres",
@@ -904,6 +906,28 @@ def _bucket(n: int, chunk: int) -> int:
     return _round_up(_round_up(n, step), min(chunk, 1024))
 
 
+def bin_pairs(scratches: Scratches, board: Board, *, chunk: int = DEFAULT_CHUNK):
+    """The complete (pixel, scratch) pair list of a scene, compacted (host code).
+
+    Bins with ``bvh.build_pairs`` and packs the valid pairs first into a list whose length is
+    rounded up (`_bucket`: within ~12%, a multiple of 1024 or of ``chunk``) so that similar scenes
+    share a compilation of `render_pairs`; padding holds pixel 0 and the sentinel scratch ``N``.
+
+    **Returns:** `bvh.Pairs` ``(L,)`` for `render_pairs`.
+    """
+    from jscratch import bvh
+
+    full, _ = bvh.build_pairs(scratches.p0, scratches.p1, scratches.width, scratches.depth,
+                              board=(board.Sx, board.Sy), shape=board.shape)
+    fval = np.asarray(full.valid).reshape(-1)
+    L = _bucket(int(fval.sum()), chunk)
+    cpix, cscr, cval = _compact(np.asarray(full.pixel).reshape(-1),
+                                np.asarray(full.scratch).reshape(-1), fval, L)
+    cscr[~cval] = scratches.n
+    return bvh.Pairs(pixel=jnp.asarray(cpix), scratch=jnp.asarray(cscr),
+                     valid=jnp.asarray(cval), overflow=jnp.asarray(False))
+
+
 @functools.lru_cache(maxsize=None)
 def _jitted_render_pairs(chunk, mesh, axis_names):
     return eqx.filter_jit(functools.partial(render_pairs, chunk=chunk, mesh=mesh,
@@ -931,16 +955,8 @@ def render(scratches: Scratches, views: Views, board: Board, *, eps: float = 0.0
 
     if eps < 0 or not math.isfinite(eps):
         raise ValueError(f"render: `eps` must be finite and >= 0; got {eps}")
-    full, _ = bvh.build_pairs(scratches.p0, scratches.p1, scratches.width, scratches.depth,
-                              board=(board.Sx, board.Sy), shape=board.shape)
-    fpix = np.asarray(full.pixel).reshape(-1)
-    fscr = np.asarray(full.scratch).reshape(-1)
-    fval = np.asarray(full.valid).reshape(-1)
-    L = _bucket(int(fval.sum()), chunk)
-    cpix, cscr, cval = _compact(fpix, fscr, fval, L)
-    cscr[~cval] = scratches.n
-    full_c = bvh.Pairs(pixel=jnp.asarray(cpix), scratch=jnp.asarray(cscr),
-                       valid=jnp.asarray(cval), overflow=jnp.asarray(False))
+    full_c = bin_pairs(scratches, board, chunk=chunk)
+    cpix, cscr = np.asarray(full_c.pixel), np.asarray(full_c.scratch)
     if eps == 0:
         pairs, cov_pairs = full_c, None
     else:
