@@ -100,6 +100,11 @@ def _dtype(*xs):
     return jnp.result_type(*[jnp.asarray(x) for x in xs], jnp.float32)
 
 
+def _dot2(v, d):
+    """`v . d` over a trailing axis of length 2, written out."""
+    return v[..., 0] * d[0] + v[..., 1] * d[1]
+
+
 def _two_sum(a, b):
     """Error-free sum (Knuth): `a + b = s + e` exactly."""
     s = a + b
@@ -407,17 +412,18 @@ class _PairGeometry:
         c = footprint[0]
         q = footprint - c
         cp = c - p0
-        x_c = jnp.where(L > 0, _cross_accurate(c, p0, p1) / jnp.where(L > 0, L, 1), cp @ b)
-        y_c = cp @ t
-        self.u = (q @ b + x_c) / width
-        self.y = q @ t  # relative to vertex 0
+        # Elementwise products, not `@`: under vmap a tiny batched matmul is slow on the CPU.
+        x_c = jnp.where(L > 0, _cross_accurate(c, p0, p1) / jnp.where(L > 0, L, 1), _dot2(cp, b))
+        y_c = _dot2(cp, t)
+        self.u = (_dot2(q, b) + x_c) / width
+        self.y = _dot2(q, t)  # relative to vertex 0
         self.y_lo = -y_c  # the scratch start, y = 0, relative to vertex 0
         self.y_hi = L - y_c
         # Orientation of the footprint (so a clockwise quad also gives positive values).
         qn = jnp.roll(q, -1, axis=0)
         area2 = jnp.sum(q[:, 0] * qn[:, 1] - qn[:, 0] * q[:, 1])
         self.sign = jnp.where(area2 >= 0, 1, -1).astype(q.dtype)
-        hn = h / jnp.linalg.norm(h)
+        hn = h / jnp.sqrt(h[0] * h[0] + h[1] * h[1] + h[2] * h[2])
         self.hx = hn[0] * b[0] + hn[1] * b[1]
         self.hy = hn[0] * t[0] + hn[1] * t[1]
         self.hz = hn[2]
