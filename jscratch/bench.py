@@ -1,0 +1,368 @@
+"""`python -m jscratch.bench`: run time against error, numerical stress, and the recorded results.
+
+A thin CLI over `run_bench(sections, quick, out)`. Every timing compiles first (compile time is
+reported apart), then takes the median of repeated `block_until_ready` runs. Results go to
+``OUT/bench.json``, ``OUT/bench.md`` (also printed) and PNG plots in ``OUT``.
+
+**Sections:**
+
+1. ``kernel``: the closed form `ndf.pair_integral` against Gauss-Legendre quadrature
+   (`ndf.pair_integral_quadrature`, n = 8 ... 128), float32 and float64: time per pair
+   (forward and forward+backward) against max and median error on a fixed population (the
+   realistic random pairs plus the adversarial families of `jscratch.ndf_cases`), the error taken
+   against the independent reference `jscratch.ndf_reference` (exact clipping, adaptive
+   quadrature). Pareto plot ``kernel_pareto.png``.
+2. ``stability``: a sweep over alpha (1e-4 ... 0.9), grazing ``hz``, ``hy`` near 0, width over
+   footprint and depth over width, footprint positions across the groove; worst float32 error
+   (against the float64 closed form, itself checked against the reference in the test suite) and
+   the count of non-finite values and gradients. 10^5+ cases in full mode.
+3. ``render``: forward and forward+backward time per view, pairs per second, binning share and
+   peak memory for the standard scenes, and culling ``eps`` against image error.
+4. ``brute``: the analytic renderer against the brute-force supersampled renderer: the time each
+   needs to reach the same error, and the speed-up.
+5. ``design``: SSIM per view against iterations and time for the default design.
+
+``--quick`` shrinks every section (under a minute on a 2-core CPU); the test suite runs it as a
+smoke test.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+SECTIONS = ("kernel", "stability", "render", "brute", "design")
+
+
+# ---------------------------------------------------------------------------------------------
+# Timing.
+
+
+def time_compiled(fn, *args, reps: int = 5, min_time: float = 0.2):
+    """Compile `fn` for `args` (timed apart) and return `(compile_s, median_run_s, out)`:
+    the median over `reps` runs (at least `min_time` s in all) of `block_until_ready`."""
+    t0 = time.perf_counter()
+    compiled = jax.jit(fn).lower(*args).compile()
+    compile_s = time.perf_counter() - t0
+    out = jax.block_until_ready(compiled(*args))  # warm-up
+    times = []
+    t_start = time.perf_counter()
+    while len(times) < reps or (time.perf_counter() - t_start < min_time and len(times) < 50):
+        t0 = time.perf_counter()
+        jax.block_until_ready(compiled(*args))
+        times.append(time.perf_counter() - t0)
+    return compile_s, statistics.median(times), out
+
+
+def machine_info() -> dict:
+    dev = jax.devices()[0]
+    return {
+        "date": datetime.date.today().isoformat(),
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "device": f"{dev.platform}:{getattr(dev, 'device_kind', '')}",
+        "n_devices": len(jax.devices()),
+        "jax": jax.__version__,
+        "python": platform.python_version(),
+    }
+
+
+def _md_table(rows: list[dict], cols: list[str]) -> str:
+    def fmt(v):
+        if isinstance(v, float):
+            if v == 0:
+                return "0"
+            if abs(v) >= 1e4 or abs(v) < 1e-3:
+                return f"{v:.3g}"
+            return f"{v:.4g}"
+        return str(v)
+
+    head = "| " + " | ".join(cols) + " |\n|" + "|".join("---" for _ in cols) + "|\n"
+    return head + "".join("| " + " | ".join(fmt(r.get(c, "")) for c in cols) + " |\n" for r in rows)
+
+
+# ---------------------------------------------------------------------------------------------
+# 1. Kernel: closed form vs Gauss-Legendre.
+
+
+def _kernel_population(quick: bool):
+    from jscratch import ndf_cases
+
+    if quick:
+        fams = {"random": ndf_cases.random_cases(n=96), **{
+            k: v.take(np.arange(0, v.len(), 3)) for k, v in ndf_cases.adversarial_families().items()
+        }}
+    else:
+        fams = ndf_cases.all_families()
+    return ndf_cases.concat(fams.values())
+
+
+def _errors(D, Dr, Ar, alpha):
+    """Relative error where the reference is significant (> 1e-6 of a fully lit pair's scale
+    A / (pi alpha)), and the largest absolute error in units of that scale over all pairs."""
+    scale = Ar / (np.pi * alpha)
+    sig = (Dr > 1e-6 * scale) & (Dr > 0)
+    rel = np.abs(D[sig] - Dr[sig]) / Dr[sig]
+    absn = np.abs(D - Dr) / np.where(scale > 0, scale, 1.0)
+    absn = np.where(scale > 0, absn, np.abs(D))
+    bad = int((~np.isfinite(D)).sum())
+    return {
+        "max_rel": float(np.max(rel)) if rel.size else 0.0,
+        "median_rel": float(np.median(rel)) if rel.size else 0.0,
+        "max_abs_scaled": float(np.max(absn)),
+        "nonfinite": bad,
+    }
+
+
+def bench_kernel(quick: bool, out: Path) -> dict:
+    from jscratch import ndf, ndf_reference
+
+    C = _kernel_population(quick)
+    n_pairs_time = 4096 if quick else 65536
+    reps = int(np.ceil(n_pairs_time / C.len()))
+    rows = []
+    dtypes = (np.float32,) if quick else (np.float32, np.float64)
+    gl_orders = (16, 64) if quick else (8, 16, 32, 64, 128)
+    for dtype in dtypes:
+        Cd = C.astype(dtype)
+        t0 = time.perf_counter()
+        Dr, Ar = ndf_reference.reference_batch(Cd)
+        ref_s = time.perf_counter() - t0
+        alpha = Cd.alpha.astype(np.float64)
+        # The timing batch: the population tiled to n_pairs_time pairs.
+        T = [jnp.asarray(np.concatenate([a] * reps)[:n_pairs_time]) for a in Cd.args()]
+        P = [jnp.asarray(a) for a in Cd.args()]
+        methods = [("closed form", None)] + [(f"GL n={n}", n) for n in gl_orders]
+        for name, n in methods:
+            if n is None:
+                one = ndf.pair_integral
+            else:
+                def one(*a, n=n):
+                    return ndf.pair_integral_quadrature(*a, n)
+            fwd = jax.vmap(one)
+
+            def fwd_bwd(*a, one=one):
+                def total(*b):
+                    D, A = jax.vmap(one)(*b)
+                    return jnp.sum(D) + jnp.sum(A)
+
+                return jax.value_and_grad(total, argnums=tuple(range(7)))(*a)
+
+            D, _ = jax.jit(fwd)(*P)
+            err = _errors(np.asarray(D, np.float64), Dr, Ar, alpha)
+            c_f, t_f, _ = time_compiled(fwd, *T)
+            if quick:  # the backward compile alone would take most of the minute
+                c_b, t_b = 0.0, float("nan")
+            else:
+                c_b, t_b, _ = time_compiled(fwd_bwd, *T)
+            rows.append({
+                "method": name, "dtype": np.dtype(dtype).name,
+                "ns_per_pair_fwd": t_f / n_pairs_time * 1e9,
+                "ns_per_pair_fwd_bwd": t_b / n_pairs_time * 1e9,
+                "Mpairs_per_s_fwd": n_pairs_time / t_f / 1e6,
+                "compile_s": c_f + c_b,
+                **err,
+            })
+        rows[-1]["reference_s"] = ref_s
+    cols = ["method", "dtype", "ns_per_pair_fwd", "ns_per_pair_fwd_bwd", "Mpairs_per_s_fwd",
+            "max_rel", "median_rel", "max_abs_scaled", "nonfinite", "compile_s"]
+    _pareto_plot(rows, out / "kernel_pareto.png")
+    return {"n_pairs_error": C.len(), "n_pairs_timing": n_pairs_time, "rows": rows,
+            "markdown": _md_table(rows, cols),
+            "note": "max_rel/median_rel over pairs whose reference exceeds 1e-6 A/(pi alpha); "
+                    "max_abs_scaled = max |D - ref| / (A / (pi alpha)) over all pairs."}
+
+
+def _pareto_plot(rows, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for dtype, marker in (("float32", "o"), ("float64", "s")):
+        for r in rows:
+            if r["dtype"] != dtype:
+                continue
+            color = "C3" if r["method"] == "closed form" else "C0"
+            ax.scatter(r["ns_per_pair_fwd"], max(r["max_rel"], 1e-17), marker=marker, color=color)
+            ax.annotate(f"{r['method']} {dtype[-2:]}", (r["ns_per_pair_fwd"], max(r["max_rel"], 1e-17)),
+                        fontsize=6, xytext=(3, 3), textcoords="offset points")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("time per pair, forward (ns)")
+    ax.set_ylabel("max relative error vs reference")
+    ax.set_title("Pair integral: run time against error (red: closed form)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+# ---------------------------------------------------------------------------------------------
+# 2. Stability sweep.
+
+
+def stability_cases(n: int, seed: int = 1):
+    """`n` pairs over the extreme ranges (numpy float64 `Cases`): alpha log-uniform in
+    [1e-4, 0.9]; hz in [0.02, 1] (a third below 0.1); hy exactly 0 for a quarter, else
+    +-10^U(-8, 0) of the tangential part; width over footprint 10^U(-3, 2); depth over width
+    10^U(-3, log10 50); footprint positions across and along the groove, endpoints inside,
+    zero-length scratches (1 in 50) and scratch directions snapped to the axes (1 in 5)."""
+    from jscratch import ndf_cases
+
+    rng = np.random.default_rng(seed)
+    s = ndf_cases.PIXEL
+    x0 = y0 = 0.15
+    fp = np.broadcast_to(ndf_cases.square(x0, y0, s), (n, 4, 2)).copy()
+    alpha = 10 ** rng.uniform(-4, np.log10(0.9), n)
+    hz = np.where(rng.random(n) < 1 / 3, rng.uniform(0.02, 0.1, n), rng.uniform(0.1, 1.0, n))
+    w = s * 10 ** rng.uniform(-3, 2, n)
+    d = w * 10 ** rng.uniform(-3, np.log10(50), n)
+    theta = rng.uniform(0, 2 * np.pi, n)
+    snap = rng.random(n) < 0.2
+    theta = np.where(snap, np.round(theta / (np.pi / 2)) * (np.pi / 2), theta)
+    t = np.stack([np.cos(theta), np.sin(theta)], -1)
+    bvec = np.stack([t[:, 1], -t[:, 0]], -1)
+    centre = np.array([x0 + s / 2, y0 + s / 2])
+    off = (rng.uniform(-1, 1, n) * (s + w))[:, None] * bvec
+    length = np.where(rng.random(n) < 0.02, 0.0, 10 ** rng.uniform(-4, np.log10(0.4), n))
+    frac = rng.uniform(-0.2, 1.2, n)
+    p0 = centre + off - (frac * length)[:, None] * t
+    p1 = p0 + length[:, None] * t
+    # Half vector in the local frame: hy = 0 exactly for a quarter (board h built from b only).
+    rxy = np.sqrt(1 - hz**2)
+    hy_frac = np.where(rng.random(n) < 0.25, 0.0, np.sign(rng.normal(size=n)) * 10 ** rng.uniform(-8, 0, n))
+    hy = rxy * hy_frac
+    hx = np.sign(rng.normal(size=n)) * np.sqrt(np.maximum(rxy**2 - hy**2, 0))
+    h = np.concatenate([hx[:, None] * bvec + hy[:, None] * t, hz[:, None]], -1)
+    return ndf_cases.Cases(h, fp, p0, p1, w, d, alpha)
+
+
+def bench_stability(quick: bool, out: Path) -> dict:
+    from jscratch import ndf
+
+    n = 2048 if quick else 131072
+    C = stability_cases(n)
+    kern = jax.jit(jax.vmap(ndf.pair_integral))
+
+    def total(*a):
+        D, A = ndf.pair_integral(*a)
+        return D + A
+
+    grad = jax.jit(jax.vmap(jax.grad(total, argnums=tuple(range(7)))))
+    chunk = 16384
+    D32, A32, D64, A64, bad_g = [], [], [], [], 0
+    for i in range(0, n, chunk):
+        part = C.take(np.arange(i, min(i + chunk, n)))
+        d, a = kern(*part.astype(np.float32).args())
+        D32.append(np.asarray(d, np.float64))
+        A32.append(np.asarray(a, np.float64))
+        d, a = kern(*part.astype(np.float64).args())
+        D64.append(np.asarray(d))
+        A64.append(np.asarray(a))
+        g = grad(*part.astype(np.float32).args())
+        bad_g += int(sum((~np.isfinite(np.asarray(x))).reshape(part.len(), -1).any(axis=1).sum() for x in g))
+    D32, A32, D64, A64 = map(np.concatenate, (D32, A32, D64, A64))
+    # The float64 closed form at the float32-rounded inputs is the reference here.
+    Dref, Aref = kern(*C.astype(np.float32).astype(np.float64).args())
+    Dref, Aref = np.asarray(Dref), np.asarray(Aref)
+    scale = Aref / (np.pi * C.astype(np.float32).alpha.astype(np.float64))
+    tol = np.maximum(1e-3 * np.abs(Dref), 1e-5 * scale)
+    ratio = np.where(tol > 0, np.abs(D32 - Dref) / np.where(tol > 0, tol, 1), np.abs(D32) * 1e30)
+    worst = int(np.argmax(ratio))
+    bins = []
+    edges = [1e-4, 1e-3, 1e-2, 1e-1, 0.9 + 1e-9]
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        sel = (C.alpha >= lo) & (C.alpha < hi)
+        if sel.any():
+            bins.append({"alpha": f"[{lo:g}, {hi:g})", "n": int(sel.sum()),
+                         "worst_err_over_tol": float(ratio[sel].max()),
+                         "median_err_over_tol": float(np.median(ratio[sel]))})
+    res = {
+        "n_cases": n,
+        "nonfinite_values_f32": int((~np.isfinite(D32)).sum() + (~np.isfinite(A32)).sum()),
+        "nonfinite_values_f64": int((~np.isfinite(D64)).sum() + (~np.isfinite(A64)).sum()),
+        "cases_with_nonfinite_gradients_f32": bad_g,
+        "worst_f32_err_over_tol": float(ratio[worst]),
+        "within_tolerance_fraction": float(np.mean(ratio <= 1)),
+        "worst_case": {k: np.asarray(v[worst]).tolist() for k, v in zip(C._fields, C.args())},
+        "by_alpha": bins,
+        "note": "tolerance = max(1e-3 |ref|, 1e-5 A/(pi alpha)) (issue 2's float32 bound); "
+                "reference = float64 closed form at the float32-rounded inputs.",
+    }
+    res["markdown"] = (
+        f"{n} cases; non-finite values f32/f64: {res['nonfinite_values_f32']}/"
+        f"{res['nonfinite_values_f64']}; cases with non-finite f32 gradients: {bad_g}; worst "
+        f"f32 error / tolerance: {res['worst_f32_err_over_tol']:.3g}; within tolerance: "
+        f"{100 * res['within_tolerance_fraction']:.3f}%\n\n" + _md_table(bins, ["alpha", "n", "worst_err_over_tol", "median_err_over_tol"])
+    )
+    return res
+
+
+# ---------------------------------------------------------------------------------------------
+# Driver.
+
+
+def run_bench(sections=SECTIONS, quick: bool = False, out: str | Path = "bench_out") -> dict:
+    """Run the chosen sections; write `bench.json`, `bench.md` and plots to `out`; return the
+    results dict (`machine`, one entry per section, each with a `markdown` table)."""
+    # float64 rows and references need x64; float32 paths build float32 arrays explicitly.
+    jax.config.update("jax_enable_x64", True)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    unknown = set(sections) - set(SECTIONS)
+    if unknown:
+        raise ValueError(f"unknown bench sections {sorted(unknown)}; choose from {SECTIONS}")
+    runners = {"kernel": bench_kernel, "stability": bench_stability}
+    try:  # sections whose modules are optional or still landing
+        from jscratch import bench_render
+
+        runners.update(bench_render.RUNNERS)
+    except ImportError:
+        pass
+    res = {"machine": machine_info(), "quick": quick, "command": " ".join(sys.argv)}
+    for s in sections:
+        if s not in runners:
+            res[s] = {"skipped": "not available in this build", "markdown": "(skipped)"}
+            continue
+        t0 = time.perf_counter()
+        res[s] = runners[s](quick, out)
+        res[s]["section_wall_s"] = time.perf_counter() - t0
+    md = [f"# jscratch bench ({'quick' if quick else 'full'})\n",
+          "Machine: " + ", ".join(f"{k} {v}" for k, v in res["machine"].items()) + "\n"]
+    for s in sections:
+        md.append(f"\n## {s}\n\n{res[s].get('markdown', '')}\n")
+        if "note" in res[s]:
+            md.append(f"\n{res[s]['note']}\n")
+    text = "".join(md)
+    (out / "bench.md").write_text(text)
+    (out / "bench.json").write_text(json.dumps(res, indent=1, default=float))
+    return res
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(prog="python -m jscratch.bench", description=__doc__.split("\n\n")[0])
+    p.add_argument("--quick", action="store_true", help="small sizes, under a minute on 2 CPU cores")
+    p.add_argument("--out", default="bench_out", help="output folder (default: bench_out)")
+    p.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=SECTIONS,
+                   help="sections to run (default: all)")
+    a = p.parse_args(argv)
+    res = run_bench(a.sections, a.quick, a.out)
+    print((Path(a.out) / "bench.md").read_text())
+    return res
+
+
+if __name__ == "__main__":
+    main()
