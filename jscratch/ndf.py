@@ -237,7 +237,7 @@ class _Lobe:
 
     def __init__(self, hx, hy, hz, alpha):
         a2 = alpha * alpha
-        k = jnp.sqrt(jnp.maximum(1 - a2, 0))
+        k = _safe_sqrt(1 - a2)  # finite gradient at alpha = 1
         self.k, self.hx, self.hz = k, hx, hz
         self.g = 1 / (1 + k * hz)
         self.beta2 = a2 + k * k * hy * hy
