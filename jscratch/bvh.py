@@ -82,6 +82,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from jscratch.ndf import groove_half_width, local_frame
+
 __all__ = [
     "DEFAULT_EPS",
     "DEFAULT_MARGIN",
@@ -252,29 +254,13 @@ def _host_check(p0, p1, width, depth):
 # Geometry
 
 
-def groove_half_width(width: ArrayLike, depth: ArrayLike) -> Array:
-    """Groove half-width `x_max = (w/2) sqrt(1 - exp(-2d/w))` (SPEC 2), metres, broadcasting."""
-    width = jnp.asarray(width)
-    depth = jnp.asarray(depth)
-    return 0.5 * width * jnp.sqrt(-jnp.expm1(-2.0 * depth / width))
-
-
 def pair_tolerance(board: tuple[float, float], dtype) -> float:
     """Slack (metres) of the pair test: `16 eps (Sx + Sy)` for the floating dtype `dtype`."""
     return 16.0 * float(jnp.finfo(dtype).eps) * (float(board[0]) + float(board[1]))
 
 
-def _frame(p0, p1):
-    """Unit direction `t`, across vector `b = (t_y, -t_x)` and length; `t = (0, 1)` if length 0."""
-    d = p1 - p0
-    l2 = jnp.sum(d * d, axis=-1)
-    pos = l2 > 0
-    lsafe = jnp.sqrt(jnp.where(pos, l2, 1.0))
-    length = jnp.where(pos, lsafe, 0.0)
-    default = jnp.array([0.0, 1.0], d.dtype)
-    t = jnp.where(pos[..., None], d / lsafe[..., None], default)
-    b = jnp.stack([t[..., 1], -t[..., 0]], axis=-1)
-    return t, b, length
+# The scratch frame and groove half-width are the kernel's (SPEC 1-2), not re-derived here.
+_frame = local_frame
 
 
 # --------------------------------------------------------------------------------------------
