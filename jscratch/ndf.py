@@ -58,6 +58,18 @@ sum with ``D = 1`` over ``[-x_max, x_max] / w``. ``y_ref`` (the mean ``y`` of th
 edges) and coordinates taken relative to a footprint vertex keep a small footprint far along a
 long scratch, or one that only nicks a groove, free of cancellation.
 
+**Derivatives.** Reverse mode is hand-written where autodiff is costly (on the CPU the XLA
+reverse graph of the closed form and its clipping was 10-20x the forward). Each piece's value
+``I = ∫_{ua}^{ub} Y D du`` has ``∂I/∂ub = Yb D(ub) - (Yb - Ya) m_b``, ``∂I/∂Yb = (ub - ua) m_b``
+(and the mirror for ``a``) with ``m_b = ∫_0^1 tau D dtau`` along the piece; the sharp lobe is
+linear in its coefficients ``c`` (the basis integrals come with the closed form) and depends on
+the peak position ``u1`` and half-width ``q1`` only through ``s``, which integration by parts turns
+into end values and the moments already computed; the smooth lobe's parameter derivatives use the
+same Gauss-Legendre nodes. Clipping parameters (Liang-Barsky) are found without gradient and
+carry the derivative of the one constraint that sets each (implicit function theorem), so the
+branch logic never enters the reverse pass. `_pair_integral(..., hand_vjp=False)` differentiates
+the same forward by plain autodiff; the tests compare the two on every test pair.
+
 Degenerate input (zero-length scratch, zero depth, vertices on groove edges, edges parallel to
 the scratch) gives finite values and finite gradients: every division and square root that can
 meet zero goes through a guarded (double-``where``) form.
@@ -255,19 +267,37 @@ class _Lobe:
         T2 = B / (B + self.k * N)
         return T1, T2
 
+    def params(self):
+        """`(11,)`: the parameters `_piece_integrals` takes (see `_P`)."""
+        g, k, hx, hz = self.g, self.k, self.hx, self.hz
+        a = -2 * g * k * hx / self.beta
+        m = 2 * k * (hz + g * k * hx * hx) / self.beta2
+        c = (g * g + g, (2 * g + 1) * m + a * a, (2 * g + 1) * a, m * m - a * a, 2 * a * m)
+        return jnp.stack([*c, self.u1, self.q1, g, k, hx, hz])
 
-def _t1_closed(lobe: _Lobe, sa, ds, Ym, dY):
-    """`∫ Y (T1^2 + T1) ds` over `s in [sa, sa + ds]` with `Y = Ym + dY (s - s_m) / ds`; needs
-    `|ds| >= 1` (callers pass a safe value where the branch is not used)."""
-    g, beta = lobe.g, lobe.beta
-    k, hx, hz = lobe.k, lobe.hx, lobe.hz
-    A_ = -2 * g * k * hx / beta
-    M_ = 2 * k * (hz + g * k * hx * hx) / lobe.beta2
-    c0 = g * g + g
-    c10 = (2 * g + 1) * M_ + A_ * A_
-    c11 = (2 * g + 1) * A_
-    c20 = M_ * M_ - A_ * A_
-    c21 = 2 * A_ * M_
+
+# Layout of `_Lobe.params()`. With `s = (u - u1) / q1` and `e = 1 / (1 + s^2)` the sharp lobe is
+# `F1 = T1^2 + T1 = c0 + c10 e + c11 s e + c20 e^2 + c21 s e^2` (module docstring); `g` is only
+# used to evaluate `T1` in its cancellation-free form and carries no partial derivative of its own
+# (along consistent parameters the two forms are the same function). The smooth lobe is
+# `F2 = T2^2 + T2`, `T2 = B / (B + k N)`, `N = hz (1 - 4u^2) - 4 hx u`.
+_P = {name: i for i, name in enumerate("c0 c10 c11 c20 c21 u1 q1 g k hx hz".split())}
+
+
+def _sharp_basis(s):
+    """`(e, s e, e^2, s e^2)` at `s`: the `c10 .. c21` basis of the sharp lobe."""
+    e = 1 / (1 + s * s)
+    se = s * e
+    return e, se, e * e, se * e
+
+
+def _t1_closed(p, sa, ds, Ym, dY):
+    """Closed form of the sharp lobe over `s in [sa, sa + ds]` (needs `|ds| >= 1`; callers pass a
+    safe value where the branch is not used), `Y = Ym + dY (s - s_m) / ds`.
+
+    Returns `(E0, E1, B0, B1)`: `E0 = ∫ F1 ds`, `E1 = ∫ (s - s_m) F1 ds`, and the same integrals
+    of the basis `(1, e, s e, e^2, s e^2)` as `(..., 5)` arrays (`E = B . c`), so that
+    `∫ Y F1 ds = Ym E0 + (dY / ds) E1`."""
     sb = sa + ds
     sm = sa + ds / 2
     ea = 1 / (1 + sa * sa)
@@ -282,43 +312,148 @@ def _t1_closed(lobe: _Lobe, sa, ds, Ym, dY):
     )
     K1 = 0.5 * (ds * ea) * ((sa + sb) * eb)
     K0 = 0.5 * I0 + 0.5 * (ds * ea) * ((1 - sa * sb) * eb)
-    E0 = c0 * ds + c10 * I0 + c11 * I1 + c20 * K0 + c21 * K1
-    E1 = (
-        c10 * (I1 - sm * I0)
-        + c11 * (ds - I0 - sm * I1)
-        + c20 * (K1 - sm * K0)
-        + c21 * ((I0 - K0) - sm * K1)
+    B0 = jnp.stack([ds, I0, I1, K0, K1], axis=-1)
+    B1 = jnp.stack(
+        [jnp.zeros_like(ds), I1 - sm * I0, ds - I0 - sm * I1, K1 - sm * K0, (I0 - K0) - sm * K1],
+        axis=-1,
     )
-    return Ym * E0 + (dY / ds) * E1
+    c = p[:5]
+    return jnp.sum(B0 * c, axis=-1), jnp.sum(B1 * c, axis=-1), B0, B1
 
 
-def _integrate_pieces(lobe: _Lobe, ua, ub, Ya, Yb, n_gl: int):
-    """`∫_{ua}^{ub} Y(u) D_x(u) du` for each piece (arrays of equal shape), `Y` linear from `Ya` to
-    `Yb`. Pieces must lie in the lit range."""
+def _piece_values(n_gl: int, ua, ub, Ya, Yb, p, with_partials: bool):
+    """`∫_{ua}^{ub} Y(u) (F1 + F2) du` for each piece (`(6,)` arrays), `Y` linear from `Ya` to
+    `Yb`, lobe parameters `p` (`_P`). Pieces must lie in the lit range.
+
+    With `with_partials`, also the partial derivatives of each piece's value with respect to
+    `ua, ub, Ya, Yb` (`(6,)` each) and `p` (`(6, 11)`), from the moments the forward pass already
+    has (Leibniz rule at the piece ends; integration by parts for the peak's position `u1` and
+    half-width `q1`; linearity in the lobe coefficients)."""
+    c0, u1, q1, g = p[_P["c0"]], p[_P["u1"]], p[_P["q1"]], p[_P["g"]]
+    k, hx, hz = p[_P["k"]], p[_P["hx"]], p[_P["hz"]]
     x, w = _gauss_legendre(n_gl)
     x = jnp.asarray(x, ua.dtype)
     w = jnp.asarray(w, ua.dtype)
     du = ub - ua
-    um = ua + du / 2
+    half = du / 2
+    um = ua + half
     Ym = (Ya + Yb) / 2
     dY = Yb - Ya
-    uu = um[..., None] + (du / 2)[..., None] * x
+    uu = um[..., None] + half[..., None] * x
     YY = Ym[..., None] + (dY / 2)[..., None] * x
-    T1, T2 = lobe.terms(uu)
-    half = du / 2
-    gl_t2 = half * jnp.sum(w * YY * (T2 * T2 + T2), axis=-1)
-    gl_t1 = half * jnp.sum(w * YY * (T1 * T1 + T1), axis=-1)
+
+    def lobes(u):
+        B = 1 + 4 * u * u
+        N = hz * (1 - 4 * u * u) - 4 * hx * u
+        d = u - u1
+        T1 = g * B / (4 * (q1 * q1 + d * d))  # g^2 beta^2 = 4 q1^2
+        T2 = B / (B + k * N)
+        return T1 * T1 + T1, T2, B, N
+
+    F1, T2, B, N = lobes(uu)
+    F2 = T2 * T2 + T2
+    wy = w * YY
+    gl_t2 = half * jnp.sum(wy * F2, axis=-1)
+    gl_t1 = half * jnp.sum(wy * F1, axis=-1)
     # Closed form of the sharp lobe on long pieces.
-    q1 = lobe.q1
     ds = du / q1
-    sa = (ua - lobe.u1) / q1
+    sa = (ua - u1) / q1
     sm = sa + ds / 2
     use_cf = jnp.abs(ds) >= jnp.maximum(1, 0.5 * jnp.abs(sm))
     ds_safe = jnp.where(use_cf, ds, 1)
     sa_safe = jnp.where(use_cf, sa, 0)
-    cf = q1 * _t1_closed(lobe, sa_safe, ds_safe, Ym, dY)
-    t1 = jnp.where(use_cf, cf, gl_t1)
-    return lobe.pref * (t1 + gl_t2)
+    E0, E1, B0, B1 = _t1_closed(p, sa_safe, ds_safe, Ym, dY)
+    cf = q1 * (Ym * E0 + (dY / ds_safe) * E1)
+    value = jnp.where(use_cf, cf, gl_t1) + gl_t2
+    if not with_partials:
+        return value
+
+    # Mean and centred first moment of D = F1 + F2 over the piece in its own parameter
+    # tau in [0, 1]: m0 = ∫ D dtau, mc = ∫ (tau - 1/2) D dtau (no division by du: exact for
+    # zero-length pieces and edges parallel to the scratch).
+    m0_2 = jnp.sum(w * F2, axis=-1) / 2
+    mc_2 = jnp.sum(w * x * F2, axis=-1) / 4
+    ss = (uu - u1) / q1
+    basis = _sharp_basis(ss)
+    Ft = sum(p[_P[n]] * b for n, b in zip(("c10", "c11", "c20", "c21"), basis))  # F1 - c0
+    m0t_gl = jnp.sum(w * Ft, axis=-1) / 2
+    mc_gl = jnp.sum(w * x * F1, axis=-1) / 4
+    Et0 = jnp.sum(B0[..., 1:] * p[1:5], axis=-1)
+    m0t_1 = jnp.where(use_cf, Et0 / ds_safe, m0t_gl)
+    mc_1 = jnp.where(use_cf, E1 / (ds_safe * ds_safe), mc_gl)
+    m0 = m0t_1 + c0 + m0_2
+    mc = mc_1 + mc_2
+    ma, mb = m0 / 2 - mc, m0 / 2 + mc
+
+    # Integrand at the ends.
+    Fa1, T2a, _, _ = lobes(ua)
+    Fb1, T2b, _, _ = lobes(ub)
+    Da = Fa1 + T2a * T2a + T2a
+    Db = Fb1 + T2b * T2b + T2b
+    # A point piece (both ends equal in u and Y: empty after clipping) stays empty under small
+    # changes; its end partials cancel in exact arithmetic but can be huge near a sharp peak.
+    point = (ua == ub) & (Ya == Yb)
+    d_ua = jnp.where(point, 0, -Ya * Da - dY * ma)
+    d_ub = jnp.where(point, 0, Yb * Db - dY * mb)
+    d_Ya = du * ma
+    d_Yb = du * mb
+
+    # Sharp lobe: linear in the coefficients.
+    d_c0 = Ym * du
+    gl_c = jnp.stack([half * jnp.sum(wy * b, axis=-1) for b in basis], axis=-1)
+    cf_c = q1 * (Ym[..., None] * B0[..., 1:] + (dY / ds_safe)[..., None] * B1[..., 1:])
+    d_c = jnp.where(use_cf[..., None], cf_c, gl_c)
+    # Peak position and half-width, by parts (with F1 - c0, which decays away from the peak).
+    sb = sa + ds
+    Fta = sum(p[_P[n]] * b for n, b in zip(("c10", "c11", "c20", "c21"), _sharp_basis(sa)))
+    Ftb = sum(p[_P[n]] * b for n, b in zip(("c10", "c11", "c20", "c21"), _sharp_basis(sb)))
+    d_u1 = -(Yb * Ftb - Ya * Fta) + dY * m0t_1
+    It_over_q1 = jnp.where(
+        use_cf, Ym * Et0 + (dY / ds_safe) * E1, (ds / 2) * jnp.sum(wy * Ft, axis=-1)
+    )
+    d_q1 = -(Yb * sb * Ftb - Ya * sa * Fta) + dY * (mc_1 * ds + sm * m0t_1) + It_over_q1
+    # Smooth lobe: dF2 = -(2 T2 + 1) T2^2 (N dk + k dN) / B.
+    f = half[..., None] * wy * (-(2 * T2 + 1) * T2 * T2 / B)
+    d_k = jnp.sum(f * N, axis=-1)
+    d_hx = jnp.sum(f * (-4 * k * uu), axis=-1)
+    d_hz = jnp.sum(f * (k * (1 - 4 * uu * uu)), axis=-1)
+    zero = jnp.zeros_like(d_c0)
+    d_p = jnp.stack(
+        [d_c0, d_c[..., 0], d_c[..., 1], d_c[..., 2], d_c[..., 3], d_u1, d_q1, zero, d_k, d_hx, d_hz],
+        axis=-1,
+    )
+    d_p = jnp.where(point[..., None], 0, d_p)
+    return value, (d_ua, d_ub, d_Ya, d_Yb, d_p)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _piece_integrals(n_gl, ua, ub, Ya, Yb, p):
+    """`_piece_values` with its hand-written reverse-mode derivative: the autodiff graph of the
+    closed form and its select-between-branches is several times the forward's cost on CPU."""
+    return _piece_values(n_gl, ua, ub, Ya, Yb, p, False)
+
+
+def _piece_integrals_fwd(n_gl, ua, ub, Ya, Yb, p):
+    return _piece_values(n_gl, ua, ub, Ya, Yb, p, True)
+
+
+def _piece_integrals_bwd(n_gl, partials, ct):
+    d_ua, d_ub, d_Ya, d_Yb, d_p = partials
+    return ct * d_ua, ct * d_ub, ct * d_Ya, ct * d_Yb, jnp.sum(ct[..., None] * d_p, axis=-2)
+
+
+_piece_integrals.defvjp(_piece_integrals_fwd, _piece_integrals_bwd)
+
+
+def _integrate_pieces(lobe: _Lobe, ua, ub, Ya, Yb, n_gl: int, hand_vjp: bool = True):
+    """`∫_{ua}^{ub} Y(u) D_x(u) du` for each piece (arrays of equal shape), `Y` linear from `Ya` to
+    `Yb`. Pieces must lie in the lit range. `hand_vjp=False` differentiates the same forward by
+    plain autodiff (the tests' check of the hand-written derivative)."""
+    if hand_vjp:
+        values = _piece_integrals(n_gl, ua, ub, Ya, Yb, lobe.params())
+    else:
+        values = _piece_values(n_gl, ua, ub, Ya, Yb, lobe.params(), False)
+    return lobe.pref * values
 
 
 # ---------------------------------------------------------------------------------------------
@@ -350,6 +485,16 @@ def _lb(a, delta, lo, hi):
     return t_in, t_out
 
 
+def _implicit(t, residual, slope):
+    """A clipping parameter `t` (computed without gradient) given the gradient of the root of
+    `residual(t) = 0`, `residual = a + t delta - bound` linear in `t` with `slope = delta`: the
+    value is exactly `t`, the derivative `-d(residual) / delta` (implicit function theorem). This
+    keeps the clipping logic (Liang-Barsky branches, guards) out of the reverse pass, whose XLA
+    graph otherwise grows large enough to dominate a gradient step."""
+    safe = jnp.where(slope == 0, 1, jax.lax.stop_gradient(slope))
+    return t - (residual - jax.lax.stop_gradient(residual)) / safe
+
+
 def _pieces(u, y, y_lo, y_hi, s_lo, s_hi):
     """The six boundary pieces of `F` against the box `u in [s_lo, s_hi]`, `y in [y_lo, y_hi]`.
 
@@ -361,23 +506,58 @@ def _pieces(u, y, y_lo, y_hi, s_lo, s_hi):
     `y_ref` is any constant (Green's theorem on a closed boundary); it is taken as the mean `y`
     of the edge pieces inside the box, so that `Y` is of the size of the clipped region, not of
     the footprint: a footprint that only nicks a groove edge then has no cancellation between
-    pieces. It carries no gradient (the result does not depend on it)."""
+    pieces. It carries no gradient (the result does not depend on it).
+
+    The clipping parameters are found without gradient; each then carries the derivative of the
+    one constraint that sets it (`_implicit`), or none at a vertex."""
+    sg = jax.lax.stop_gradient
     ub_ = jnp.roll(u, -1)
     yb_ = jnp.roll(y, -1)
     du = ub_ - u
     dy = yb_ - y
-    tiu, tou = _lb(u, du, s_lo, s_hi)
-    tiy, toy = _lb(y, dy, y_lo, y_hi)
+    du0, dy0 = sg(du), sg(dy)
+    tiu, tou = _lb(sg(u), du0, sg(s_lo), sg(s_hi))
+    tiy, toy = _lb(sg(y), dy0, sg(y_lo), sg(y_hi))
     t0 = jnp.maximum(jnp.maximum(tiu, tiy), 0)
     t1 = jnp.minimum(jnp.minimum(tou, toy), 1)
+    empty = t1 <= t0
     t1 = jnp.maximum(t1, t0)
+
+    def with_gradient(t, at_vertex, by_u, u_bound, y_bound):
+        res_u = u + t * du - u_bound
+        res_y = y + t * dy - y_bound
+        t_u = _implicit(t, res_u, du0)
+        t_y = _implicit(t, res_y, dy0)
+        return jnp.where(at_vertex, t, jnp.where(by_u, t_u, t_y))
+
+    t0 = with_gradient(
+        t0,
+        t0 <= 0,
+        t0 == tiu,
+        jnp.where(du0 > 0, s_lo, s_hi),
+        jnp.where(dy0 > 0, y_lo, y_hi),
+    )
+    t1 = jnp.where(
+        empty,
+        t0,
+        with_gradient(
+            t1,
+            t1 >= 1,
+            t1 == tou,
+            jnp.where(du0 > 0, s_hi, s_lo),
+            jnp.where(dy0 > 0, y_hi, y_lo),
+        ),
+    )
     e_ua = _lerp(u, ub_, du, t0)
-    e_ub = _lerp(u, ub_, du, t1)
     e_ya = jnp.clip(_lerp(y, yb_, dy, t0), y_lo, y_hi)
-    e_yb = jnp.clip(_lerp(y, yb_, dy, t1), y_lo, y_hi)
+    # An empty piece is one point, bit for bit (its two ends may be computed in different XLA
+    # fusions otherwise, and `_piece_values` recognises points by equality).
+    e_ub = jnp.where(empty, e_ua, _lerp(u, ub_, du, t1))
+    e_yb = jnp.where(empty, e_ya, jnp.clip(_lerp(y, yb_, dy, t1), y_lo, y_hi))
 
     def crossing(level, enter, leave):
-        t = jnp.clip(_ratio_clipped(level - y, dy), 0, 1)
+        t = jnp.clip(_ratio_clipped(sg(level - y), dy0), 0, 1)
+        t = _implicit(t, y + t * dy - level, dy0)
         uc = _lerp(u, ub_, du, t)
         u_in = jnp.sum(jnp.where(enter, uc, 0))
         u_out = jnp.sum(jnp.where(leave, uc, 0))
@@ -459,13 +639,20 @@ def pair_integral(
 
     **Returns:** `(D_hat, A)`: `∫∫_{F ∩ groove} D_x dx dy` and `area(F ∩ groove)`, both m^2, in the
     dtype of the inputs.
+
+    Reverse-mode derivatives are hand-written (`_piece_integrals`); forward mode (`jax.jvp`) is
+    not available.
     """
+    return _pair_integral(h, footprint, p0, p1, width, depth, alpha, True)
+
+
+def _pair_integral(h, footprint, p0, p1, width, depth, alpha, hand_vjp: bool):
     h, footprint, p0, p1, width, depth, alpha = _as_inputs(h, footprint, p0, p1, width, depth, alpha)
     G = _PairGeometry(h, footprint, p0, p1, width, depth)
     n_gl = 8 if h.dtype == jnp.float32 else 16
     lobe = _Lobe(G.hx, G.hy, G.hz, alpha)
     ua, ub, Ya, Yb = _pieces(G.u, G.y, G.y_lo, G.y_hi, G.u_lo, G.u_hi)
-    D_hat = -width * G.sign * jnp.sum(_integrate_pieces(lobe, ua, ub, Ya, Yb, n_gl))
+    D_hat = -width * G.sign * jnp.sum(_integrate_pieces(lobe, ua, ub, Ya, Yb, n_gl, hand_vjp))
     ua, ub, Ya, Yb = _pieces(G.u, G.y, G.y_lo, G.y_hi, -G.X, G.X)
     A = -width * G.sign * jnp.sum((Ya + Yb) / 2 * (ub - ua))
     return D_hat, A
