@@ -268,20 +268,19 @@ class _Lobe:
         return T1, T2
 
     def params(self):
-        """`(11,)`: the parameters `_piece_integrals` takes (see `_P`)."""
+        """The 11 scalar parameters `_piece_integrals` takes, a tuple (see below)."""
         g, k, hx, hz = self.g, self.k, self.hx, self.hz
         a = -2 * g * k * hx / self.beta
         m = 2 * k * (hz + g * k * hx * hx) / self.beta2
         c = (g * g + g, (2 * g + 1) * m + a * a, (2 * g + 1) * a, m * m - a * a, 2 * a * m)
-        return jnp.stack([*c, self.u1, self.q1, g, k, hx, hz])
+        return (*c, self.u1, self.q1, g, k, hx, hz)
 
 
-# Layout of `_Lobe.params()`. With `s = (u - u1) / q1` and `e = 1 / (1 + s^2)` the sharp lobe is
+# `_Lobe.params()` is `(c0, c10, c11, c20, c21, u1, q1, g, k, hx, hz)`. With `s = (u - u1) / q1` and `e = 1 / (1 + s^2)` the sharp lobe is
 # `F1 = T1^2 + T1 = c0 + c10 e + c11 s e + c20 e^2 + c21 s e^2` (module docstring); `g` is only
 # used to evaluate `T1` in its cancellation-free form and carries no partial derivative of its own
 # (along consistent parameters the two forms are the same function). The smooth lobe is
 # `F2 = T2^2 + T2`, `T2 = B / (B + k N)`, `N = hz (1 - 4u^2) - 4 hx u`.
-_P = {name: i for i, name in enumerate("c0 c10 c11 c20 c21 u1 q1 g k hx hz".split())}
 
 
 def _sharp_basis(s):
@@ -296,7 +295,7 @@ def _t1_closed(p, sa, ds, Ym, dY):
     safe value where the branch is not used), `Y = Ym + dY (s - s_m) / ds`.
 
     Returns `(E0, E1, B0, B1)`: `E0 = ∫ F1 ds`, `E1 = ∫ (s - s_m) F1 ds`, and the same integrals
-    of the basis `(1, e, s e, e^2, s e^2)` as `(..., 5)` arrays (`E = B . c`), so that
+    of the basis `(1, e, s e, e^2, s e^2)` as 5-tuples (`E = B . c`), so that
     `∫ Y F1 ds = Ym E0 + (dY / ds) E1`."""
     sb = sa + ds
     sm = sa + ds / 2
@@ -312,25 +311,23 @@ def _t1_closed(p, sa, ds, Ym, dY):
     )
     K1 = 0.5 * (ds * ea) * ((sa + sb) * eb)
     K0 = 0.5 * I0 + 0.5 * (ds * ea) * ((1 - sa * sb) * eb)
-    B0 = jnp.stack([ds, I0, I1, K0, K1], axis=-1)
-    B1 = jnp.stack(
-        [jnp.zeros_like(ds), I1 - sm * I0, ds - I0 - sm * I1, K1 - sm * K0, (I0 - K0) - sm * K1],
-        axis=-1,
-    )
-    c = p[:5]
-    return jnp.sum(B0 * c, axis=-1), jnp.sum(B1 * c, axis=-1), B0, B1
+    B0 = (ds, I0, I1, K0, K1)
+    B1 = (0, I1 - sm * I0, ds - I0 - sm * I1, K1 - sm * K0, (I0 - K0) - sm * K1)
+    E0 = sum(c * b for c, b in zip(p[:5], B0))
+    E1 = sum(c * b for c, b in zip(p[1:5], B1[1:]))
+    return E0, E1, B0, B1
 
 
 def _piece_values(n_gl: int, ua, ub, Ya, Yb, p, with_partials: bool):
     """`∫_{ua}^{ub} Y(u) (F1 + F2) du` for each piece (`(6,)` arrays), `Y` linear from `Ya` to
-    `Yb`, lobe parameters `p` (`_P`). Pieces must lie in the lit range.
+    `Yb`, lobe parameters `p` (`_Lobe.params`). Pieces must lie in the lit range.
 
     With `with_partials`, also the partial derivatives of each piece's value with respect to
-    `ua, ub, Ya, Yb` (`(6,)` each) and `p` (`(6, 11)`), from the moments the forward pass already
+    `ua, ub, Ya, Yb` (`(6,)` each) and each of the 11 entries of `p` (`(6,)` each), from the moments the forward pass already
     has (Leibniz rule at the piece ends; integration by parts for the peak's position `u1` and
     half-width `q1`; linearity in the lobe coefficients)."""
-    c0, u1, q1, g = p[_P["c0"]], p[_P["u1"]], p[_P["q1"]], p[_P["g"]]
-    k, hx, hz = p[_P["k"]], p[_P["hx"]], p[_P["hz"]]
+    c0, c10, c11, c20, c21, u1, q1, g, k, hx, hz = p
+    ct = (c10, c11, c20, c21)
     x, w = _gauss_legendre(n_gl)
     x = jnp.asarray(x, ua.dtype)
     w = jnp.asarray(w, ua.dtype)
@@ -375,10 +372,10 @@ def _piece_values(n_gl: int, ua, ub, Ya, Yb, p, with_partials: bool):
     mc_2 = jnp.sum(w * x * F2, axis=-1) / 4
     ss = (uu - u1) / q1
     basis = _sharp_basis(ss)
-    Ft = sum(p[_P[n]] * b for n, b in zip(("c10", "c11", "c20", "c21"), basis))  # F1 - c0
+    Ft = sum(c * b for c, b in zip(ct, basis))  # F1 - c0
     m0t_gl = jnp.sum(w * Ft, axis=-1) / 2
     mc_gl = jnp.sum(w * x * F1, axis=-1) / 4
-    Et0 = jnp.sum(B0[..., 1:] * p[1:5], axis=-1)
+    Et0 = sum(c * b for c, b in zip(ct, B0[1:]))
     m0t_1 = jnp.where(use_cf, Et0 / ds_safe, m0t_gl)
     mc_1 = jnp.where(use_cf, E1 / (ds_safe * ds_safe), mc_gl)
     m0 = m0t_1 + c0 + m0_2
@@ -400,13 +397,14 @@ def _piece_values(n_gl: int, ua, ub, Ya, Yb, p, with_partials: bool):
 
     # Sharp lobe: linear in the coefficients.
     d_c0 = Ym * du
-    gl_c = jnp.stack([half * jnp.sum(wy * b, axis=-1) for b in basis], axis=-1)
-    cf_c = q1 * (Ym[..., None] * B0[..., 1:] + (dY / ds_safe)[..., None] * B1[..., 1:])
-    d_c = jnp.where(use_cf[..., None], cf_c, gl_c)
+    d_c = [
+        jnp.where(use_cf, q1 * (Ym * b0 + (dY / ds_safe) * b1), half * jnp.sum(wy * b, axis=-1))
+        for b0, b1, b in zip(B0[1:], B1[1:], basis)
+    ]
     # Peak position and half-width, by parts (with F1 - c0, which decays away from the peak).
     sb = sa + ds
-    Fta = sum(p[_P[n]] * b for n, b in zip(("c10", "c11", "c20", "c21"), _sharp_basis(sa)))
-    Ftb = sum(p[_P[n]] * b for n, b in zip(("c10", "c11", "c20", "c21"), _sharp_basis(sb)))
+    Fta = sum(c * b for c, b in zip(ct, _sharp_basis(sa)))
+    Ftb = sum(c * b for c, b in zip(ct, _sharp_basis(sb)))
     d_u1 = -(Yb * Ftb - Ya * Fta) + dY * m0t_1
     It_over_q1 = jnp.where(
         use_cf, Ym * Et0 + (dY / ds_safe) * E1, (ds / 2) * jnp.sum(wy * Ft, axis=-1)
@@ -418,11 +416,10 @@ def _piece_values(n_gl: int, ua, ub, Ya, Yb, p, with_partials: bool):
     d_hx = jnp.sum(f * (-4 * k * uu), axis=-1)
     d_hz = jnp.sum(f * (k * (1 - 4 * uu * uu)), axis=-1)
     zero = jnp.zeros_like(d_c0)
-    d_p = jnp.stack(
-        [d_c0, d_c[..., 0], d_c[..., 1], d_c[..., 2], d_c[..., 3], d_u1, d_q1, zero, d_k, d_hx, d_hz],
-        axis=-1,
+    d_p = tuple(
+        jnp.where(point, 0, d)
+        for d in (d_c0, *d_c, d_u1, d_q1, zero, d_k, d_hx, d_hz)
     )
-    d_p = jnp.where(point[..., None], 0, d_p)
     return value, (d_ua, d_ub, d_Ya, d_Yb, d_p)
 
 
@@ -439,7 +436,8 @@ def _piece_integrals_fwd(n_gl, ua, ub, Ya, Yb, p):
 
 def _piece_integrals_bwd(n_gl, partials, ct):
     d_ua, d_ub, d_Ya, d_Yb, d_p = partials
-    return ct * d_ua, ct * d_ub, ct * d_Ya, ct * d_Yb, jnp.sum(ct[..., None] * d_p, axis=-2)
+    d_p = tuple(jnp.sum(ct * d, axis=-1) for d in d_p)
+    return ct * d_ua, ct * d_ub, ct * d_Ya, ct * d_Yb, d_p
 
 
 _piece_integrals.defvjp(_piece_integrals_fwd, _piece_integrals_bwd)
@@ -485,14 +483,22 @@ def _lb(a, delta, lo, hi):
     return t_in, t_out
 
 
+@jax.custom_jvp
 def _implicit(t, residual, slope):
-    """A clipping parameter `t` (computed without gradient) given the gradient of the root of
-    `residual(t) = 0`, `residual = a + t delta - bound` linear in `t` with `slope = delta`: the
-    value is exactly `t`, the derivative `-d(residual) / delta` (implicit function theorem). This
+    """A clipping parameter `t` (computed without gradient) given the derivative of the root of
+    `residual(t) = 0`, where `residual = a + t delta - bound` is linear in `t` with `slope = delta`:
+    the value is `t` itself, the tangent `-d(residual) / delta` (implicit function theorem). This
     keeps the clipping logic (Liang-Barsky branches, guards) out of the reverse pass, whose XLA
-    graph otherwise grows large enough to dominate a gradient step."""
-    safe = jnp.where(slope == 0, 1, jax.lax.stop_gradient(slope))
-    return t - (residual - jax.lax.stop_gradient(residual)) / safe
+    graph otherwise grows large enough to dominate a gradient step, and costs nothing in a
+    forward-only evaluation (`residual` is then dead code)."""
+    return t
+
+
+@_implicit.defjvp
+def _implicit_jvp(primals, tangents):
+    t, _, slope = primals
+    _, d_residual, _ = tangents
+    return t, -d_residual / jnp.where(slope == 0, 1, slope)
 
 
 def _pieces(u, y, y_lo, y_hi, s_lo, s_hi):
