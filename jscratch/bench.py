@@ -325,13 +325,9 @@ def run_bench(sections=SECTIONS, quick: bool = False, out: str | Path = "bench_o
     unknown = set(sections) - set(SECTIONS)
     if unknown:
         raise ValueError(f"unknown bench sections {sorted(unknown)}; choose from {SECTIONS}")
-    runners = {"kernel": bench_kernel, "stability": bench_stability}
-    try:  # sections whose modules are optional or still landing
-        from jscratch import bench_render
+    from jscratch import bench_render
 
-        runners.update(bench_render.RUNNERS)
-    except ImportError:
-        pass
+    runners = {"kernel": bench_kernel, "stability": bench_stability, **bench_render.RUNNERS}
     res = {"machine": machine_info(), "quick": quick, "command": " ".join(sys.argv)}
     for s in sections:
         if s not in runners:

@@ -1,0 +1,297 @@
+"""Sections 3-5 of `python -m jscratch.bench`: the renderer, the brute-force comparison and the
+optimiser (`RUNNERS`, picked up by `jscratch.bench.run_bench`).
+
+- ``render``: forward and forward+backward time per view, pairs per second, the binning share of
+  a gradient step and XLA's compiled peak memory, for the standard scenes (20k and 60k scratches
+  at 256 and 512 px; ``--quick``: one small scene); then culling ``eps`` against the image error
+  it causes and the shading time it saves (run time against error for the renderer). Plot
+  ``render_culling.png``.
+- ``brute``: the float32 analytic renderer and the brute-force supersampler (`jscratch.brute`,
+  ``n x n`` jittered samples per pixel against the real groove geometry) against a float64
+  analytic render: error and time of each, the speed-up at each brute-force error level and the
+  extrapolated speed-up at the analytic error. Plot ``brute_vs_analytic.png``.
+- ``design``: SSIM per view against iterations and wall time for the default design (3 views,
+  20,000 scratches, 256 px; ``--quick``: 2 views, 400 scratches, 32 px), by stopping and resuming
+  one run from its checkpoint. Plot ``design_ssim.png``.
+
+Every function here returns a dict with a ``markdown`` entry (what `run_bench` prints) and plain
+numbers (what it writes to JSON). Scenes follow SPEC section 5 (`render.Scratches.random`).
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jscratch import brute
+from jscratch import render as R
+
+DEFAULT_VIEWS = 4
+
+
+def _median_time(fn, repeats: int) -> float:
+    """Median wall time of `repeats` `block_until_ready` calls of `fn()` after one warm-up."""
+    jax.block_until_ready(fn())
+    ts = []
+    for _ in range(max(1, repeats)):
+        t = time.perf_counter()
+        jax.block_until_ready(fn())
+        ts.append(time.perf_counter() - t)
+    return statistics.median(ts)
+
+
+def _compiled_mib(compiled) -> float:
+    m = compiled.memory_analysis()
+    if m is None:
+        return float("nan")
+    return (m.temp_size_in_bytes + m.argument_size_in_bytes + m.output_size_in_bytes) / 2**20
+
+
+def scene(n: int, res: int, views: int, dtype=jnp.float32, seed: int = 0, theta_deg: float = 40.0):
+    """`(board, scratches, views)`: `n` random scratches (SPEC section 5) on a `res x res` board,
+    `views` cameras on a circle at `theta_deg` from the normal."""
+    board = R.Board(shape=(res, res))
+    s = R.Scratches.random(jax.random.PRNGKey(seed), n, board, dtype=dtype)
+    v = R.views_on_circle(views, math.radians(theta_deg), board=board, dtype=dtype)
+    return board, s, v
+
+
+def render_case(n: int, res: int, views: int = DEFAULT_VIEWS, repeats: int = 3,
+                chunk: int = R.DEFAULT_CHUNK) -> dict:
+    """Time one scene: binning (host, once), the jitted forward render of all views from one
+    shared pair list, and a jitted value-and-gradient of a display-space L2 loss with respect to
+    every scratch and view parameter. Compile times apart; medians of `repeats` runs."""
+    board, s, v = scene(n, res, views)
+    t = time.perf_counter()
+    pairs = R.bin_pairs(s, board, chunk=chunk)
+    bin_s = time.perf_counter() - t
+    n_pairs = int(np.asarray(pairs.valid).sum())
+    target = jnp.full((views, res, res), 0.5, jnp.float32)
+
+    # The pair list is an argument, not a closed-over constant (XLA would constant-fold it).
+    def fwd(s, v, pairs):
+        return R.render_pairs(s, v, board, pairs, chunk=chunk)
+
+    def loss(s, v, pairs):
+        return jnp.mean((R.display(fwd(s, v, pairs)) - target) ** 2)
+
+    row = {"scratches": n, "image": f"{res}x{res}", "views": views, "pairs": n_pairs,
+           "bin_s": bin_s}
+    for name, f in (("fwd", jax.jit(fwd)), ("fwd_bwd", jax.jit(jax.value_and_grad(loss, (0, 1))))):
+        t = time.perf_counter()
+        c = f.lower(s, v, pairs).compile()
+        row[f"{name}_compile_s"] = time.perf_counter() - t
+        step = _median_time(lambda c=c: c(s, v, pairs), repeats)
+        row[f"{name}_ms_per_view"] = 1e3 * step / views
+        row[f"{name}_pairs_per_s"] = n_pairs * views / step
+        row[f"{name}_mem_mib"] = _compiled_mib(c)
+        row[f"_{name}_s"] = step
+    # A gradient step rebins at most once (far less with a skin): the worst-case share.
+    row["bin_share_of_step"] = bin_s / (bin_s + row["_fwd_bwd_s"])
+    return row
+
+
+def culling_rows(n: int, res: int, views: int, eps_list, repeats: int = 3) -> list[dict]:
+    """Per-view culling (`render.render(eps=...)`, `bvh.cull`) against the unculled render: pairs
+    kept, forward time of the culled lists (binning and culling apart) and the radiance error,
+    max over pixels and views, over the peak radiance. `eps_list[0]` must be 0 (the reference)."""
+    if not eps_list or eps_list[0] != 0:
+        raise ValueError(f"culling_rows: eps_list must start with 0 (the reference); got {eps_list}")
+    board, s, v = scene(n, res, views, seed=1)
+    rows, ref, t0, n0 = [], None, None, None
+    for eps in eps_list:
+        t = time.perf_counter()
+        rad, pairs, cov = R.render(s, v, board, eps=eps, return_pairs=True)
+        cull_s = time.perf_counter() - t
+        # The jitted renderer `render` just compiled for these list shapes (cached).
+        f = R._jitted_render_pairs(R.DEFAULT_CHUNK, None, None)
+        c_arg = None if eps == 0 else cov
+        t_run = _median_time(lambda: f(s, v, board, pairs, c_arg), repeats)
+        rad = np.asarray(rad, np.float64)
+        # A shared (L,) list is evaluated for every view; culled lists are (M, L).
+        n_eval = int(np.asarray(pairs.valid).sum()) * (views if eps == 0 else 1)
+        if ref is None:
+            ref, t0, n0 = rad, t_run, n_eval
+        rows.append({
+            "eps": eps,
+            "pairs_kept": n_eval / n0,
+            "bin_and_cull_s": cull_s,
+            "fwd_ms_per_view": 1e3 * t_run / views,
+            "time_saved": 1 - t_run / t0,
+            "max_err_over_peak": float(np.max(np.abs(rad - ref)) / np.max(ref)),
+        })
+    return rows
+
+
+def _rel_rms(a, b) -> float:
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    return float(np.sqrt(np.mean((a - b) ** 2)) / np.sqrt(np.mean(b**2)))
+
+
+def brute_rows(n_scratches: int, res: int, ns, repeats: int = 3) -> dict:
+    """Error (relative RMS of radiance against the float64 analytic render) and time of the
+    brute-force renderer for each `n` (``n x n`` samples per pixel) and of the float32 analytic
+    renderer, both on the same pair list (binning excluded from both); plus the fit
+    ``error ~ n^-p`` and the brute-force time extrapolated to the analytic error."""
+    board, s64, v64 = scene(n_scratches, res, 1, jnp.float64, seed=1)
+    s32 = jax.tree_util.tree_map(lambda x: x.astype(jnp.float32), s64)
+    v32 = jax.tree_util.tree_map(lambda x: x.astype(jnp.float32), v64)
+    pairs = R.bin_pairs(s64, board)
+    ref = R.render_pairs(s64, v64, board, pairs)
+    ana = jax.jit(lambda s, v: R.render_pairs(s, v, board, pairs))
+    t_ana = _median_time(lambda: ana(s32, v32), repeats)
+    err_ana = _rel_rms(ana(s32, v32), ref)
+    rows = []
+    for n in ns:
+        f = jax.jit(lambda s, v, n=n: brute.brute_render(s, v, board, n=n, pairs=pairs,
+                                                          batch=max(16, 65536 // (n * n))))
+        f.lower(s32, v32).compile()
+        t = _median_time(lambda: f(s32, v32), max(1, repeats // 2))
+        rows.append({"samples_per_pixel": f"{n}x{n}", "n": n,
+                     "rel_rms_error": _rel_rms(f(s32, v32), ref), "time_ms": 1e3 * t,
+                     "analytic_speedup_at_this_error": t / t_ana})
+    ns_ = np.array([r["n"] for r in rows], float)
+    err = np.array([r["rel_rms_error"] for r in rows])
+    slope, logc = np.polyfit(np.log(ns_), np.log(err), 1)
+    n_eq = math.exp((math.log(err_ana) - logc) / slope)
+    t_per_sample = float(np.median(np.array([r["time_ms"] for r in rows]) / 1e3 / ns_**2))
+    t_eq = t_per_sample * n_eq**2
+    return {"scratches": n_scratches, "image": f"{res}x{res}",
+            "pairs": int(np.asarray(pairs.valid).sum()), "analytic_ms": 1e3 * t_ana,
+            "analytic_rel_rms_error": err_ana, "rows": rows, "fit_error_exponent": -slope,
+            "n_at_analytic_error": n_eq, "extrapolated_speedup_at_equal_error": t_eq / t_ana}
+
+
+def _md(rows, cols) -> str:
+    from jscratch.bench import _md_table
+
+    return _md_table(rows, cols)
+
+
+def _plot(path: Path, draw) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4), dpi=110)
+    draw(ax)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+# ---------------------------------------------------------------------------------------------
+# Section runners: (quick, out) -> dict with "markdown".
+
+
+def bench_render(quick: bool, out: Path) -> dict:
+    cases = [(1000, 64)] if quick else [(20000, 256), (20000, 512), (60000, 256), (60000, 512)]
+    repeats = 1 if quick else 3
+    rows = [render_case(n, r, DEFAULT_VIEWS, repeats) for n, r in cases]
+    eps_list = [0.0, 1e-3, 1e-2] if quick else [0.0, 1e-4, 1e-3, 1e-2, 3e-2, 1e-1]
+    cn, cr = (1000, 64) if quick else (20000, 256)
+    cull = culling_rows(cn, cr, DEFAULT_VIEWS, eps_list, repeats)
+
+    def draw(ax):
+        x = [max(r["max_err_over_peak"], 1e-9) for r in cull]
+        y = [r["fwd_ms_per_view"] for r in cull]
+        ax.loglog(x, y, "o-")
+        for r, xi, yi in zip(cull, x, y):
+            ax.annotate(f"eps={r['eps']:g}", (xi, yi), fontsize=7)
+        ax.set_xlabel("max radiance error / peak (eps = 0 plotted at 1e-9)")
+        ax.set_ylabel("forward ms per view")
+        ax.set_title(f"culling: {cn} scratches, {cr} px, {DEFAULT_VIEWS} views")
+
+    _plot(out / "render_culling.png", draw)
+    cols = ["scratches", "image", "pairs", "bin_s", "fwd_compile_s", "fwd_ms_per_view",
+            "fwd_pairs_per_s", "fwd_mem_mib", "fwd_bwd_compile_s", "fwd_bwd_ms_per_view",
+            "fwd_bwd_pairs_per_s", "fwd_bwd_mem_mib", "bin_share_of_step"]
+    ccols = ["eps", "pairs_kept", "fwd_ms_per_view", "time_saved", "max_err_over_peak"]
+    md = (f"{DEFAULT_VIEWS} views rendered together from one shared pair list, float32, "
+          "chunk " + str(R.DEFAULT_CHUNK) + ". Pairs/s counts (pixel, scratch, view) "
+          "evaluations; memory is XLA's compiled estimate (arguments + outputs + temporaries); "
+          "bin_share_of_step = one full rebin over (rebin + gradient step), an upper bound.\n\n"
+          + _md(rows, cols)
+          + f"\n\nCulling ({cn} scratches, {cr}x{cr}; error against eps = 0):\n\n"
+          + _md(cull, ccols))
+    return {"cases": [{k: v for k, v in r.items() if not k.startswith("_")} for r in rows],
+            "culling": cull, "markdown": md}
+
+
+def bench_brute(quick: bool, out: Path) -> dict:
+    if quick:
+        res = brute_rows(300, 32, [8, 32], repeats=1)
+    else:
+        res = brute_rows(500, 64, [16, 32, 64, 128, 256], repeats=3)
+
+    def draw(ax):
+        ax.loglog([r["time_ms"] for r in res["rows"]], [r["rel_rms_error"] for r in res["rows"]],
+                  "o-", label="brute force (n x n samples)")
+        ax.loglog([res["analytic_ms"]], [res["analytic_rel_rms_error"]], "r*", ms=12,
+                  label="analytic (closed form)")
+        ax.set_xlabel("time (ms)")
+        ax.set_ylabel("relative RMS error")
+        ax.legend()
+        ax.set_title(f"{res['scratches']} scratches, {res['image']}, 1 view")
+
+    _plot(out / "brute_vs_analytic.png", draw)
+    md = (f"{res['scratches']} scratches, {res['image']}, {res['pairs']} pairs, float32 against "
+          f"a float64 analytic render. Analytic: {res['analytic_ms']:.1f} ms, relative RMS error "
+          f"{res['analytic_rel_rms_error']:.2e}.\n\n"
+          + _md(res["rows"], ["samples_per_pixel", "rel_rms_error", "time_ms",
+                              "analytic_speedup_at_this_error"])
+          + f"\n\nBrute-force error ~ n^-{res['fit_error_exponent']:.2f}; at the analytic error it "
+          f"would need n = {res['n_at_analytic_error']:.3g} per side, an extrapolated speed-up of "
+          f"{res['extrapolated_speedup_at_equal_error']:.3g}x (the paper: 400x over Werner et al.).")
+    res["markdown"] = md
+    return res
+
+
+def bench_design(quick: bool, out: Path) -> dict:
+    from jscratch import design as D
+
+    if quick:
+        m, size, cfg, stops = 2, 32, D.DesignConfig(n_scratches=400, iterations=8, discard=False), [2, 4, 8]
+    else:
+        m, size, cfg, stops = 3, 256, D.DesignConfig(discard=False), [5, 10, 25, 50, 75, 100]
+    targets, names = D.default_targets(m, (size, size))
+    board = R.Board(shape=(size, size))
+    views = R.views_on_circle(m, math.radians(50), board=board)
+    rows, wall = [], 0.0
+    with tempfile.TemporaryDirectory() as tmp:
+        ck = Path(tmp) / "bench.ckpt.npz"
+        for i, k in enumerate(stops):
+            t = time.perf_counter()
+            r = D.design(targets, views, board, cfg, checkpoint=ck, resume=i > 0, stop_after=k)
+            wall += time.perf_counter() - t
+            rows.append({"iteration": k, "wall_s": wall, "loss": r.metrics["loss"],
+                         "ssim": [round(x, 4) for x in r.metrics["ssim"]],
+                         "mean_ssim": float(np.mean(r.metrics["ssim"])),
+                         "psnr": [round(x, 2) for x in r.metrics["psnr"]]})
+
+    def draw(ax):
+        for j in range(m):
+            ax.plot([r["wall_s"] for r in rows], [r["ssim"][j] for r in rows], "o-",
+                    label=f"view {j} ({names[j]})")
+        ax.set_xlabel("wall time (s, includes compilation and each resume's setup)")
+        ax.set_ylabel("SSIM")
+        ax.legend()
+        ax.set_title(f"design: {m} views, {cfg.n_scratches} scratches, {size} px")
+
+    _plot(out / "design_ssim.png", draw)
+    md = (f"{m} views ({', '.join(names)}), {cfg.n_scratches} scratches, {size}x{size}, float32, "
+          "no discard; the run is stopped at each row's iteration and resumed from its checkpoint "
+          "(wall time is cumulative and includes compilation and the resumes' setup).\n\n"
+          + _md(rows, ["iteration", "wall_s", "loss", "ssim", "mean_ssim", "psnr"]))
+    return {"views": m, "size": size, "scratches": cfg.n_scratches, "rows": rows, "markdown": md}
+
+
+RUNNERS = {"render": bench_render, "brute": bench_brute, "design": bench_design}
