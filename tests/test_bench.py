@@ -8,7 +8,7 @@ from jscratch import bench
 
 
 def test_quick_bench_writes_finite_results(tmp_path):
-    bench.main(["--quick", "--out", str(tmp_path), "--sections", "kernel", "stability"])
+    bench.main(["--quick", "--out", str(tmp_path)])
     res = json.loads((tmp_path / "bench.json").read_text())
     assert res["quick"] is True and res["machine"]["jax"]
     rows = res["kernel"]["rows"]
@@ -26,3 +26,20 @@ def test_quick_bench_writes_finite_results(tmp_path):
     assert st["worst_f32_err_over_tol"] <= 1.0
     assert (tmp_path / "kernel_pareto.png").stat().st_size > 1000
     assert "| closed form |" in (tmp_path / "bench.md").read_text()
+    # Renderer, brute force and optimiser sections.
+    for r in res["render"]["cases"]:
+        assert r["pairs"] > 0
+        for k in ("fwd_ms_per_view", "fwd_bwd_ms_per_view", "fwd_pairs_per_s", "bin_share_of_step"):
+            assert math.isfinite(r[k]) and r[k] > 0, k
+    cull = res["render"]["culling"]
+    assert cull[0]["eps"] == 0 and cull[0]["max_err_over_peak"] == 0
+    assert all(0 < c["pairs_kept"] <= 1 and 0 <= c["max_err_over_peak"] < 0.05 for c in cull)
+    br = res["brute"]
+    assert br["analytic_rel_rms_error"] < 1e-3  # float32 analytic vs float64 analytic
+    assert all(math.isfinite(r["rel_rms_error"]) and r["time_ms"] > 0 for r in br["rows"])
+    rows = res["design"]["rows"]
+    assert [r["iteration"] for r in rows] == sorted(r["iteration"] for r in rows)
+    assert all(len(r["ssim"]) == res["design"]["views"] for r in rows)
+    assert rows[-1]["loss"] < rows[0]["loss"]  # resumed stages continue one optimisation
+    for name in ("render_culling.png", "brute_vs_analytic.png", "design_ssim.png"):
+        assert (tmp_path / name).stat().st_size > 1000, name
