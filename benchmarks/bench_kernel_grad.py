@@ -43,7 +43,8 @@ def main(argv=None):
     a = ap.parse_args(argv)
     args = tuple(jnp.asarray(x) for x in random_cases(a.pairs).astype(np.float32).args())
     outputs = {"D + A": lambda D, A: D + A, "D": lambda D, A: D, "A": lambda D, A: A}
-    wrt = {"all 7 arguments": tuple(range(7)), "p0, p1, w, d": (2, 3, 4, 5)}
+    wrt = {"all 7 arguments": tuple(range(7)), "h, p0, p1, w, d, alpha": (0, 2, 3, 4, 5, 6),
+           "p0, p1, w, d": (2, 3, 4, 5)}
     print(f"jax {jax.__version__}, {jax.devices()[0].platform}, {os.cpu_count()} CPUs, "
           f"{a.pairs} random float32 pairs\n")
     print("| output | forward | " + " | ".join(f"fwd+bwd wrt {k}" for k in wrt) + " |")

@@ -25,8 +25,9 @@ target's mean wherever the render is above the display knee (``display`` is a pu
 
 **Each iteration** (one jitted step): per view, the shared pair list (`bvh.build_pairs`) is culled
 with `bvh.cull` at ``cull_eps`` (pairs whose NDF bound is below ``cull_eps`` of their possible
-maximum) and compacted to a per-view capacity; the renderer (`render.render_pairs`, coverage from
-the unculled list) gives radiance, `render.display` gives display values, and the loss
+maximum) and compacted to a per-view capacity; the coverage pass gets the pairs whose coverage can
+matter at the same tolerance (`bvh.cull_coverage`: near the board's own mirror direction only);
+the renderer (`render.render_pairs`) gives radiance, `render.display` gives display values, and the loss
 (`loss.make_loss`) its value and gradient; Adam updates the parameters; `bvh.needs_rebin` says
 whether the pair list still holds every pair. The list is rebuilt on the host (outside the jitted
 step, same capacities, so no recompilation) only when it says so. Capacity overflows (pair list or
@@ -129,7 +130,8 @@ class DesignConfig:
       `lr_alpha` [logit], `lr_intensity` [log W/sr]: 1e-2 each.
     - `freeze`: groups not optimised (subset of `GROUPS`). Default ``("alpha",)``.
     - `loss`: a `loss.LossConfig` (default ``E_p + LAMBDA_G E_g``, filter bank).
-    - `cull_eps`: per-view culling tolerance of `bvh.cull` (0 keeps every pair). Default 1e-3.
+    - `cull_eps`: culling tolerance of `bvh.cull` (views) and `bvh.cull_coverage` (coverage pass);
+      0 keeps every pair. Default 1e-3.
     - `skin` [m]: groove inflation for binning (`bvh.allocate`); 0 rebins whenever a groove
       leaves its binned rectangle (about every step; cheaper than the extra pairs of a skin).
     - `discard`: run the discard step. `discard_tol`: allowed relative loss increase (0.01).
@@ -342,6 +344,7 @@ class _Ctx(eqx.Module):
     camera: Array
     light: Array
     hs: Array  # (M, P, 3) half vectors
+    board_ndf: Array  # (P,) flat board's GGX at each pixel, largest over the views (1/sr)
     loss: loss_mod.BoundLoss
     lrs: DesignParams  # per-group learning rate (0 = frozen), scalar leaves
     cull_eps: float = eqx.field(static=True)
@@ -356,27 +359,30 @@ def _adam(b1: float, b2: float, eps: float) -> optax.GradientTransformation:
 
 
 def _view_lists(params: DesignParams, pairs: bvh.Pairs, ctx: _Ctx, caps: tuple[int, ...]):
-    """Per-view culled, compacted pair lists and the per-view counts of culled pairs."""
+    """``(lists, coverage list, counts)``: per-view culled, compacted pair lists (`bvh.cull`), the
+    coverage list (`bvh.cull_coverage`: only pairs whose coverage matters at the same tolerance)
+    and the ``M + 1`` counts of kept pairs (views, then coverage). Unculled (``cull_eps == 0``):
+    the shared list, ``None`` (coverage from the same list) and ``M`` counts."""
+    m = ctx.hs.shape[0]
     if ctx.cull_eps == 0:
         n = jnp.sum(pairs.valid)
-        return pairs, jnp.stack([n] * ctx.hs.shape[0])
+        return pairs, None, jnp.stack([n] * m)
     s = jax.lax.stop_gradient(params).scratches()
-    lists, counts = [], []
-    for j in range(ctx.hs.shape[0]):
-        c = bvh.cull(pairs, s.p0, s.p1, s.width, s.depth, s.alpha, ctx.hs[j], ctx.cull_eps)
-        counts.append(jnp.sum(c.valid))
-        # An overflowing list is incomplete: the host sees ``counts > caps``, throws the result
-        # away and retries with larger capacities. The flag is cleared so that the renderer's own
-        # overflow check does not abort the step first.
-        lists.append(eqx.tree_at(lambda q: q.overflow, bvh.compact(c, caps[j]),
-                                 jnp.zeros((), bool)))
-    return lists, jnp.stack(counts)
+    culled = [bvh.cull(pairs, s.p0, s.p1, s.width, s.depth, s.alpha, ctx.hs[j], ctx.cull_eps)
+              for j in range(m)]
+    culled.append(bvh.cull_coverage(pairs, s.alpha, ctx.board_ndf, ctx.cull_eps))
+    counts = jnp.stack([jnp.sum(c.valid) for c in culled])
+    # An overflowing list is incomplete: the host sees ``counts > caps``, throws the result away
+    # and retries with larger capacities. The flag is cleared so that the renderer's own overflow
+    # check does not abort the step first.
+    lists = [eqx.tree_at(lambda q: q.overflow, bvh.compact(c, cap), jnp.zeros((), bool))
+             for c, cap in zip(culled, caps)]
+    return lists[:m], lists[m], counts
 
 
-def _radiance(params: DesignParams, lists, pairs: bvh.Pairs, ctx: _Ctx) -> Array:
-    """Radiance ``(M, H, W)``; coverage from the unculled ``pairs`` (one pass when unculled)."""
+def _radiance(params: DesignParams, lists, cov, ctx: _Ctx) -> Array:
+    """Radiance ``(M, H, W)`` from `_view_lists`' pair lists."""
     views = R.Views(ctx.camera, ctx.light, params.intensity())
-    cov = pairs if isinstance(lists, list) else None
     return R.render_pairs(params.scratches(), views, ctx.board, lists, cov, chunk=ctx.chunk)
 
 
@@ -389,13 +395,13 @@ def _evaluate(params: DesignParams, pairs: bvh.Pairs, keep: Array, ctx: _Ctx, ca
     """Forward only: ``(radiance (M,H,W), loss terms, per-view counts)`` with scratches outside
     ``keep`` removed (their pairs masked, so they neither shine nor cover)."""
     keep_ext = jnp.concatenate([keep, jnp.zeros((1,), bool)])
-    lists, counts = _view_lists(params, pairs, ctx, caps)
+    lists, cov, counts = _view_lists(params, pairs, ctx, caps)
     if isinstance(lists, list):
         lists = [_masked(p, keep_ext) for p in lists]
     else:
         lists = _masked(lists, keep_ext)
-    pairs = _masked(pairs, keep_ext)
-    rad = _radiance(params, lists, pairs, ctx)
+    cov = None if cov is None else _masked(cov, keep_ext)
+    rad = _radiance(params, lists, cov, ctx)
     return rad, ctx.loss.terms(R.display(rad)), counts
 
 
@@ -424,10 +430,10 @@ def _step(params: DesignParams, opt_state, pairs: bvh.Pairs, ctx: _Ctx, caps, ad
     """One Adam iteration. Returns the new state, the loss terms at ``params``, whether the pair
     list must be rebuilt for the new parameters, per-view counts (to detect capacity overflow) and
     the health report."""
-    lists, counts = _view_lists(params, pairs, ctx, caps)
+    lists, cov, counts = _view_lists(params, pairs, ctx, caps)
 
     def f(p):
-        terms = ctx.loss.terms(R.display(_radiance(p, lists, pairs, ctx)))
+        terms = ctx.loss.terms(R.display(_radiance(p, lists, cov, ctx)))
         return terms["total"], terms
 
     (value, terms), grads = eqx.filter_value_and_grad(f, has_aux=True)(params)
@@ -650,7 +656,8 @@ class DesignResult:
       iteration started from).
     - `metrics`: SPEC section 7 metrics (`metrics.image_metrics`) plus ``loss``,
       ``loss_before_discard``, ``metrics_before_discard`` (SPEC 7 metrics with every scratch),
-      ``discarded``, ``kept``, ``pairs_total``, ``pairs_per_view``, ``rebins``,
+      ``discarded``, ``kept``, ``pairs_total``, ``pairs_per_view``, ``coverage_pairs`` (pairs in
+      the coverage pass after `bvh.cull_coverage`), ``rebins``,
       timing (s): ``time_total``, ``time_first_step`` (includes compilation),
       ``time_step_median``, ``time_discard``.
     - `config`: the `DesignConfig`.
@@ -678,11 +685,13 @@ def _cull_counts(params: DesignParams, pairs: bvh.Pairs, ctx: _Ctx) -> Array:
     s = params.scratches()
     return jnp.stack([
         jnp.sum(bvh.cull(pairs, s.p0, s.p1, s.width, s.depth, s.alpha, ctx.hs[j], ctx.cull_eps).valid)
-        for j in range(ctx.hs.shape[0])])
+        for j in range(ctx.hs.shape[0])]
+        + [jnp.sum(bvh.cull_coverage(pairs, s.alpha, ctx.board_ndf, ctx.cull_eps).valid)])
 
 
 def _measure_caps(params, pairs, ctx, m) -> tuple[int, ...]:
-    """Per-view capacities: the culled pair counts times a margin (1 when not culling)."""
+    """Capacities of the ``M`` view lists and the coverage list: the culled pair counts times a
+    margin (``M`` ones when not culling)."""
     if ctx.cull_eps == 0:
         return (1,) * m
     counts = np.asarray(_cull_counts(params, pairs, ctx))
@@ -755,7 +764,9 @@ def design(
     lig = jnp.asarray(views.light, dt)
     hs = R.half_vectors(R.Views(cam, lig), board, dt)
     bound = loss_mod.make_loss(config.loss).bind(jnp.asarray(tnp, dt))
-    ctx = _Ctx(cam, lig, hs, bound, lrs, float(config.cull_eps), board, int(config.chunk))
+    board_ndf = jnp.max(R._ggx_unit(hs, board.a_S), axis=0)  # (P,)
+    ctx = _Ctx(cam, lig, hs, board_ndf, bound, lrs, float(config.cull_eps), board,
+               int(config.chunk))
     all_keep = jnp.ones((config.n_scratches,), bool)
 
     def bin_pairs(params, spec):
@@ -864,7 +875,9 @@ def design(
         "discarded": int((~keep).sum()),
         "kept": int(keep.sum()),
         "pairs_total": int(np.asarray(pairs.valid).sum()),
-        "pairs_per_view": [int(c) for c in np.asarray(counts)],
+        "pairs_per_view": [int(c) for c in np.asarray(counts)[:m]],
+        "coverage_pairs": (int(np.asarray(counts)[m]) if len(counts) > m
+                           else int(np.asarray(pairs.valid).sum())),
         "rebins": state.rebins,
         "iterations": state.iteration,
         "time_total": time.perf_counter() - t_start,
@@ -880,7 +893,7 @@ def design(
 def _discard(params, pairs, ctx, caps, loss_all, tol, rad_all, terms_all):
     """Drop the lowest-scoring scratches while the loss stays within ``(1 + tol) loss_all``."""
     n = params.log_width.shape[0]
-    lists, _ = _view_lists(params, pairs, ctx, caps)
+    lists, _, _ = _view_lists(params, pairs, ctx, caps)
     fps = R.pixel_footprints(ctx.board, params.geom.dtype)
     contrib = np.asarray(_contributions(params, lists, ctx, fps), np.float64)  # (M, N)
     mean = contrib.mean(axis=1, keepdims=True)

@@ -562,6 +562,51 @@ def test_cull_error_bound_with_the_ndf_kernel():
     assert n_dropped > 200
 
 
+def test_cull_coverage_bound_through_the_renderer():
+    # Coverage from the culled list (bvh.cull_coverage) against the unculled one, float64, a view
+    # whose half vector comes near the board's mirror direction (so some pixels keep their
+    # coverage pairs and others drop them; view 1 of the default 3-view layout comes within a few
+    # degrees of it): the radiance error per pixel stays within
+    # eps * sum_dropped A_i / (pi alpha_i^2 S_P) times the pixel's shading factor.
+    import math
+
+    from jscratch import render as R
+
+    board = R.Board(shape=(32, 32))
+    s = R.Scratches.random(jax.random.PRNGKey(3), 300, board, dtype=jnp.float64)
+    s = eqx.tree_at(lambda q: q.alpha, s, jnp.asarray(np.random.default_rng(2).uniform(
+        0.02, 0.1, 300)))
+    views = R.views_on_circle(3, math.radians(50), board=board, dtype=jnp.float64)
+    pairs = R.bin_pairs(s, board)
+    hs = R.half_vectors(views, board, jnp.float64)
+    board_ndf = jnp.max(R._ggx_unit(hs, board.a_S), axis=0)
+    full = np.asarray(R.render_pairs(s, views, board, pairs))
+    ones = jnp.ones((3, board.n_pixels), jnp.float64)
+    k = np.asarray(R.shade(ones, ones, views, board)).reshape(3, -1)  # radiance per unit D
+    from jscratch import ndf
+
+    fps = R.pixel_footprints(board, jnp.float64)
+    pix, scr = np.asarray(pairs.pixel), np.minimum(np.asarray(pairs.scratch), s.n - 1)
+    _, area = jax.vmap(ndf.pair_integral)(hs[0, pix], fps[pix], s.p0[scr], s.p1[scr],
+                                          s.width[scr], s.depth[scr], s.alpha[scr])
+    area = np.where(np.asarray(pairs.valid), np.asarray(area), 0.0)
+    n_kept_any = 0
+    for eps in (1e-3, 1e-2):
+        cov = bvh.cull_coverage(pairs, s.alpha, board_ndf, eps)
+        kept = np.asarray(cov.valid)
+        dropped = np.asarray(pairs.valid) & ~kept
+        assert dropped.any()
+        n_kept_any += int(kept.sum())
+        culled = np.asarray(R.render_pairs(s, views, board, pairs, cov))
+        a_max = np.where(dropped, area / (np.pi * np.asarray(s.alpha)[scr] ** 2), 0.0)
+        bound = eps * np.bincount(pix, a_max, minlength=board.n_pixels) / board.pixel_area
+        err = np.abs(culled - full).reshape(3, -1)
+        assert np.all(err <= k * bound * (1 + 1e-9) + 1e-12 * np.max(full)), eps
+    assert n_kept_any > 0
+    # eps = 0 keeps everything.
+    assert bool(jnp.all(bvh.cull_coverage(pairs, s.alpha, board_ndf, 0.0).valid == pairs.valid))
+
+
 def test_compact():
     pairs = bvh.Pairs(
         pixel=jnp.array([3, 1, 4, 1, 5, 0], jnp.int32),

@@ -192,10 +192,12 @@ def test_view_lists_report_overflow_without_aborting():
     bound = loss.make_loss(loss.LossConfig(kind="l2")).bind(jnp.zeros((2, 16, 16), jnp.float32))
     lrs = _group_tree(p, {g: jnp.float32(0) for g in ("endpoints", "width", "depth", "alpha",
                                                         "intensity")})
-    ctx = _Ctx(views.camera, views.light, hs, bound, lrs, 1e-3, board, 1024)
-    lists, counts = jax.jit(lambda p, q: _view_lists(p, q, ctx, (4, 4)))(p, pairs)
+    # A board NDF above the threshold everywhere: every pair's coverage is kept.
+    board_ndf = jnp.full((256,), 1e3, jnp.float32)
+    ctx = _Ctx(views.camera, views.light, hs, board_ndf, bound, lrs, 1e-3, board, 1024)
+    lists, cov, counts = jax.jit(lambda p, q: _view_lists(p, q, ctx, (4, 4, 4)))(p, pairs)
     counts = np.asarray(counts)
     expected = [int(bvh.cull(pairs, s.p0, s.p1, s.width, s.depth, s.alpha, hs[j], 1e-3).valid.sum())
-                for j in range(2)]
+                for j in range(2)] + [int(pairs.valid.sum())]
     assert counts.tolist() == expected and min(expected) > 4
-    assert all(not bool(q.overflow) and q.pixel.shape == (4,) for q in lists)
+    assert all(not bool(q.overflow) and q.pixel.shape == (4,) for q in lists + [cov])
