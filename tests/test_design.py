@@ -194,7 +194,7 @@ def test_view_lists_report_overflow_without_aborting():
                                                         "intensity")})
     # A board NDF above the threshold everywhere: every pair's coverage is kept.
     board_ndf = jnp.full((256,), 1e3, jnp.float32)
-    ctx = _Ctx(views.camera, views.light, hs, board_ndf, bound, lrs, 1e-3, board, 1024)
+    ctx = _Ctx(views.camera, views.light, hs, board_ndf, bound, lrs, 1e-3, 1e-3, board, 1024)
     lists, cov, counts = jax.jit(lambda p, q: _view_lists(p, q, ctx, (4, 4, 4)))(p, pairs)
     counts = np.asarray(counts)
     expected = [int(bvh.cull(pairs, s.p0, s.p1, s.width, s.depth, s.alpha, hs[j], 1e-3).valid.sum())
