@@ -196,7 +196,7 @@ def bench_render(quick: bool, out: Path) -> dict:
     cases = [(1000, 64)] if quick else [(20000, 256), (20000, 512), (60000, 256), (60000, 512)]
     repeats = 1 if quick else 3
     rows = [render_case(n, r, DEFAULT_VIEWS, repeats) for n, r in cases]
-    eps_list = [0.0, 1e-3, 1e-2] if quick else [0.0, 1e-4, 1e-3, 1e-2, 3e-2, 1e-1]
+    eps_list = [0.0, 1e-2] if quick else [0.0, 1e-4, 1e-3, 1e-2, 3e-2, 1e-1]
     cn, cr = (1000, 64) if quick else (20000, 256)
     cull = culling_rows(cn, cr, DEFAULT_VIEWS, eps_list, repeats)
 
@@ -228,7 +228,7 @@ def bench_render(quick: bool, out: Path) -> dict:
 
 def bench_brute(quick: bool, out: Path) -> dict:
     if quick:
-        res = brute_rows(300, 32, [8, 32], repeats=1)
+        res = brute_rows(300, 32, [8, 16], repeats=1)
     else:
         res = brute_rows(500, 64, [16, 32, 64, 128, 256], repeats=3)
 

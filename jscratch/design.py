@@ -96,7 +96,7 @@ GROUPS = ("endpoints", "width", "depth", "alpha", "intensity")
 #: Scratch position parameterisations: two endpoints (paper) or midpoint + direction + length.
 PARAMETERISATIONS = ("endpoints", "midpoint")
 #: Default targets from ``skimage.data`` (bundled with scikit-image; nothing is downloaded).
-DEFAULT_IMAGES = ("camera", "astronaut", "chelsea")
+DEFAULT_IMAGES = ("camera", "astronaut", "chelsea", "coffee", "rocket", "moon")
 
 _SIG = 4.0  # endpoint map u = sigmoid(_SIG z): unit slope du/dz = 1 at the board centre
 _U_EPS = 1e-6  # initial board-normalised coordinates are kept this far inside [0, 1]
