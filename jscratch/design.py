@@ -23,16 +23,16 @@ default). The optimiser is optax's Adam (``optax.scale_by_adam``) followed by a 
 ``I_j = (mean(T_j) / mean(display(R_j)))^2.2``, which makes the mean display value equal the
 target's mean wherever the render is above the display knee (``display`` is a pure power there).
 
-**Each iteration** (one jitted step): the shared pair list (`bvh.build_pairs`) is rendered for every
-view; with ``cull_eps > 0`` each view's list is first culled with `bvh.cull` (pairs whose NDF
+**Each iteration** (one jitted step): the shared pair list (`bvh.build_pairs`) is rendered for
+every view; with ``cull_eps > 0`` each view's list is first culled with `bvh.cull` (pairs whose NDF
 bound is below ``cull_eps`` of their possible maximum) and compacted to a per-view capacity, and
 with ``coverage_eps > 0`` the coverage pass keeps only the pairs `bvh.cull_coverage` keeps. Both
 are off by default: culling bounds the forward error but removes the small gradients that turn
 unlit grooves towards a view, and Adam's per-parameter scaling makes those matter (measured on the
 default run: loss 0.0136 unculled vs 0.0323 at ``cull_eps = 1e-3``, 1.9x slower; see
-`benchmarks/RESULTS.md`). The renderer (`render.render_pairs`) gives radiance, `render.display` gives display values, and the loss
-(`loss.make_loss`) its value and gradient; Adam updates the parameters; `bvh.needs_rebin` says
-whether the pair list still holds every pair. The list is rebuilt on the host (outside the jitted
+`benchmarks/RESULTS.md`). The renderer (`render.render_pairs`) gives radiance, `render.display`
+gives display values, and the loss (`loss.make_loss`) its value and gradient; Adam updates the
+parameters; `bvh.needs_rebin` says whether the pair list still holds every pair. The list is rebuilt on the host (outside the jitted
 step, same capacities, so no recompilation) only when it says so. Capacity overflows (pair list or
 per-view lists) re-allocate and recompile; they are rare (margins 1.25).
 
@@ -137,10 +137,11 @@ class DesignConfig:
       measured on the default run, 1e-3 is 1.9x faster (295 s vs 546 s) but ends at 2.4x the loss
       (0.0323 vs 0.0136; SSIM 0.46/0.76/0.74 vs 0.69/0.75/0.82), 1e-2 far worse (module docstring).
     - `coverage_eps`: culling tolerance of the coverage pass (`bvh.cull_coverage`, same error
-      bound; only with ``cull_eps > 0``). Default 0 (every pair): measured with ``cull_eps = 1e-3``,
-      1e-3 saved 22% of the time (229 s vs 295 s) but lowered SSIM (0.463/0.738/0.707 vs 0.463/0.758/0.736): in dark regions
-      the board term ``(1 - c) D_S`` is the pixel's whole brightness, which the display gamma
-      magnifies, and covering the board is how the optimiser darkens it.
+      bound; only with ``cull_eps > 0``). Default 0 (every pair): measured with
+      ``cull_eps = 1e-3``, 1e-3 saved 22% of the time (229 s vs 295 s) but lowered SSIM
+      (0.463/0.738/0.707 vs 0.463/0.758/0.736): in dark regions the board term ``(1 - c) D_S``
+      is the pixel's whole brightness, which the display gamma magnifies, and covering the board
+      is how the optimiser darkens it.
     - `skin` [m]: groove inflation for binning (`bvh.allocate`); 0 rebins whenever a groove
       leaves its binned rectangle (about every step; cheaper than the extra pairs of a skin).
     - `discard`: run the discard step. `discard_tol`: allowed relative loss increase (0.01).
