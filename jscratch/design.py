@@ -32,8 +32,9 @@ unlit grooves towards a view, and Adam's per-parameter scaling makes those matte
 default run: loss 0.0136 unculled vs 0.0323 at ``cull_eps = 1e-3``, 1.9x slower; see
 `benchmarks/RESULTS.md`). The renderer (`render.render_pairs`) gives radiance, `render.display`
 gives display values, and the loss (`loss.make_loss`) its value and gradient; Adam updates the
-parameters; `bvh.needs_rebin` says whether the pair list still holds every pair. The list is rebuilt on the host (outside the jitted
-step, same capacities, so no recompilation) only when it says so. Capacity overflows (pair list or
+parameters; `bvh.needs_rebin` says whether the pair list still holds every pair. The list is
+rebuilt on the host (outside the jitted step, same capacities, so no recompilation) only when it
+says so. Capacity overflows (pair list or
 per-view lists) re-allocate and recompile; they are rare (margins 1.25).
 
 **Discard** (paper Fig. 21): after the optimisation each scratch gets a score, the largest over
