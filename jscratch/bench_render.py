@@ -103,7 +103,8 @@ def culling_rows(n: int, res: int, views: int, eps_list, repeats: int = 3) -> li
     kept, forward time of the culled lists (binning and culling apart) and the radiance error,
     max over pixels and views, over the peak radiance. `eps_list[0]` must be 0 (the reference)."""
     if not eps_list or eps_list[0] != 0:
-        raise ValueError(f"culling_rows: eps_list must start with 0 (the reference); got {eps_list}")
+        raise ValueError(
+            f"culling_rows: eps_list must start with 0 (the reference); got {eps_list}")
     board, s, v = scene(n, res, views, seed=1)
     rows, ref, t0, n0 = [], None, None, None
     for eps in eps_list:
@@ -250,7 +251,8 @@ def bench_brute(quick: bool, out: Path) -> dict:
                               "analytic_speedup_at_this_error"])
           + f"\n\nBrute-force error ~ n^-{res['fit_error_exponent']:.2f}; at the analytic error it "
           f"would need n = {res['n_at_analytic_error']:.3g} per side, an extrapolated speed-up of "
-          f"{res['extrapolated_speedup_at_equal_error']:.3g}x (the paper: 400x over Werner et al.).")
+          f"{res['extrapolated_speedup_at_equal_error']:.3g}x "
+          "(the paper: 400x over Werner et al.).")
     res["markdown"] = md
     return res
 
@@ -259,9 +261,11 @@ def bench_design(quick: bool, out: Path) -> dict:
     from jscratch import design as D
 
     if quick:
-        m, size, cfg, stops = 2, 32, D.DesignConfig(n_scratches=400, iterations=8, discard=False), [2, 4, 8]
+        cfg = D.DesignConfig(n_scratches=400, iterations=8, discard=False)
+        m, size, stops = 2, 32, [2, 4, 8]
     else:
-        m, size, cfg, stops = 3, 256, D.DesignConfig(discard=False), [5, 10, 25, 50, 75, 100]
+        cfg = D.DesignConfig(discard=False)
+        m, size, stops = 3, 256, [5, 10, 25, 50, 75, 100]
     targets, names = D.default_targets(m, (size, size))
     board = R.Board(shape=(size, size))
     views = R.views_on_circle(m, math.radians(50), board=board)

@@ -268,7 +268,7 @@ class _Lobe:
         return T1, T2
 
     def params(self):
-        """The 11 scalar parameters `_piece_integrals` takes, a tuple (see below)."""
+        """The 11 scalar parameters `_piece_integrals` takes, as a tuple (layout below)."""
         g, k, hx, hz = self.g, self.k, self.hx, self.hz
         a = -2 * g * k * hx / self.beta
         m = 2 * k * (hz + g * k * hx * hx) / self.beta2
@@ -276,7 +276,8 @@ class _Lobe:
         return (*c, self.u1, self.q1, g, k, hx, hz)
 
 
-# `_Lobe.params()` is `(c0, c10, c11, c20, c21, u1, q1, g, k, hx, hz)`. With `s = (u - u1) / q1` and `e = 1 / (1 + s^2)` the sharp lobe is
+# `_Lobe.params()` is `(c0, c10, c11, c20, c21, u1, q1, g, k, hx, hz)`. With `s = (u - u1) / q1`
+# and `e = 1 / (1 + s^2)` the sharp lobe is
 # `F1 = T1^2 + T1 = c0 + c10 e + c11 s e + c20 e^2 + c21 s e^2` (module docstring); `g` is only
 # used to evaluate `T1` in its cancellation-free form and carries no partial derivative of its own
 # (along consistent parameters the two forms are the same function). The smooth lobe is
@@ -323,9 +324,9 @@ def _piece_values(n_gl: int, ua, ub, Ya, Yb, p, with_partials: bool):
     `Yb`, lobe parameters `p` (`_Lobe.params`). Pieces must lie in the lit range.
 
     With `with_partials`, also the partial derivatives of each piece's value with respect to
-    `ua, ub, Ya, Yb` (`(6,)` each) and each of the 11 entries of `p` (`(6,)` each), from the moments the forward pass already
-    has (Leibniz rule at the piece ends; integration by parts for the peak's position `u1` and
-    half-width `q1`; linearity in the lobe coefficients)."""
+    `ua, ub, Ya, Yb` (`(6,)` each) and each of the 11 entries of `p` (`(6,)` each), from the
+    moments the forward pass already has (Leibniz rule at the piece ends; integration by parts
+    for the peak's position `u1` and half-width `q1`; linearity in the lobe coefficients)."""
     c0, c10, c11, c20, c21, u1, q1, g, k, hx, hz = p
     ct = (c10, c11, c20, c21)
     x, w = _gauss_legendre(n_gl)
