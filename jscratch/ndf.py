@@ -537,29 +537,24 @@ def _pieces(u, y, y_lo, y_hi, s_lo, s_hi):
         t_y = _implicit(t, res_y, dy0)
         return jnp.where(at_vertex, t, jnp.where(by_u, t_u, t_y))
 
-    t0 = with_gradient(
-        t0,
-        t0 <= 0,
-        t0 == tiu,
-        jnp.where(du0 > 0, s_lo, s_hi),
-        jnp.where(dy0 > 0, y_lo, y_hi),
-    )
+    bound_u0 = jnp.where(du0 > 0, s_lo, s_hi)
+    bound_u1 = jnp.where(du0 > 0, s_hi, s_lo)
+    on_u0 = (t0 > 0) & (t0 == tiu) & (du0 != 0)
+    on_u1 = (t1 < 1) & (t1 == tou) & (du0 != 0)
+    t0 = with_gradient(t0, t0 <= 0, t0 == tiu, bound_u0, jnp.where(dy0 > 0, y_lo, y_hi))
     t1 = jnp.where(
         empty,
         t0,
-        with_gradient(
-            t1,
-            t1 >= 1,
-            t1 == tou,
-            jnp.where(du0 > 0, s_hi, s_lo),
-            jnp.where(dy0 > 0, y_hi, y_lo),
-        ),
+        with_gradient(t1, t1 >= 1, t1 == tou, bound_u1, jnp.where(dy0 > 0, y_hi, y_lo)),
     )
-    e_ua = _lerp(u, ub_, du, t0)
+    # An end on a slab bound is placed on it exactly: a groove far narrower than the footprint
+    # has bounds much smaller than the vertex coordinates, whose rounding would otherwise move
+    # the end by a visible fraction of a sharp peak.
+    e_ua = jnp.where(on_u0, bound_u0, _lerp(u, ub_, du, t0))
     e_ya = jnp.clip(_lerp(y, yb_, dy, t0), y_lo, y_hi)
     # An empty piece is one point, bit for bit (its two ends may be computed in different XLA
     # fusions otherwise, and `_piece_values` recognises points by equality).
-    e_ub = jnp.where(empty, e_ua, _lerp(u, ub_, du, t1))
+    e_ub = jnp.where(empty, e_ua, jnp.where(on_u1, bound_u1, _lerp(u, ub_, du, t1)))
     e_yb = jnp.where(empty, e_ya, jnp.clip(_lerp(y, yb_, dy, t1), y_lo, y_hi))
 
     def crossing(level, enter, leave):
