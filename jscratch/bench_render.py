@@ -176,17 +176,20 @@ def _md(rows, cols) -> str:
     return _md_table(rows, cols)
 
 
-def _plot(path: Path, draw) -> None:
-    import matplotlib
+def _plot(path: Path, draw, xlabel: str, ylabel: str, title: str) -> None:
+    """One PNG: `draw(ax)` plots, this labels it (and adds the legend when anything is labelled)."""
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 4), dpi=110)
+    fig = Figure(figsize=(6, 4), dpi=110)  # no pyplot: leaves the user's backend alone
+    ax = fig.subplots()
     draw(ax)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path)
-    plt.close(fig)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -207,11 +210,9 @@ def bench_render(quick: bool, out: Path) -> dict:
         ax.loglog(x, y, "o-")
         for r, xi, yi in zip(cull, x, y):
             ax.annotate(f"eps={r['eps']:g}", (xi, yi), fontsize=7)
-        ax.set_xlabel("max radiance error / peak (eps = 0 plotted at 1e-9)")
-        ax.set_ylabel("forward ms per view")
-        ax.set_title(f"culling: {cn} scratches, {cr} px, {DEFAULT_VIEWS} views")
 
-    _plot(out / "render_culling.png", draw)
+    _plot(out / "render_culling.png", draw, "max radiance error / peak (eps = 0 plotted at 1e-9)",
+          "forward ms per view", f"culling: {cn} scratches, {cr} px, {DEFAULT_VIEWS} views")
     cols = ["scratches", "image", "pairs", "bin_s", "fwd_compile_s", "fwd_ms_per_view",
             "fwd_pairs_per_s", "fwd_mem_mib", "fwd_bwd_compile_s", "fwd_bwd_ms_per_view",
             "fwd_bwd_pairs_per_s", "fwd_bwd_mem_mib", "bin_share_of_step"]
@@ -238,12 +239,9 @@ def bench_brute(quick: bool, out: Path) -> dict:
                   "o-", label="brute force (n x n samples)")
         ax.loglog([res["analytic_ms"]], [res["analytic_rel_rms_error"]], "r*", ms=12,
                   label="analytic (closed form)")
-        ax.set_xlabel("time (ms)")
-        ax.set_ylabel("relative RMS error")
-        ax.legend()
-        ax.set_title(f"{res['scratches']} scratches, {res['image']}, 1 view")
 
-    _plot(out / "brute_vs_analytic.png", draw)
+    _plot(out / "brute_vs_analytic.png", draw, "time (ms)", "relative RMS error",
+          f"{res['scratches']} scratches, {res['image']}, 1 view")
     md = (f"{res['scratches']} scratches, {res['image']}, {res['pairs']} pairs, float32 against "
           f"a float64 analytic render. Analytic: {res['analytic_ms']:.1f} ms, relative RMS error "
           f"{res['analytic_rel_rms_error']:.2e}.\n\n"
@@ -285,12 +283,10 @@ def bench_design(quick: bool, out: Path) -> dict:
         for j in range(m):
             ax.plot([r["wall_s"] for r in rows], [r["ssim"][j] for r in rows], "o-",
                     label=f"view {j} ({names[j]})")
-        ax.set_xlabel("wall time (s, includes compilation and each resume's setup)")
-        ax.set_ylabel("SSIM")
-        ax.legend()
-        ax.set_title(f"design: {m} views, {cfg.n_scratches} scratches, {size} px")
 
-    _plot(out / "design_ssim.png", draw)
+    _plot(out / "design_ssim.png", draw,
+          "wall time (s, includes compilation and each resume's setup)", "SSIM",
+          f"design: {m} views, {cfg.n_scratches} scratches, {size} px")
     md = (f"{m} views ({', '.join(names)}), {cfg.n_scratches} scratches, {size}x{size}, float32, "
           "no discard; the run is stopped at each row's iteration and resumed from its checkpoint "
           "(wall time is cumulative and includes compilation and the resumes' setup).\n\n"

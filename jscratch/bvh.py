@@ -773,8 +773,8 @@ def cull_coverage(
     out of the coverage sum changes `D` by at most `D_S A / S_P <= eps A / (pi alpha^2 S_P)`, the
     bound of [`cull`][] (module docstring). `eps = 0` keeps every pair.
 
-    **Arguments:** `pairs` (the unculled list); `alpha` `(N,)` or scalar; `board_ndf` `(P,)`;
-    `eps >= 0`.
+    **Arguments:** `pairs` (the unculled list); `alpha` `(N,)` or scalar; `board_ndf` `(P,)`
+    (e.g. ``render.board_ndf(views, board).max(0)``); `eps >= 0`.
 
     **Returns:** [`Pairs`][] of the same capacity with fewer valid slots.
     """

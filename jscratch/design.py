@@ -781,7 +781,7 @@ def design(
     lig = jnp.asarray(views.light, dt)
     hs = R.half_vectors(R.Views(cam, lig), board, dt)
     bound = loss_mod.make_loss(config.loss).bind(jnp.asarray(tnp, dt))
-    board_ndf = jnp.max(R._ggx_unit(hs, board.a_S), axis=0)  # (P,)
+    board_ndf = jnp.max(R.board_ndf(R.Views(cam, lig), board, dt), axis=0)  # (P,)
     ctx = _Ctx(cam, lig, hs, board_ndf, bound, lrs, float(config.cull_eps),
                float(config.coverage_eps), board, int(config.chunk))
     all_keep = jnp.ones((config.n_scratches,), bool)

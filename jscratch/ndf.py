@@ -537,15 +537,17 @@ def _pieces(u, y, y_lo, y_hi, s_lo, s_hi):
         t_y = _implicit(t, res_y, dy0)
         return jnp.where(at_vertex, t, jnp.where(by_u, t_u, t_y))
 
+    # What sets each end: a vertex, a slab bound (u) or else a y bound.
     bound_u0 = jnp.where(du0 > 0, s_lo, s_hi)
     bound_u1 = jnp.where(du0 > 0, s_hi, s_lo)
-    on_u0 = (t0 > 0) & (t0 == tiu) & (du0 != 0)
-    on_u1 = (t1 < 1) & (t1 == tou) & (du0 != 0)
-    t0 = with_gradient(t0, t0 <= 0, t0 == tiu, bound_u0, jnp.where(dy0 > 0, y_lo, y_hi))
+    vert0, vert1 = t0 <= 0, t1 >= 1
+    on_u0 = ~vert0 & (t0 == tiu) & (du0 != 0)
+    on_u1 = ~vert1 & (t1 == tou) & (du0 != 0)
+    t0 = with_gradient(t0, vert0, on_u0, bound_u0, jnp.where(dy0 > 0, y_lo, y_hi))
     t1 = jnp.where(
         empty,
         t0,
-        with_gradient(t1, t1 >= 1, t1 == tou, bound_u1, jnp.where(dy0 > 0, y_hi, y_lo)),
+        with_gradient(t1, vert1, on_u1, bound_u1, jnp.where(dy0 > 0, y_hi, y_lo)),
     )
     # An end on a slab bound is placed on it exactly: a groove far narrower than the footprint
     # has bounds much smaller than the vertex coordinates, whose rounding would otherwise move

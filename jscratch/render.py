@@ -70,6 +70,7 @@ __all__ = [
     "bin_pairs",
     "display",
     "half_vectors",
+    "board_ndf",
     "pixel_centres",
     "pixel_footprints",
     "render",
@@ -488,6 +489,13 @@ def half_vectors(views: Views, board: Board, dtype=None) -> Float[Array, "m p 3"
     as `bvh.cull` wants them (``h_pixel = half_vectors(...)[j]``)."""
     dtype = views.camera.dtype if dtype is None else dtype
     return _geometry(views, board, dtype).h
+
+
+def board_ndf(views: Views, board: Board, dtype=None) -> Float[Array, "m p"]:
+    """The flat board's GGX ``D(h; a_S)`` at every footprint centre, ``(M, H*W)`` (1/sr): the
+    board term of `shade` per unit uncovered area, as `bvh.cull_coverage` wants it (largest over
+    the views)."""
+    return _ggx_unit(half_vectors(views, board, dtype), board.a_S)
 
 
 def _ggx_unit(h, a):

@@ -579,7 +579,7 @@ def test_cull_coverage_bound_through_the_renderer():
     views = R.views_on_circle(3, math.radians(50), board=board, dtype=jnp.float64)
     pairs = R.bin_pairs(s, board)
     hs = R.half_vectors(views, board, jnp.float64)
-    board_ndf = jnp.max(R._ggx_unit(hs, board.a_S), axis=0)
+    board_ndf = jnp.max(R.board_ndf(views, board, jnp.float64), axis=0)
     full = np.asarray(R.render_pairs(s, views, board, pairs))
     ones = jnp.ones((3, board.n_pixels), jnp.float64)
     k = np.asarray(R.shade(ones, ones, views, board)).reshape(3, -1)  # radiance per unit D
