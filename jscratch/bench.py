@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import functools
 import json
 import os
 import platform
@@ -49,12 +50,29 @@ SECTIONS = ("kernel", "stability", "render", "brute", "design")
 # Timing.
 
 
-def time_compiled(fn, *args, reps: int = 5, min_time: float = 0.2):
-    """Compile `fn` for `args` (timed apart) and return `(compile_s, median_run_s, out)`:
-    the median over `reps` runs (at least `min_time` s in all) of `block_until_ready`."""
-    t0 = time.perf_counter()
-    compiled = jax.jit(fn).lower(*args).compile()
-    compile_s = time.perf_counter() - t0
+_COMPILED: dict = {}
+
+
+def compile_once(fn, *args, options: dict | None = None):
+    """``jax.jit(fn)`` compiled ahead of time for the shapes and dtypes of `args` (with XLA
+    compiler `options`), cached per ``(fn, shapes, dtypes, options)`` for the process, so sections
+    that run the same function on the same shapes share one compilation. Returns ``(compiled,
+    compile_s)``, ``compile_s`` measured at the first compilation."""
+    options = dict(options or {})
+    key = (fn, tuple((np.shape(a), np.dtype(a.dtype).str) for a in args),
+           tuple(sorted(options.items())))
+    if key not in _COMPILED:
+        t0 = time.perf_counter()
+        compiled = jax.jit(fn).lower(*args).compile(options)
+        _COMPILED[key] = (compiled, time.perf_counter() - t0)
+    return _COMPILED[key]
+
+
+def time_compiled(fn, *args, reps: int = 5, min_time: float = 0.2, options: dict | None = None):
+    """Compile `fn` for `args` (`compile_once`, with XLA compiler `options`; timed apart) and
+    return `(compile_s, median_run_s, out)`: the median over `reps` runs (at least `min_time` s
+    in all) of `block_until_ready`."""
+    compiled, compile_s = compile_once(fn, *args, options=options)
     out = jax.block_until_ready(compiled(*args))  # warm-up
     times = []
     t_start = time.perf_counter()
@@ -126,11 +144,52 @@ def _errors(D, Dr, Ar, alpha):
     }
 
 
+def _quadrature(*args, n: int):
+    from jscratch import ndf
+
+    return ndf.pair_integral_quadrature(*args, n)
+
+
+@functools.lru_cache(maxsize=None)
+def _vmapped(one):
+    """The pair integral `one` vmapped over pairs (one function object per `one`)."""
+    return jax.vmap(one)
+
+
+@functools.lru_cache(maxsize=None)
+def _per_pair_grads(one):
+    """Per-pair gradients of ``D + A`` with respect to all 7 arguments of the pair integral `one`
+    (forward and reverse pass of every pair), vmapped; one function object per `one`, so the
+    kernel and stability sections share its compilation (`compile_once`)."""
+
+    def total(*a):
+        D, A = one(*a)
+        return D + A
+
+    return jax.vmap(jax.grad(total, argnums=tuple(range(7))))
+
+
+def _run_in_chunks(compiled, args, chunk: int):
+    """Run `compiled` (for ``chunk`` pairs) over arrays of any length ``n``: pads the last chunk
+    by repeating pairs and returns the outputs as float64 numpy arrays of length ``n``."""
+    n = len(args[0])
+    outs = []
+    for i in range(0, n, chunk):
+        idx = np.arange(i, i + chunk) % n
+        outs.append([np.asarray(o, np.float64) for o in compiled(*(a[idx] for a in args))])
+    return [np.concatenate(o)[:n] for o in zip(*outs)]
+
+
+def _kernel_timing_pairs(quick: bool) -> int:
+    return 4096 if quick else 65536
+
+
 def bench_kernel(quick: bool, out: Path) -> dict:
     from jscratch import ndf, ndf_reference
+    from jscratch import render as R
 
     C = _kernel_population(quick)
-    n_pairs_time = 4096 if quick else 65536
+    n_pairs_time = _kernel_timing_pairs(quick)
     reps = int(np.ceil(n_pairs_time / C.len()))
     rows = []
     dtypes = (np.float32,) if quick else (np.float32, np.float64)
@@ -143,30 +202,21 @@ def bench_kernel(quick: bool, out: Path) -> dict:
         alpha = Cd.alpha.astype(np.float64)
         # The timing batch: the population tiled to n_pairs_time pairs.
         T = [jnp.asarray(np.concatenate([a] * reps)[:n_pairs_time]) for a in Cd.args()]
-        P = [jnp.asarray(a) for a in Cd.args()]
+        P = Cd.args()
         methods = [("closed form", None)] + [(f"GL n={n}", n) for n in gl_orders]
         for name, n in methods:
-            if n is None:
-                one = ndf.pair_integral
-            else:
-                def one(*a, n=n):
-                    return ndf.pair_integral_quadrature(*a, n)
-            fwd = jax.vmap(one)
-
-            def fwd_bwd(*a, one=one):
-                def total(*b):
-                    D, A = jax.vmap(one)(*b)
-                    return jnp.sum(D) + jnp.sum(A)
-
-                return jax.value_and_grad(total, argnums=tuple(range(7)))(*a)
-
-            D, _ = jax.jit(fwd)(*P)
-            err = _errors(np.asarray(D, np.float64), Dr, Ar, alpha)
+            one = ndf.pair_integral if n is None else functools.partial(_quadrature, n=n)
+            fwd = _vmapped(one)
             c_f, t_f, _ = time_compiled(fwd, *T)
-            if quick:  # the backward compile alone would take most of the minute
+            D = _run_in_chunks(compile_once(fwd, *T)[0], P, n_pairs_time)[0]
+            err = _errors(D, Dr, Ar, alpha)
+            # Quick mode times the closed form's backward only (the stability section reuses
+            # that compilation); each backward compile takes seconds.
+            if quick and n is not None:
                 c_b, t_b = 0.0, float("nan")
             else:
-                c_b, t_b, _ = time_compiled(fwd_bwd, *T)
+                c_b, t_b, _ = time_compiled(_per_pair_grads(one), *T,
+                                            options=R.grad_compiler_options())
             rows.append({
                 "method": name, "dtype": np.dtype(dtype).name,
                 "ns_per_pair_fwd": t_f / n_pairs_time * 1e9,
@@ -186,28 +236,23 @@ def bench_kernel(quick: bool, out: Path) -> dict:
 
 
 def _pareto_plot(rows, path):
-    import matplotlib
+    from jscratch.bench_render import _plot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    def draw(ax):
+        for dtype, marker in (("float32", "o"), ("float64", "s")):
+            for r in rows:
+                if r["dtype"] != dtype:
+                    continue
+                color = "C3" if r["method"] == "closed form" else "C0"
+                xy = (r["ns_per_pair_fwd"], max(r["max_rel"], 1e-17))
+                ax.scatter(*xy, marker=marker, color=color)
+                ax.annotate(f"{r['method']} {dtype[-2:]}", xy, fontsize=6, xytext=(3, 3),
+                            textcoords="offset points")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
 
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for dtype, marker in (("float32", "o"), ("float64", "s")):
-        for r in rows:
-            if r["dtype"] != dtype:
-                continue
-            color = "C3" if r["method"] == "closed form" else "C0"
-            ax.scatter(r["ns_per_pair_fwd"], max(r["max_rel"], 1e-17), marker=marker, color=color)
-            ax.annotate(f"{r['method']} {dtype[-2:]}", (r["ns_per_pair_fwd"], max(r["max_rel"], 1e-17)),
-                        fontsize=6, xytext=(3, 3), textcoords="offset points")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_xlabel("time per pair, forward (ns)")
-    ax.set_ylabel("max relative error vs reference")
-    ax.set_title("Pair integral: run time against error (red: closed form)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _plot(path, draw, "time per pair, forward (ns)", "max relative error vs reference",
+          "Pair integral: run time against error (red: closed form)")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -252,32 +297,26 @@ def stability_cases(n: int, seed: int = 1):
 
 def bench_stability(quick: bool, out: Path) -> dict:
     from jscratch import ndf
+    from jscratch import render as R
 
     n = 2048 if quick else 131072
     C = stability_cases(n)
-    kern = jax.jit(jax.vmap(ndf.pair_integral))
-
-    def total(*a):
-        D, A = ndf.pair_integral(*a)
-        return D + A
-
-    grad = jax.jit(jax.vmap(jax.grad(total, argnums=tuple(range(7)))))
-    chunk = 16384
-    D32, A32, D64, A64, bad_g = [], [], [], [], 0
-    for i in range(0, n, chunk):
-        part = C.take(np.arange(i, min(i + chunk, n)))
-        d, a = kern(*part.astype(np.float32).args())
-        D32.append(np.asarray(d, np.float64))
-        A32.append(np.asarray(a, np.float64))
-        d, a = kern(*part.astype(np.float64).args())
-        D64.append(np.asarray(d))
-        A64.append(np.asarray(a))
-        g = grad(*part.astype(np.float32).args())
-        bad_g += int(sum((~np.isfinite(np.asarray(x))).reshape(part.len(), -1).any(axis=1).sum() for x in g))
-    D32, A32, D64, A64 = map(np.concatenate, (D32, A32, D64, A64))
+    # The same functions and chunk shape as the kernel section's closed-form timings, so the
+    # compilations are shared (`compile_once`).
+    chunk = _kernel_timing_pairs(quick)
+    fwd, grads = _vmapped(ndf.pair_integral), _per_pair_grads(ndf.pair_integral)
+    C32 = C.astype(np.float32).args()
+    C64 = C.astype(np.float64).args()
+    first = np.arange(chunk) % n  # a whole first chunk: the shapes the functions compile for
+    head = tuple(a[first] for a in C32)
+    D32, A32 = _run_in_chunks(compile_once(fwd, *head)[0], C32, chunk)
+    D64, A64 = _run_in_chunks(compile_once(fwd, *(a[first] for a in C64))[0], C64, chunk)
+    g = _run_in_chunks(compile_once(grads, *head, options=R.grad_compiler_options())[0], C32,
+                       chunk)
+    bad_g = int(np.any([~np.isfinite(x.reshape(n, -1)).any(axis=1) for x in g], axis=0).sum())
     # The float64 closed form at the float32-rounded inputs is the reference here.
-    Dref, Aref = kern(*C.astype(np.float32).astype(np.float64).args())
-    Dref, Aref = np.asarray(Dref), np.asarray(Aref)
+    Dref, Aref = _run_in_chunks(compile_once(fwd, *(a[first].astype(np.float64) for a in C32))[0],
+                                tuple(a.astype(np.float64) for a in C32), chunk)
     scale = Aref / (np.pi * C.astype(np.float32).alpha.astype(np.float64))
     tol = np.maximum(1e-3 * np.abs(Dref), 1e-5 * scale)
     ratio = np.where(tol > 0, np.abs(D32 - Dref) / np.where(tol > 0, tol, 1), np.abs(D32) * 1e30)

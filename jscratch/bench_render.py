@@ -25,6 +25,7 @@ import statistics
 import tempfile
 import time
 from pathlib import Path
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -63,11 +64,24 @@ def scene(n: int, res: int, views: int, dtype=jnp.float32, seed: int = 0, theta_
     return board, s, v
 
 
+class _Case(NamedTuple):
+    """What `render_case` built, for `culling_rows` to reuse (no second binning or compile)."""
+    board: R.Board
+    scratches: R.Scratches
+    views: R.Views
+    pairs: Any  # bvh.Pairs (L,), the complete shared list
+    fwd: Any  # jitted fwd(s, v, pairs, coverage_pairs)
+    fwd_compiled: Any  # fwd compiled for (s, v, pairs, None)
+    fwd_s: float
+
+
 def render_case(n: int, res: int, views: int = DEFAULT_VIEWS, repeats: int = 3,
-                chunk: int = R.DEFAULT_CHUNK) -> dict:
+                chunk: int = R.DEFAULT_CHUNK) -> tuple[dict, _Case]:
     """Time one scene: binning (host, once), the jitted forward render of all views from one
     shared pair list, and a jitted value-and-gradient of a display-space L2 loss with respect to
-    every scratch and view parameter. Compile times apart; medians of `repeats` runs."""
+    every scratch and view parameter. Compile times apart; medians of `repeats` runs.
+
+    **Returns:** ``(row, case)``: the table row and the scene with its compiled forward."""
     board, s, v = scene(n, res, views)
     t = time.perf_counter()
     pairs = R.bin_pairs(s, board, chunk=chunk)
@@ -76,17 +90,21 @@ def render_case(n: int, res: int, views: int = DEFAULT_VIEWS, repeats: int = 3,
     target = jnp.full((views, res, res), 0.5, jnp.float32)
 
     # The pair list is an argument, not a closed-over constant (XLA would constant-fold it).
-    def fwd(s, v, pairs):
-        return R.render_pairs(s, v, board, pairs, chunk=chunk)
+    def fwd(s, v, pairs, cov=None):
+        return R.render_pairs(s, v, board, pairs, cov, chunk=chunk)
 
     def loss(s, v, pairs):
         return jnp.mean((R.display(fwd(s, v, pairs)) - target) ** 2)
 
     row = {"scratches": n, "image": f"{res}x{res}", "views": views, "pairs": n_pairs,
            "bin_s": bin_s}
-    for name, f in (("fwd", jax.jit(fwd)), ("fwd_bwd", jax.jit(jax.value_and_grad(loss, (0, 1))))):
+    jfwd = jax.jit(fwd)
+    compiled = {}
+    # The gradient is compiled as design's step is (`render.grad_compiler_options`).
+    for name, f, opts in (("fwd", jfwd, {}), ("fwd_bwd", jax.jit(jax.value_and_grad(loss, (0, 1))),
+                                                 R.grad_compiler_options())):
         t = time.perf_counter()
-        c = f.lower(s, v, pairs).compile()
+        c = compiled[name] = f.lower(s, v, pairs).compile(opts)
         row[f"{name}_compile_s"] = time.perf_counter() - t
         step = _median_time(lambda c=c: c(s, v, pairs), repeats)
         row[f"{name}_ms_per_view"] = 1e3 * step / views
@@ -95,37 +113,37 @@ def render_case(n: int, res: int, views: int = DEFAULT_VIEWS, repeats: int = 3,
         row[f"_{name}_s"] = step
     # A gradient step rebins at most once (far less with a skin): the worst-case share.
     row["bin_share_of_step"] = bin_s / (bin_s + row["_fwd_bwd_s"])
-    return row
+    return row, _Case(board, s, v, pairs, jfwd, compiled["fwd"], row["_fwd_s"])
 
 
-def culling_rows(n: int, res: int, views: int, eps_list, repeats: int = 3) -> list[dict]:
-    """Per-view culling (`render.render(eps=...)`, `bvh.cull`) against the unculled render: pairs
-    kept, forward time of the culled lists (binning and culling apart) and the radiance error,
-    max over pixels and views, over the peak radiance. `eps_list[0]` must be 0 (the reference)."""
+def culling_rows(case: _Case, eps_list, repeats: int = 3) -> list[dict]:
+    """Per-view culling (`render.cull_pairs`, i.e. `bvh.cull`) of `case`'s scene against its
+    unculled render: pairs kept, culling time, forward time of the culled lists and the radiance
+    error, max over pixels and views, over the peak radiance. `eps_list[0]` must be 0 (the
+    reference: `case`'s own forward, already timed)."""
     if not eps_list or eps_list[0] != 0:
         raise ValueError(
             f"culling_rows: eps_list must start with 0 (the reference); got {eps_list}")
-    board, s, v = scene(n, res, views, seed=1)
-    rows, ref, t0, n0 = [], None, None, None
-    for eps in eps_list:
+    s, v, board, full = case.scratches, case.views, case.board, case.pairs
+    views = v.m
+    ref = np.asarray(case.fwd_compiled(s, v, full), np.float64)
+    n0 = int(np.asarray(full.valid).sum()) * views  # a shared list is evaluated for every view
+    rows = [{"eps": 0.0, "pairs_kept": 1.0, "cull_s": 0.0,
+             "fwd_ms_per_view": 1e3 * case.fwd_s / views, "time_saved": 0.0,
+             "max_err_over_peak": 0.0}]
+    for eps in eps_list[1:]:
         t = time.perf_counter()
-        rad, pairs, cov = R.render(s, v, board, eps=eps, return_pairs=True)
+        pairs = R.cull_pairs(full, s, v, board, eps)
         cull_s = time.perf_counter() - t
-        # The jitted renderer `render` just compiled for these list shapes (cached).
-        f = R._jitted_render_pairs(R.DEFAULT_CHUNK, None, None)
-        c_arg = None if eps == 0 else cov
-        t_run = _median_time(lambda: f(s, v, board, pairs, c_arg), repeats)
-        rad = np.asarray(rad, np.float64)
-        # A shared (L,) list is evaluated for every view; culled lists are (M, L).
-        n_eval = int(np.asarray(pairs.valid).sum()) * (views if eps == 0 else 1)
-        if ref is None:
-            ref, t0, n0 = rad, t_run, n_eval
+        c = case.fwd.lower(s, v, pairs, full).compile()
+        t_run = _median_time(lambda: c(s, v, pairs, full), repeats)
+        rad = np.asarray(c(s, v, pairs, full), np.float64)
         rows.append({
             "eps": eps,
-            "pairs_kept": n_eval / n0,
-            "bin_and_cull_s": cull_s,
+            "pairs_kept": int(np.asarray(pairs.valid).sum()) / n0,
+            "cull_s": cull_s,
             "fwd_ms_per_view": 1e3 * t_run / views,
-            "time_saved": 1 - t_run / t0,
+            "time_saved": 1 - t_run / case.fwd_s,
             "max_err_over_peak": float(np.max(np.abs(rad - ref)) / np.max(ref)),
         })
     return rows
@@ -141,14 +159,14 @@ def brute_rows(n_scratches: int, res: int, ns, repeats: int = 3) -> dict:
     brute-force renderer for each `n` (``n x n`` samples per pixel) and of the float32 analytic
     renderer, both on the same pair list (binning excluded from both); plus the fit
     ``error ~ n^-p`` and the brute-force time extrapolated to the analytic error."""
-    board, s64, v64 = scene(n_scratches, res, 1, jnp.float64, seed=1)
+    board, s64, v64 = scene(n_scratches, res, 1, jnp.float64)
     s32 = jax.tree_util.tree_map(lambda x: x.astype(jnp.float32), s64)
     v32 = jax.tree_util.tree_map(lambda x: x.astype(jnp.float32), v64)
-    pairs = R.bin_pairs(s64, board)
-    ref = R.render_pairs(s64, v64, board, pairs)
-    ana = jax.jit(lambda s, v: R.render_pairs(s, v, board, pairs))
-    t_ana = _median_time(lambda: ana(s32, v32), repeats)
-    err_ana = _rel_rms(ana(s32, v32), ref)
+    pairs = R.bin_pairs(s32, board)  # one list for all three renderers
+    ana = jax.jit(lambda s, v, pairs: R.render_pairs(s, v, board, pairs))
+    ref = ana(s64, v64, pairs)
+    t_ana = _median_time(lambda: ana(s32, v32, pairs), repeats)
+    err_ana = _rel_rms(ana(s32, v32, pairs), ref)
     rows = []
     for n in ns:
         f = jax.jit(lambda s, v, n=n: brute.brute_render(s, v, board, n=n, pairs=pairs,
@@ -199,10 +217,10 @@ def _plot(path: Path, draw, xlabel: str, ylabel: str, title: str) -> None:
 def bench_render(quick: bool, out: Path) -> dict:
     cases = [(1000, 64)] if quick else [(20000, 256), (20000, 512), (60000, 256), (60000, 512)]
     repeats = 1 if quick else 3
-    rows = [render_case(n, r, DEFAULT_VIEWS, repeats) for n, r in cases]
+    rows, built = map(list, zip(*(render_case(n, r, DEFAULT_VIEWS, repeats) for n, r in cases)))
     eps_list = [0.0, 1e-2] if quick else [0.0, 1e-4, 1e-3, 1e-2, 3e-2, 1e-1]
-    cn, cr = (1000, 64) if quick else (20000, 256)
-    cull = culling_rows(cn, cr, DEFAULT_VIEWS, eps_list, repeats)
+    cn, cr = cases[0]
+    cull = culling_rows(built[0], eps_list, repeats)
 
     def draw(ax):
         x = [max(r["max_err_over_peak"], 1e-9) for r in cull]
@@ -229,8 +247,8 @@ def bench_render(quick: bool, out: Path) -> dict:
 
 
 def bench_brute(quick: bool, out: Path) -> dict:
-    if quick:
-        res = brute_rows(300, 32, [8, 16], repeats=1)
+    if quick:  # the render section's first scene: its binning compilation is reused
+        res = brute_rows(1000, 64, [16, 64], repeats=1)
     else:
         res = brute_rows(500, 64, [16, 32, 64, 128, 256], repeats=3)
 

@@ -441,8 +441,17 @@ def _health(loss, grads: DesignParams, new: DesignParams) -> dict[str, Array]:
     return out
 
 
-@eqx.filter_jit
 def _step(params: DesignParams, opt_state, pairs: bvh.Pairs, ctx: _Ctx, caps, adam):
+    """`_step_impl`, jitted with `render.grad_compiler_options` (faster compile and step)."""
+    return _jitted_step()(params, opt_state, pairs, ctx, caps, adam)
+
+
+@functools.lru_cache(maxsize=None)
+def _jitted_step():
+    return eqx.filter_jit(_step_impl, compiler_options=R.grad_compiler_options())
+
+
+def _step_impl(params: DesignParams, opt_state, pairs: bvh.Pairs, ctx: _Ctx, caps, adam):
     """One Adam iteration. Returns the new state, the loss terms at ``params``, whether the pair
     list must be rebuilt for the new parameters, per-view counts (to detect capacity overflow) and
     the health report."""

@@ -698,7 +698,7 @@ class Loss(eqx.Module):
         target, _ = _check_images(target, target, name="target")
         grams = None
         if self.kind == "perceptual+gram":
-            grams = tuple(_grams(self.features, target))
+            grams = _target_grams(self.features, target)
         return BoundLoss(self, target, grams)
 
     def _terms(self, render, target, target_grams) -> dict[str, Array]:
@@ -720,6 +720,12 @@ class Loss(eqx.Module):
 
     def _combine(self, render, target, target_grams) -> Array:
         return self._terms(render, target, target_grams)["total"]
+
+
+@eqx.filter_jit
+def _target_grams(features, target) -> tuple[Array, ...]:
+    """`Loss.bind`'s Gram matrices, in one compiled call (not op by op)."""
+    return tuple(_grams(features, target))
 
 
 def make_loss(config: LossConfig | None = None) -> Loss:

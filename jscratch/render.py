@@ -68,7 +68,9 @@ __all__ = [
     "Scratches",
     "Views",
     "bin_pairs",
+    "cull_pairs",
     "display",
+    "grad_compiler_options",
     "half_vectors",
     "board_ndf",
     "pixel_centres",
@@ -253,23 +255,29 @@ class Scratches(eqx.Module):
         """
         board = Board() if board is None else board
         dtype = jnp.result_type(float) if dtype is None else dtype
-        k1, k2, k3 = jax.random.split(key, 3)
-        size = jnp.asarray([board.Sx, board.Sy], dtype)
-        mid = jax.random.uniform(k1, (n, 2), dtype) * size
-        phi = jax.random.uniform(k2, (n,), dtype, 0.0, 2 * jnp.pi)
-        half = 0.5 * jax.random.uniform(k3, (n,), dtype, length[0], length[1])
-        t = jnp.stack([jnp.cos(phi), jnp.sin(phi)], -1)
-
-        def reach(direction):  # largest s with mid + s * direction on the board, (n,)
-            pos = (size - mid) / jnp.where(direction > 0, direction, 1)
-            neg = mid / jnp.where(direction < 0, -direction, 1)
-            r = jnp.where(direction > 0, pos, jnp.where(direction < 0, neg, jnp.inf))
-            return r.min(-1)
-
-        s = jnp.minimum(half, jnp.minimum(reach(t), reach(-t)))
-        p0 = jnp.clip(mid - s[:, None] * t, 0, size)
-        p1 = jnp.clip(mid + s[:, None] * t, 0, size)
+        p0, p1 = _random_endpoints(key, n, float(board.Sx), float(board.Sy),
+                                   tuple(float(x) for x in length), jnp.dtype(dtype))
         return Scratches(p0, p1, width, depth, alpha)
+
+
+@functools.partial(jax.jit, static_argnums=(1, 2, 3, 4, 5))
+def _random_endpoints(key, n: int, Sx: float, Sy: float, length: tuple, dtype):
+    """`Scratches.random`'s endpoints ``(n, 2), (n, 2)`` in one compiled call."""
+    k1, k2, k3 = jax.random.split(key, 3)
+    size = jnp.asarray([Sx, Sy], dtype)
+    mid = jax.random.uniform(k1, (n, 2), dtype) * size
+    phi = jax.random.uniform(k2, (n,), dtype, 0.0, 2 * jnp.pi)
+    half = 0.5 * jax.random.uniform(k3, (n,), dtype, length[0], length[1])
+    t = jnp.stack([jnp.cos(phi), jnp.sin(phi)], -1)
+
+    def reach(direction):  # largest s with mid + s * direction on the board, (n,)
+        pos = (size - mid) / jnp.where(direction > 0, direction, 1)
+        neg = mid / jnp.where(direction < 0, -direction, 1)
+        r = jnp.where(direction > 0, pos, jnp.where(direction < 0, neg, jnp.inf))
+        return r.min(-1)
+
+    s = jnp.minimum(half, jnp.minimum(reach(t), reach(-t)))
+    return jnp.clip(mid - s[:, None] * t, 0, size), jnp.clip(mid + s[:, None] * t, 0, size)
 
 
 class Views(eqx.Module):
@@ -472,6 +480,7 @@ class _Geometry(NamedTuple):
     r2: Array  # (M, P)
 
 
+@eqx.filter_jit
 def _geometry(views: Views, board: Board, dtype) -> _Geometry:
     p = pixel_centres(board, dtype)
     p3 = jnp.concatenate([p, jnp.zeros_like(p[:, :1])], -1)[None]  # (1, P, 3)
@@ -546,7 +555,11 @@ def display(radiance: ArrayLike, gamma: float = DISPLAY_GAMMA,
     ``y = 0.0152``, about 4/255). Negative inputs (the renderer produces none beyond rounding) follow
     the same quadratic. No clipping above 1. Elementwise, any shape, follows the input dtype.
     """
-    x = jnp.asarray(radiance)
+    return _display(jnp.asarray(radiance), float(gamma), float(knee))
+
+
+@functools.partial(jax.jit, static_argnums=(1, 2))
+def _display(x, gamma: float, knee: float) -> Array:
     if not jnp.issubdtype(x.dtype, jnp.floating):
         x = x.astype(jnp.result_type(float))
     g = 1.0 / gamma
@@ -894,6 +907,27 @@ def render_pairs(scratches: Scratches, views: Views, board: Board, pairs,
     return rad.reshape(M, board.H, board.W)
 
 
+@functools.lru_cache(maxsize=None)
+def grad_compiler_options() -> dict:
+    """XLA compiler options for a jitted function that differentiates `render_pairs` (pass them
+    as ``jax.jit(f, compiler_options=grad_compiler_options())``).
+
+    On the CPU: ``xla_cpu_use_fusion_emitters=False``. Measured on a 2-core CPU (jax 0.10.1, see
+    ``benchmarks/RESULTS.md``): a render value-and-gradient compiles ~40% faster and runs ~15%
+    faster; a forward-only render runs ~15% slower with it, so it is not for forward-only
+    functions. Elsewhere, or where this XLA does not know the option (checked once by compiling a
+    trivial function), ``{}``.
+    """
+    if jax.default_backend() != "cpu":
+        return {}
+    opts = {"xla_cpu_use_fusion_emitters": False}
+    try:
+        jax.jit(lambda x: x + 1).lower(np.float32(0)).compile(opts)
+    except Exception:  # an XLA without this option: compile with the defaults
+        return {}
+    return opts
+
+
 def _compact(pix: np.ndarray, scr: np.ndarray, valid: np.ndarray, length: int):
     keep = np.flatnonzero(valid)
     out_pix = np.zeros(length, np.int32)
@@ -936,6 +970,33 @@ def bin_pairs(scratches: Scratches, board: Board, *, chunk: int = DEFAULT_CHUNK)
                      valid=jnp.asarray(cval), overflow=jnp.asarray(False))
 
 
+def cull_pairs(pairs, scratches: Scratches, views: Views, board: Board, eps: float, *,
+               chunk: int = DEFAULT_CHUNK):
+    """Per-view culled pair lists from a shared compacted list (host code).
+
+    Culls ``pairs`` (a shared ``(L,)`` list from `bin_pairs`) for every view with ``bvh.cull``
+    (pairs whose rigorous ``D_hat`` bound is below ``eps A / (pi alpha^2)``) and compacts each
+    view's survivors into one ``(M, Lv)`` list (``Lv`` bucketed as in `bin_pairs`). Render it with
+    ``coverage_pairs=pairs``: a culled pair still covers the board.
+
+    **Returns:** `bvh.Pairs` ``(M, Lv)`` for `render_pairs`.
+    """
+    from jscratch import bvh
+
+    if eps <= 0 or not math.isfinite(eps):
+        raise ValueError(f"cull_pairs: `eps` must be finite and > 0; got {eps}")
+    cpix, cscr = np.asarray(pairs.pixel), np.asarray(pairs.scratch)
+    hs = half_vectors(views, board, scratches.dtype)
+    keep = [np.asarray(bvh.cull(pairs, scratches.p0, scratches.p1, scratches.width,
+                                scratches.depth, scratches.alpha, hs[j], eps).valid)
+            for j in range(views.m)]
+    Lv = _bucket(max(int(v.sum()) for v in keep), chunk)
+    spix, sscr, sval = (np.stack(s) for s in zip(*(_compact(cpix, cscr, v, Lv) for v in keep)))
+    sscr[~sval] = scratches.n
+    return bvh.Pairs(pixel=jnp.asarray(spix), scratch=jnp.asarray(sscr), valid=jnp.asarray(sval),
+                     overflow=jnp.asarray(False))
+
+
 @functools.lru_cache(maxsize=None)
 def _jitted_render_pairs(chunk, mesh, axis_names):
     return eqx.filter_jit(functools.partial(render_pairs, chunk=chunk, mesh=mesh,
@@ -959,28 +1020,13 @@ def render(scratches: Scratches, views: Views, board: Board, *, eps: float = 0.0
     **Returns:** radiance ``(M, H, W)`` (W/(sr m^2)); with `return_pairs`, ``(radiance, pairs,
     coverage_pairs)``.
     """
-    from jscratch import bvh
-
     if eps < 0 or not math.isfinite(eps):
         raise ValueError(f"render: `eps` must be finite and >= 0; got {eps}")
     full_c = bin_pairs(scratches, board, chunk=chunk)
-    cpix, cscr = np.asarray(full_c.pixel), np.asarray(full_c.scratch)
     if eps == 0:
         pairs, cov_pairs = full_c, None
     else:
-        hs = half_vectors(views, board, scratches.dtype)
-        lists = []
-        for j in range(views.m):
-            cj = bvh.cull(full_c, scratches.p0, scratches.p1, scratches.width, scratches.depth,
-                          scratches.alpha, hs[j], eps)
-            lists.append(np.asarray(cj.valid))
-        Lv = _bucket(max(int(v.sum()) for v in lists), chunk)
-        stacks = [_compact(cpix, cscr, v, Lv) for v in lists]
-        spix, sscr, sval = (np.stack(s) for s in zip(*stacks))
-        sscr[~sval] = scratches.n
-        pairs = bvh.Pairs(pixel=jnp.asarray(spix), scratch=jnp.asarray(sscr),
-                          valid=jnp.asarray(sval), overflow=jnp.asarray(False))
-        cov_pairs = full_c
+        pairs, cov_pairs = cull_pairs(full_c, scratches, views, board, eps, chunk=chunk), full_c
     axis_names = tuple(axis_names) if isinstance(axis_names, list) else axis_names
     fn = _jitted_render_pairs(chunk, mesh, axis_names)
     rad = fn(scratches, views, board, pairs, cov_pairs)
