@@ -553,6 +553,9 @@ def _pieces(u, y, y_lo, y_hi, s_lo, s_hi):
     # has bounds much smaller than the vertex coordinates, whose rounding would otherwise move
     # the end by a visible fraction of a sharp peak.
     e_ua = jnp.where(on_u0, bound_u0, _lerp(u, ub_, du, t0))
+    # An empty piece may sit where its edge's line meets the y range outside the slab; keep the
+    # point in the slab, where the lobes are finite (outside the lit range B + kN can round to 0).
+    e_ua = jnp.where(empty, jnp.clip(e_ua, s_lo, s_hi), e_ua)
     e_ya = jnp.clip(_lerp(y, yb_, dy, t0), y_lo, y_hi)
     # An empty piece is one point, bit for bit (its two ends may be computed in different XLA
     # fusions otherwise, and `_piece_values` recognises points by equality).
