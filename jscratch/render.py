@@ -15,8 +15,8 @@ is then shaded at its footprint centre (SPEC section 4) into linear radiance.
 
 **Rendering:**
 
-- `render(scratches, views, board, *, eps=0.0)`: host driver; bins (``bvh.build_pairs``), culls
-  per view when ``eps > 0`` (``bvh.cull``), compacts the pair lists and calls `render_pairs`.
+- `render(scratches, views, board, *, eps=0.0)`: host driver; bins (`bin_pairs`), culls per
+  view when ``eps > 0`` (`cull_pairs`, ``bvh.cull``) and calls `render_pairs`.
 - `render_pairs(scratches, views, board, pairs)`: the differentiable core, jittable, for use
   inside a loss; the pair list is integer data computed outside the differentiated function
   (`bin_pairs` makes one).
@@ -36,11 +36,17 @@ gradients), so a gradient step also holds ``O(M H W + N + chunk)`` floats beyond
 Cost: the backward pass re-evaluates the forward kernel once (as `jax.checkpoint` would).
 Consequence: forward-mode autodiff (``jax.jvp``) is not available through `render_pairs`.
 
-**Multiple devices.** Given a `jax.sharding.Mesh`, `render_pairs` shards the (flattened,
-padded) pair axis over the mesh axes with `jax.shard_map`; parameters and half vectors are
-replicated; each device accumulates its pairs into full-size per-pixel sums that are ``psum``-ed,
-and in the backward pass its parameter gradients are ``psum``-ed. The call and its result are the
-same as on one device (up to summation order).
+**Multiple devices.** Given a `jax.sharding.Mesh`, `render_pairs` shards the *pixel* axis
+over the mesh axes with `jax.shard_map`: the ``H*W`` pixels (row-major) are split into
+``n_shards`` contiguous blocks of ``Pb = ceil(H / n_shards) W`` pixels (strips of rows), device
+``s`` owns block ``s``: its half vectors, its accumulators and its slice of the output, which
+comes back sharded over image rows (when ``n_shards`` divides ``H``; else XLA reshards it). Parameters (scratches, views) are replicated; in the
+backward pass each device's parameter gradients are ``psum``-ed, pixel-side gradients stay on
+their device. The pair list must be laid out by block (``n_shards`` equal segments, segment ``s``
+holding only pixels of block ``s``): `bin_pairs` and `cull_pairs` build that with
+``shards=n_shards`` and `render` does it from the mesh; `render_pairs` checks it (`eqx.error_if`).
+The call and its result are the same as on one device (up to summation order). Each segment is
+padded to the fullest block, so a board whose scratches crowd into few blocks balances poorly.
 
 Computation follows the dtype of ``scratches`` (float32 for users, float64 for references);
 ``views`` are cast to it.
@@ -581,7 +587,9 @@ class _Cfg(NamedTuple):
     Sy: float
     chunk: int  # pairs per chunk, per device
     mesh: Any  # jax.sharding.Mesh or None
-    axes: tuple  # mesh axis names the pair axis is sharded over
+    axes: tuple  # mesh axis names the pixel axis is sharded over
+    Pb: int  # pixels per shard (the whole padded pixel axis is Pb * n_shards)
+    per_view: bool  # pair outputs are (view, pixel): index v * P_pad + pixel; else pixel only
     need_D: bool
     need_A: bool
 
@@ -591,25 +599,39 @@ def _board_of(cfg: _Cfg) -> Board:
 
 
 def _pair_kernel(cfg: _Cfg, xe, ye, p0, p1, w, d, a, h, pix):
-    """One (pixel, scratch) pair: ``(D_hat, A)`` from `ndf.pair_integral`. ``pix`` is the flat
-    pixel index ``v*P + r*W + c``; the footprint is rebuilt from it."""
+    """One (pixel, scratch) pair: ``(D_hat, A)`` from `ndf.pair_integral`. ``pix`` is the
+    pixel index ``r*W + c``; the footprint is rebuilt from it."""
     from jscratch import ndf
 
-    q = pix % (cfg.H * cfg.W)
-    r = q // cfg.W
-    c = q % cfg.W
+    r = pix // cfg.W
+    c = pix % cfg.W
     x0, x1, y0, y1 = xe[c], xe[c + 1], ye[r + 1], ye[r]
     fp = jnp.stack([jnp.stack([x0, y0]), jnp.stack([x1, y0]), jnp.stack([x1, y1]),
                     jnp.stack([x0, y1])])
     return ndf.pair_integral(h, fp, p0, p1, w, d, a)
 
 
-def _gather(params, h_views, pix, scr):
+def _split_index(cfg: _Cfg, out):
+    """Global pair output index -> ``(pixel, local index)``: the board pixel (clipped into the
+    board, for padding slots) and the index into this shard's flat accumulator (``Pb`` pixels,
+    or ``M * Pb`` (view, pixel) slots when ``per_view``)."""
+    P_pad = cfg.Pb * _n_shards(cfg.mesh, cfg.axes)
+    shard = 0 if cfg.mesh is None else jax.lax.axis_index(cfg.axes)
+    if cfg.per_view:
+        v, pix = out // P_pad, out % P_pad
+        local = v * cfg.Pb + (pix - shard * cfg.Pb)
+    else:
+        pix = out
+        local = pix - shard * cfg.Pb
+    return jnp.minimum(pix, cfg.H * cfg.W - 1), local
+
+
+def _gather(params, h_loc, pix, scr, local):
     """Per-pair parameters ``(chunk, ...)`` and half vectors ``(V, chunk, 3)``."""
     p0, p1, w, d, a = params
     take = lambda x: x.at[scr].get(mode="clip")  # sentinel N -> N-1; masked below
     return (take(p0), take(p1), take(w), take(d), take(a),
-            h_views.at[:, pix].get(mode="clip"))
+            h_loc.at[:, local].get(mode="clip"))
 
 
 def _masked_chunk(cfg: _Cfg, xe, ye, pix, valid, p0, p1, w, d, a, h):
@@ -651,44 +673,55 @@ def _varying(cfg: _Cfg, tree):
     return jax.tree_util.tree_map(lambda x: jax.lax.pcast(x, cfg.axes, to="varying"), tree)
 
 
-def _fwd_local(cfg: _Cfg, params, h_views, pix, scr, valid):
+def _flat_h(cfg: _Cfg, h_loc):
+    """This shard's half vectors ``(V, Pb, 3)`` as the rows the pairs index: ``(V, Pb, 3)`` for a
+    shared list, ``(1, V * Pb, 3)`` for per-view outputs."""
+    return h_loc.reshape(1, -1, 3) if cfg.per_view else h_loc
+
+
+def _fwd_local(cfg: _Cfg, params, h_loc, out, scr, valid):
+    """This shard's sums: ``D`` ``(M, Pb)`` and ``A`` ``(1 or M, Pb)`` over its pairs."""
     dt = params[2].dtype
     xe, ye = _edges_in(cfg, dt)
-    V, n_out = h_views.shape[:2]
+    h_rows = _flat_h(cfg, h_loc)
+    V, n_loc = h_rows.shape[:2]
 
     def body(carry, xs):
         Ds, As = carry
-        pc, sc, vc = xs
-        D, A = _masked_chunk(cfg, xe, ye, pc, vc, *_gather(params, h_views, pc, sc))
+        oc, sc, vc = xs
+        pix, local = _split_index(cfg, oc)
+        D, A = _masked_chunk(cfg, xe, ye, pix, vc, *_gather(params, h_rows, pix, sc, local))
         if cfg.need_D:
-            Ds = Ds.at[:, pc].add(D)
+            Ds = Ds.at[:, local].add(D, mode="drop")
         if cfg.need_A:
-            As = As.at[pc].add(A)
+            As = As.at[local].add(A, mode="drop")
         return (Ds, As), None
 
-    init = _varying(cfg, (jnp.zeros((V, n_out), dt), jnp.zeros((n_out,), dt)))
-    (Ds, As), _ = jax.lax.scan(body, init, _chunks(cfg, pix, scr, valid))
-    if cfg.mesh is not None:
-        Ds, As = jax.lax.psum((Ds, As), cfg.axes)
-    return Ds, As
+    init = _varying(cfg, (jnp.zeros((V, n_loc), dt), jnp.zeros((n_loc,), dt)))
+    (Ds, As), _ = jax.lax.scan(body, init, _chunks(cfg, out, scr, valid))
+    return Ds.reshape(-1, cfg.Pb), As.reshape(-1, cfg.Pb)
 
 
-def _bwd_local(cfg: _Cfg, params, h_views, pix, scr, valid, gD, gA):
+def _bwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, gD, gA):
     dt = params[2].dtype
     xe, ye = _edges_in(cfg, dt)
+    h_rows = _flat_h(cfg, h_loc)
+    gD = gD.reshape(h_rows.shape[:2])
+    gA = gA.reshape(-1)
     # Differentiate only the outputs the caller uses, so XLA does no dead reverse work.
     pick = [i for i, need in enumerate((cfg.need_D, cfg.need_A)) if need]
 
     def body(carry, xs):
         gp0, gp1, gw, gd, ga, gh = carry
-        pc, sc, vc = xs
+        oc, sc, vc = xs
+        pix, local = _split_index(cfg, oc)
 
         def f(*gathered):
-            out = _masked_chunk(cfg, xe, ye, pc, vc, *gathered)
+            out = _masked_chunk(cfg, xe, ye, pix, vc, *gathered)
             return tuple(out[i] for i in pick)
 
-        _, vjp = jax.vjp(f, *_gather(params, h_views, pc, sc))
-        cts = (gD.at[:, pc].get(mode="clip"), gA.at[pc].get(mode="clip"))
+        _, vjp = jax.vjp(f, *_gather(params, h_rows, pix, sc, local))
+        cts = (gD.at[:, local].get(mode="clip"), gA.at[local].get(mode="clip"))
         d0, d1, dw, dd, da, dh = vjp(tuple(cts[i] for i in pick))
         # The sentinel index N is out of range: mode="drop" discards padding slots (already zero).
         gp0 = gp0.at[sc].add(d0, mode="drop")
@@ -696,45 +729,55 @@ def _bwd_local(cfg: _Cfg, params, h_views, pix, scr, valid, gD, gA):
         gw = gw.at[sc].add(dw, mode="drop")
         gd = gd.at[sc].add(dd, mode="drop")
         ga = ga.at[sc].add(da, mode="drop")
-        gh = gh.at[:, pc].add(dh, mode="drop")
+        gh = gh.at[:, local].add(dh, mode="drop")
         return (gp0, gp1, gw, gd, ga, gh), None
 
-    init = _varying(cfg, tuple(jnp.zeros_like(x) for x in params) + (jnp.zeros_like(h_views),))
-    grads, _ = jax.lax.scan(body, init, _chunks(cfg, pix, scr, valid))
-    if cfg.mesh is not None:
-        grads = jax.lax.psum(grads, cfg.axes)
-    return grads[:5], grads[5]
+    # (zeros_like of the device-local half vectors is already device-varying)
+    init = _varying(cfg, tuple(jnp.zeros_like(x) for x in params)) + (jnp.zeros_like(h_rows),)
+    grads, _ = jax.lax.scan(body, init, _chunks(cfg, out, scr, valid))
+    dparams = grads[:5]
+    if cfg.mesh is not None:  # parameters are replicated: their gradient sums over all shards
+        dparams = jax.lax.psum(dparams, cfg.axes)
+    return dparams, grads[5].reshape(h_loc.shape)
 
 
-def _maybe_shard(cfg: _Cfg, fn, n_rep: int, n_pair: int, n_rep_after: int = 0):
-    """Wrap ``fn(rep..., pair..., rep_after...)`` in `jax.shard_map` over ``cfg.mesh`` with the
-    pair arguments sharded along ``cfg.axes`` and everything else replicated."""
+def _maybe_shard(cfg: _Cfg, fn, in_specs, out_specs):
+    """`fn` under `jax.shard_map` over ``cfg.mesh`` (identity without a mesh). Specs use ``"p"``
+    for the pixel axis sharded over ``cfg.axes``."""
     if cfg.mesh is None:
         return fn
-    rep, shd = PartitionSpec(), PartitionSpec(cfg.axes)
-    in_specs = (rep,) * n_rep + (shd,) * n_pair + (rep,) * n_rep_after
-    return jax.shard_map(fn, mesh=cfg.mesh, in_specs=in_specs, out_specs=rep)
+    spec = lambda s: jax.tree_util.tree_map(
+        lambda t: PartitionSpec(*(cfg.axes if a == "p" else None for a in t)), s,
+        is_leaf=lambda t: isinstance(t, tuple) and all(isinstance(a, (str, type(None))) for a in t))
+    return jax.shard_map(fn, mesh=cfg.mesh, in_specs=spec(in_specs), out_specs=spec(out_specs))
+
+
+# Sharding of each argument: params replicated, half vectors and outputs split on the pixel axis,
+# the (block-laid-out) pair list split into its per-shard segments.
+_REP, _PIX, _PAIRS, _HV = (), (None, "p"), ("p",), (None, "p", None)
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
-def _pair_sums(cfg: _Cfg, params, h_views, pix, scr, valid):
-    """Per-output-pixel sums over the pairs: ``sum D_hat`` ``(V, n_out)`` and ``sum A``
-    ``(n_out,)``, with ``(V, n_out) = h_views.shape[:2]`` (V views evaluated on every pair).
-    ``pix, scr, valid`` ``(L,)`` with ``L`` a multiple of ``chunk * n_devices``."""
-    return _maybe_shard(cfg, functools.partial(_fwd_local, cfg), 2, 3)(params, h_views, pix, scr,
-                                                                        valid)
+def _pair_sums(cfg: _Cfg, params, h_views, out, scr, valid):
+    """Per-pixel sums over the pairs: ``sum D_hat`` ``(M, P_pad)`` and ``sum A``
+    ``(1 or M, P_pad)``; ``h_views`` ``(M, P_pad, 3)``. ``out, scr, valid`` ``(L,)``: ``n_shards``
+    equal segments, segment ``s`` holding only pairs of pixels ``[s Pb, (s+1) Pb)``, each a
+    multiple of ``chunk`` long."""
+    fn = _maybe_shard(cfg, functools.partial(_fwd_local, cfg),
+                      (_REP, _HV, _PAIRS, _PAIRS, _PAIRS), (_PIX, _PIX))
+    return fn(params, h_views, out, scr, valid)
 
 
-def _pair_sums_fwd(cfg, params, h_views, pix, scr, valid):
-    out = _pair_sums(cfg, params, h_views, pix, scr, valid)
-    return out, (params, h_views, pix, scr, valid)
+def _pair_sums_fwd(cfg, params, h_views, out, scr, valid):
+    return _pair_sums(cfg, params, h_views, out, scr, valid), (params, h_views, out, scr, valid)
 
 
 def _pair_sums_bwd(cfg, res, g):
-    params, h_views, pix, scr, valid = res
+    params, h_views, out, scr, valid = res
     gD, gA = g
-    fn = _maybe_shard(cfg, functools.partial(_bwd_local, cfg), 2, 3, 2)
-    dparams, dh = fn(params, h_views, pix, scr, valid, gD, gA)
+    fn = _maybe_shard(cfg, functools.partial(_bwd_local, cfg),
+                      (_REP, _HV, _PAIRS, _PAIRS, _PAIRS, _PIX, _PIX), (_REP, _HV))
+    dparams, dh = fn(params, h_views, out, scr, valid, gD, gA)
     return dparams, dh, None, None, None
 
 
@@ -759,23 +802,39 @@ def _round_up(x: int, m: int) -> int:
     return -(-x // m) * m
 
 
-def _run_pair_sums(scratches: Scratches, board: Board, h_views, pix, scr, valid, *, chunk, mesh,
-                   axes, need_D, need_A):
-    """Pad the flat pair list and call `_pair_sums`."""
-    L = pix.shape[0]
+def _pixels_per_shard(board: Board, shards: int) -> int:
+    """Pixels per shard: whole rows, ``ceil(H / shards) * W`` (the pixel axis is padded to
+    ``shards`` times this)."""
+    return -(-board.H // shards) * board.W
+
+
+def _run_pair_sums(scratches: Scratches, board: Board, h_views, out, scr, valid, *, per_view,
+                   chunk, mesh, axes, need_D, need_A):
+    """Pad every shard's segment of the pair list to a multiple of the chunk, pad the pixel axis
+    to ``Pb * n_shards`` and call `_pair_sums`; returns sums over the board's ``P`` pixels."""
     shards = _n_shards(mesh, axes)
-    per_shard = max(1, -(-L // shards))
-    chunk = int(min(chunk, _round_up(per_shard, 64)))
-    L_pad = _round_up(max(L, 1), chunk * shards)
+    P = board.n_pixels
+    Pb = _pixels_per_shard(board, shards)
+    Ls = out.shape[0] // shards
+    chunk = int(min(chunk, _round_up(max(Ls, 1), 64)))
+    Ls_pad = _round_up(max(Ls, 1), chunk)
     n = scratches.n
-    if L_pad != L:
-        pad = L_pad - L
-        pix = jnp.concatenate([pix, jnp.zeros((pad,), pix.dtype)])
-        scr = jnp.concatenate([scr, jnp.full((pad,), n, scr.dtype)])
-        valid = jnp.concatenate([valid, jnp.zeros((pad,), bool)])
-    cfg = _Cfg(board.H, board.W, board.Sx, board.Sy, chunk, mesh, axes, need_D, need_A)
+
+    def pad(x, fill):
+        x = x.reshape(shards, Ls)
+        x = jnp.concatenate([x, jnp.full((shards, Ls_pad - Ls), fill, x.dtype)], 1)
+        return x.reshape(-1)
+
+    if Ls_pad != Ls:
+        out, scr, valid = pad(out, 0), pad(scr, n), pad(valid, False)
+    if Pb * shards != P:
+        fill = jnp.zeros(h_views.shape[:1] + (Pb * shards - P, 3), h_views.dtype).at[..., 2].set(1)
+        h_views = jnp.concatenate([h_views, fill], 1)
+    cfg = _Cfg(board.H, board.W, board.Sx, board.Sy, chunk, mesh, axes, Pb, per_view, need_D,
+               need_A)
     params = (scratches.p0, scratches.p1, scratches.width, scratches.depth, scratches.alpha)
-    return _pair_sums(cfg, params, h_views, pix, scr, valid)
+    Ds, As = _pair_sums(cfg, params, h_views, out, scr, valid)
+    return Ds[:, :P], As[:, :P]
 
 
 # --------------------------------------------------------------------------------------------
@@ -783,38 +842,69 @@ def _run_pair_sums(scratches: Scratches, board: Board, h_views, pix, scr, valid,
 # --------------------------------------------------------------------------------------------
 
 
-def _check_values(scratches: Scratches, views: Views):
-    """`eqx.error_if` value checks (work inside jit); returns checked copies."""
+def _value_checks(scratches: Scratches, views: Views) -> list:
+    """``(condition, message)`` checks of the scene's values (see `_guard`)."""
     s = scratches
     finite = jnp.all(jnp.isfinite(s.p0)) & jnp.all(jnp.isfinite(s.p1)) & jnp.all(
         jnp.isfinite(s.width)) & jnp.all(jnp.isfinite(s.depth)) & jnp.all(jnp.isfinite(s.alpha))
-    p0 = eqx.error_if(s.p0, ~finite, "render: a scratch parameter (p0, p1, width, depth or alpha)"
-                      " is NaN or infinite")
-    p0 = eqx.error_if(p0, jnp.any(s.width <= 0) | jnp.any(s.depth <= 0),
-                      "render: scratch `width` and `depth` must be > 0")
-    p0 = eqx.error_if(p0, jnp.any(s.alpha <= 0) | jnp.any(s.alpha >= 1),
-                      "render: scratch `alpha` must lie in (0, 1)")
-    cam = eqx.error_if(views.camera, ~(jnp.all(jnp.isfinite(views.camera))
-                                       & jnp.all(jnp.isfinite(views.light))
-                                       & jnp.all(jnp.isfinite(views.intensity))),
-                       "render: a view (camera, light or intensity) is NaN or infinite")
-    cam = eqx.error_if(cam, jnp.any(views.camera[:, 2] <= 0) | jnp.any(views.light[:, 2] <= 0),
-                       "render: every camera and light must be above the board (z > 0)")
-    s = eqx.tree_at(lambda t: t.p0, s, p0)
-    views = eqx.tree_at(lambda t: t.camera, views, cam)
-    return s, views
+    return [
+        (~finite, "render: a scratch parameter (p0, p1, width, depth or alpha) is NaN or infinite"),
+        (jnp.any(s.width <= 0) | jnp.any(s.depth <= 0),
+         "render: scratch `width` and `depth` must be > 0"),
+        (jnp.any(s.alpha <= 0) | jnp.any(s.alpha >= 1), "render: scratch `alpha` must lie in (0, 1)"),
+        (~(jnp.all(jnp.isfinite(views.camera)) & jnp.all(jnp.isfinite(views.light))
+           & jnp.all(jnp.isfinite(views.intensity))),
+         "render: a view (camera, light or intensity) is NaN or infinite"),
+        (jnp.any(views.camera[:, 2] <= 0) | jnp.any(views.light[:, 2] <= 0),
+         "render: every camera and light must be above the board (z > 0)"),
+    ]
 
 
-def _pair_arrays(pairs, M: int, P: int, n: int, name: str):
-    """Flatten a pair list to output indices ``v*P + pixel``: a single `Pairs` ``(L,)`` shared by
-    all views, a `Pairs` with leading view axis ``(M, L)``, or a sequence of ``M`` `Pairs`."""
+def _guard(x, checks, mesh):
+    """Apply ``(condition, message)`` checks to ``x``. Concrete conditions (an eager call) raise
+    `ValueError` at once. Traced ones use `eqx.error_if` on one device; over a mesh a runtime
+    error raised on one device would leave the others waiting in a collective (XLA aborts the
+    process), so there the result is poisoned instead: returns ``(x, poisoned)`` with
+    ``poisoned`` a traced bool (or ``False``) for the caller to turn into NaN radiance."""
+    poisoned = False
+    for bad, msg in checks:
+        if not isinstance(bad, jax.core.Tracer):
+            if bool(bad):
+                raise ValueError(msg)
+        elif mesh is None:
+            x = eqx.error_if(x, bad, msg)
+        else:
+            poisoned = poisoned | bad
+    return x, poisoned
+
+
+def _check_values(scratches: Scratches, views: Views):
+    """`eqx.error_if` value checks (work inside jit, single device); returns checked copies."""
+    w, _ = _guard(scratches.width, _value_checks(scratches, views), None)
+    return eqx.tree_at(lambda t: t.width, scratches, w), views
+
+
+def _pair_arrays(pairs, M: int, n: int, name: str, shards: int, P_pad: int):
+    """Flatten a pair list to output indices, keeping ``shards`` equal per-shard segments (each
+    input list is ``shards`` equal segments; they are interleaved so that segment ``s`` of the
+    result holds segment ``s`` of every view): a single `Pairs` ``(L,)`` shared by all views
+    (output = pixel), a `Pairs` with leading view axis ``(M, L)``, or a sequence of ``M`` `Pairs`
+    (output ``v * P_pad + pixel``). Returns ``(out, scratch, valid, overflow, shared)``."""
+
+    def segments(x):
+        if x.shape[-1] % shards:
+            raise ValueError(
+                f"render_pairs: `{name}` has length {x.shape[-1]}, not a multiple of the {shards}"
+                f" pixel shards of the mesh; build it with bin_pairs(..., shards={shards})")
+        return x.reshape(x.shape[:-1] + (shards, x.shape[-1] // shards))
+
     if isinstance(pairs, (list, tuple)):
         if len(pairs) != M:
             raise ValueError(f"render_pairs: `{name}` has {len(pairs)} pair lists for {M} views")
-        parts = [_pair_arrays(p, 1, P, n, name) for p in pairs]
-        pix = jnp.concatenate([p[0] + j * P for j, p in enumerate(parts)])
-        return (pix, jnp.concatenate([p[1] for p in parts]),
-                jnp.concatenate([p[2] for p in parts]),
+        parts = [_pair_arrays(p, 1, n, name, shards, P_pad) for p in pairs]
+        cat = lambda xs: jnp.concatenate([segments(x) for x in xs], 1).reshape(-1)
+        return (cat([p[0] + j * P_pad for j, p in enumerate(parts)]), cat([p[1] for p in parts]),
+                cat([p[2] for p in parts]),
                 functools.reduce(jnp.logical_or, [p[3] for p in parts]), False)
     pix, scr, valid = jnp.asarray(pairs.pixel), jnp.asarray(pairs.scratch), jnp.asarray(pairs.valid)
     if not (pix.shape == scr.shape == valid.shape) or pix.ndim not in (1, 2):
@@ -828,18 +918,31 @@ def _pair_arrays(pairs, M: int, P: int, n: int, name: str):
         if pix.shape[0] != M:
             raise ValueError(f"render_pairs: `{name}` has a leading view axis of {pix.shape[0]}"
                              f" for {M} views")
-        pix = pix + (jnp.arange(M, dtype=pix.dtype) * P)[:, None]
-        return pix.reshape(-1), scr.reshape(-1), valid.reshape(-1), overflow, False
+        out = pix + (jnp.arange(M, dtype=pix.dtype) * P_pad)[:, None]
+        inter = lambda x: jnp.swapaxes(segments(x), 0, 1).reshape(-1)  # (shards, M, Ls) order
+        return inter(out), inter(scr), inter(valid), overflow, False
+    segments(pix)
     return pix, scr, valid, overflow, True
 
 
-def _checked_pairs(pix, scr, valid, overflow, n_out: int, n: int, name: str):
-    pix = eqx.error_if(pix, overflow, f"render_pairs: `{name}` overflowed its capacity (incomplete"
-                       " pair list); rebuild it with bvh.build_pairs")
-    bad = valid & ((pix < 0) | (pix >= n_out) | (scr < 0) | (scr >= n))
-    pix = eqx.error_if(pix, jnp.any(bad), f"render_pairs: `{name}` has a valid pair with a pixel"
-                       " or scratch index out of range")
-    return pix
+def _pair_checks(out, scr, valid, overflow, *, shared: bool, M: int, P: int, Pb: int,
+                 shards: int, n: int, name: str) -> list:
+    """``(condition, message)`` checks of a flattened pair list for `eqx.error_if`: no overflow,
+    indices in range, and (with several shards) every valid pair in its shard's pixel block."""
+    P_pad = Pb * shards
+    view, pix = (jnp.zeros_like(out), out) if shared else (out // P_pad, out % P_pad)
+    bad = valid & ((out < 0) | (pix >= P) | (view >= M) | (scr < 0) | (scr >= n))
+    checks = [(overflow, f"render_pairs: `{name}` overflowed its capacity (incomplete pair list);"
+                         " rebuild it with bvh.build_pairs"),
+              (jnp.any(bad), f"render_pairs: `{name}` has a valid pair with a pixel or scratch"
+                             " index out of range")]
+    if shards > 1:
+        seg = jnp.arange(out.shape[0]) // (out.shape[0] // shards)
+        checks.append((jnp.any(valid & (pix // Pb != seg)),
+                       f"render_pairs: `{name}` is not laid out for {shards} pixel shards (segment"
+                       f" s must hold only pixels [s*{Pb}, (s+1)*{Pb})); build it with"
+                       f" bin_pairs(..., shards={shards})"))
+    return checks
 
 
 def render_pairs(scratches: Scratches, views: Views, board: Board, pairs,
@@ -858,12 +961,17 @@ def render_pairs(scratches: Scratches, views: Views, board: Board, pairs,
       list). Default: ``pairs`` itself when shared, else each view's own list (exact only when the
       per-view lists are unculled: a culled pair still covers the board).
     - `chunk`: pairs per chunk per device (memory knob; results do not depend on it beyond rounding).
-    - `mesh`, `axis_names`: shard the pair axis over these mesh axes (default: all axes of `mesh`).
+    - `mesh`, `axis_names`: shard the pixel axis over these mesh axes (default: all axes of
+      `mesh`); the pair lists must then be laid out for ``n_shards`` pixel blocks (`bin_pairs` /
+      `cull_pairs` with ``shards=n_shards``; see the module docstring).
 
     **Returns:** radiance ``(M, H, W)`` (W/(sr m^2)).
 
-    Errors (`eqx.error_if`, also under jit): non-finite or out-of-range scratch or view values, a
-    camera or light below the board, an overflowed pair list, out-of-range pair indices.
+    Errors: non-finite or out-of-range scratch or view values, a camera or light below the board,
+    an overflowed pair list, out-of-range pair indices, a pair list not laid out for the mesh.
+    Called eagerly: `ValueError`. Under jit on one device: `eqx.error_if` (a runtime error).
+    Under jit with a mesh: NaN radiance (a runtime error on one device of a multi-device program
+    would leave the others stuck in a collective; `render` checks the scene before it renders).
     Gradients: reverse mode only (a `jax.custom_vjp` recomputes the pairs chunk by chunk).
     """
     dtype = scratches.dtype
@@ -871,39 +979,45 @@ def render_pairs(scratches: Scratches, views: Views, board: Board, pairs,
         raise ValueError(f"render_pairs: scratches must be floating point; got {dtype}")
     M, P, n = views.m, board.n_pixels, scratches.n
     axes = _mesh_axes(mesh, axis_names)
-    scratches, views = _check_values(scratches, views)
+    shards = _n_shards(mesh, axes)
+    Pb = _pixels_per_shard(board, shards)
+    # The checks hang on a small replicated parameter, not on the (sharded) pair arrays.
+    checks = _value_checks(scratches, views)
     views = jax.tree_util.tree_map(lambda x: x.astype(dtype), views)
     geo_h = half_vectors(views, board, dtype)  # (M, P, 3)
 
-    pix, scr, valid, overflow, shared = _pair_arrays(pairs, M, P, n, "pairs")
+    def flat(p, m, what):
+        out, scr, valid, over, shared = _pair_arrays(p, m, n, what, shards, Pb * shards)
+        checks.extend(_pair_checks(out, scr, valid, over, shared=shared, M=m, P=P, Pb=Pb,
+                                   shards=shards, n=n, name=what))
+        return out, scr, valid, shared
+
     # A shared list is evaluated for every view at once (views vmapped inside the chunk, the
-    # scratch geometry gathered once); per-view lists are flattened to outputs v*P + pixel.
-    h_views = geo_h if shared else geo_h.reshape(1, M * P, 3)
-    pix = _checked_pairs(pix, scr, valid, overflow, h_views.shape[1], n, "pairs")
-    kw = dict(chunk=chunk, mesh=mesh, axes=axes)
-    if n == 0:
-        Ds, As = jnp.zeros(h_views.shape[:2], dtype), jnp.zeros(h_views.shape[1:2], dtype)
-    else:
-        Ds, As = _run_pair_sums(scratches, board, h_views, pix, scr, valid,
-                                need_D=True, need_A=coverage_pairs is None, **kw)
-    S = board.pixel_area
-    D_P = Ds.reshape(M, P) / S
-    if coverage_pairs is None:
-        cov = (As[None] if shared else As.reshape(M, P)) / S
-    else:
-        cpix, cscr, cvalid, cover, cshared = _pair_arrays(coverage_pairs, 1, P, n,
-                                                          "coverage_pairs")
+    # scratch geometry gathered once); per-view lists are flattened to outputs v*P_pad + pixel.
+    out, scr, valid, shared = flat(pairs, M, "pairs")
+    if coverage_pairs is not None:
+        cout, cscr, cvalid, cshared = flat(coverage_pairs, 1, "coverage_pairs")
         if not cshared:
             raise ValueError("render_pairs: `coverage_pairs` must be one shared (L,) list")
-        cpix = _checked_pairs(cpix, cscr, cvalid, cover, P, n, "coverage_pairs")
+    w, poisoned = _guard(scratches.width, checks, mesh)
+    scratches = eqx.tree_at(lambda t: t.width, scratches, w)
+    kw = dict(chunk=chunk, mesh=mesh, axes=axes)
+    if n == 0:
+        Ds, As = jnp.zeros((M, P), dtype), jnp.zeros((1 if shared else M, P), dtype)
+    else:
+        Ds, As = _run_pair_sums(scratches, board, geo_h, out, scr, valid, per_view=not shared,
+                                need_D=True, need_A=coverage_pairs is None, **kw)
+    if coverage_pairs is not None:
         if n == 0:
-            As = jnp.zeros((P,), dtype)
+            As = jnp.zeros((1, P), dtype)
         else:
             h_dummy = jnp.zeros((1, P, 3), dtype).at[..., 2].set(1)
-            _, As = _run_pair_sums(scratches, board, h_dummy, cpix, cscr, cvalid, need_D=False,
-                                   need_A=True, **kw)
-        cov = As[None] / S
-    rad = shade(D_P, cov, views, board)
+            _, As = _run_pair_sums(scratches, board, h_dummy, cout, cscr, cvalid, per_view=False,
+                                   need_D=False, need_A=True, **kw)
+    S = board.pixel_area
+    rad = shade(Ds / S, As / S, views, board)
+    if poisoned is not False:  # traced checks over a mesh (see `_guard`)
+        rad = jnp.where(poisoned, jnp.nan, rad)
     return rad.reshape(M, board.H, board.W)
 
 
@@ -928,17 +1042,6 @@ def grad_compiler_options() -> dict:
     return opts
 
 
-def _compact(pix: np.ndarray, scr: np.ndarray, valid: np.ndarray, length: int):
-    keep = np.flatnonzero(valid)
-    out_pix = np.zeros(length, np.int32)
-    out_scr = np.full(length, -1, np.int32)
-    out_val = np.zeros(length, bool)
-    out_pix[: keep.size] = pix[keep]
-    out_scr[: keep.size] = scr[keep]
-    out_val[: keep.size] = True
-    return out_pix, out_scr, out_val
-
-
 def _bucket(n: int, chunk: int) -> int:
     """Pair-list length for ``n`` pairs: a multiple of 1024 (small) or of ``chunk``, and within
     ~12% of ``n`` by rounding to 8 steps per octave, so repeated renders of similar scenes reuse
@@ -948,12 +1051,48 @@ def _bucket(n: int, chunk: int) -> int:
     return _round_up(_round_up(n, step), min(chunk, 1024))
 
 
-def bin_pairs(scratches: Scratches, board: Board, *, chunk: int = DEFAULT_CHUNK):
+def _layout(pix: np.ndarray, scr: np.ndarray, keeps, n: int, board: Board, shards: int,
+            chunk: int):
+    """Pack the kept pairs of each mask in ``keeps`` into ``shards`` equal segments, segment ``s``
+    holding the pairs of pixels ``[s Pb, (s+1) Pb)`` (``Pb = ceil(H / shards) W``) in their input
+    order, each segment ``_bucket``-ed to the largest count over segments and masks. Padding slots
+    hold the segment's first pixel and the sentinel scratch ``n``. Returns numpy ``(pixel,
+    scratch, valid)``, each ``(len(keeps), shards * Ls)``."""
+    Pb = _pixels_per_shard(board, shards)
+    idx = [np.flatnonzero(k) for k in keeps]
+    blocks = [pix[i] // Pb for i in idx]
+    counts = [np.bincount(b, minlength=shards) for b in blocks]
+    Ls = _bucket(int(max(c.max() for c in counts)), chunk)
+    shape = (len(keeps), shards * Ls)
+    out_pix = np.broadcast_to(np.repeat(np.arange(shards) * Pb, Ls), shape).astype(np.int32)
+    out_scr = np.full(shape, n, np.int32)
+    out_val = np.zeros(shape, bool)
+    for j, (i, b, c) in enumerate(zip(idx, blocks, counts)):
+        order = np.argsort(b, kind="stable")  # by block, input order kept within a block
+        starts = np.concatenate([[0], np.cumsum(c)[:-1]])
+        dest = b[order] * Ls + np.arange(i.size) - np.repeat(starts, c)
+        out_pix[j, dest] = pix[i[order]]
+        out_scr[j, dest] = scr[i[order]]
+        out_val[j, dest] = True
+    return out_pix, out_scr, out_val
+
+
+def _pairs_of(pix, scr, val):
+    from jscratch import bvh
+
+    return bvh.Pairs(pixel=jnp.asarray(pix), scratch=jnp.asarray(scr), valid=jnp.asarray(val),
+                     overflow=jnp.asarray(False))
+
+
+def bin_pairs(scratches: Scratches, board: Board, *, chunk: int = DEFAULT_CHUNK,
+              shards: int = 1):
     """The complete (pixel, scratch) pair list of a scene, compacted (host code).
 
-    Bins with ``bvh.build_pairs`` and packs the valid pairs first into a list whose length is
-    rounded up (`_bucket`: within ~12%, a multiple of 1024 or of ``chunk``) so that similar scenes
-    share a compilation of `render_pairs`; padding holds pixel 0 and the sentinel scratch ``N``.
+    Bins with ``bvh.build_pairs`` and packs the valid pairs into ``shards`` equal segments by
+    pixel block (the layout `render_pairs` needs with a mesh of ``shards`` devices; one segment
+    without), each segment's length rounded up (`_bucket`: within ~12%, a multiple of 1024 or of
+    ``chunk``) so that similar scenes share a compilation of `render_pairs`; padding slots hold
+    the sentinel scratch ``N``.
 
     **Returns:** `bvh.Pairs` ``(L,)`` for `render_pairs`.
     """
@@ -961,23 +1100,21 @@ def bin_pairs(scratches: Scratches, board: Board, *, chunk: int = DEFAULT_CHUNK)
 
     full, _ = bvh.build_pairs(scratches.p0, scratches.p1, scratches.width, scratches.depth,
                               board=(board.Sx, board.Sy), shape=board.shape)
-    fval = np.asarray(full.valid).reshape(-1)
-    L = _bucket(int(fval.sum()), chunk)
-    cpix, cscr, cval = _compact(np.asarray(full.pixel).reshape(-1),
-                                np.asarray(full.scratch).reshape(-1), fval, L)
-    cscr[~cval] = scratches.n
-    return bvh.Pairs(pixel=jnp.asarray(cpix), scratch=jnp.asarray(cscr),
-                     valid=jnp.asarray(cval), overflow=jnp.asarray(False))
+    pix, scr, val = _layout(np.asarray(full.pixel).reshape(-1),
+                            np.asarray(full.scratch).reshape(-1),
+                            [np.asarray(full.valid).reshape(-1)], scratches.n, board, shards,
+                            chunk)
+    return _pairs_of(pix[0], scr[0], val[0])
 
 
 def cull_pairs(pairs, scratches: Scratches, views: Views, board: Board, eps: float, *,
-               chunk: int = DEFAULT_CHUNK):
-    """Per-view culled pair lists from a shared compacted list (host code).
+               chunk: int = DEFAULT_CHUNK, shards: int = 1):
+    """Per-view culled pair lists from a shared list (host code).
 
-    Culls ``pairs`` (a shared ``(L,)`` list from `bin_pairs`) for every view with ``bvh.cull``
-    (pairs whose rigorous ``D_hat`` bound is below ``eps A / (pi alpha^2)``) and compacts each
-    view's survivors into one ``(M, Lv)`` list (``Lv`` bucketed as in `bin_pairs`). Render it with
-    ``coverage_pairs=pairs``: a culled pair still covers the board.
+    Culls ``pairs`` (a shared ``(L,)`` list, e.g. from `bin_pairs`) for every view with
+    ``bvh.cull`` (pairs whose rigorous ``D_hat`` bound is below ``eps A / (pi alpha^2)``) and packs
+    each view's survivors into one ``(M, Lv)`` list laid out for ``shards`` pixel shards as in
+    `bin_pairs`. Render it with ``coverage_pairs=pairs``: a culled pair still covers the board.
 
     **Returns:** `bvh.Pairs` ``(M, Lv)`` for `render_pairs`.
     """
@@ -985,16 +1122,15 @@ def cull_pairs(pairs, scratches: Scratches, views: Views, board: Board, eps: flo
 
     if eps <= 0 or not math.isfinite(eps):
         raise ValueError(f"cull_pairs: `eps` must be finite and > 0; got {eps}")
-    cpix, cscr = np.asarray(pairs.pixel), np.asarray(pairs.scratch)
     hs = half_vectors(views, board, scratches.dtype)
     keep = [np.asarray(bvh.cull(pairs, scratches.p0, scratches.p1, scratches.width,
                                 scratches.depth, scratches.alpha, hs[j], eps).valid)
             for j in range(views.m)]
-    Lv = _bucket(max(int(v.sum()) for v in keep), chunk)
-    spix, sscr, sval = (np.stack(s) for s in zip(*(_compact(cpix, cscr, v, Lv) for v in keep)))
-    sscr[~sval] = scratches.n
-    return bvh.Pairs(pixel=jnp.asarray(spix), scratch=jnp.asarray(sscr), valid=jnp.asarray(sval),
-                     overflow=jnp.asarray(False))
+    return _pairs_of(*_layout(np.asarray(pairs.pixel), np.asarray(pairs.scratch), keep,
+                              scratches.n, board, shards, chunk))
+
+
+_checked_scene = eqx.filter_jit(_check_values)
 
 
 @functools.lru_cache(maxsize=None)
@@ -1008,10 +1144,10 @@ def render(scratches: Scratches, views: Views, board: Board, *, eps: float = 0.0
            axis_names: str | Sequence[str] | None = None, return_pairs: bool = False):
     """Bin, cull and render: the convenience driver (host code; not for inside jit).
 
-    Bins with ``bvh.build_pairs``; when ``eps > 0`` culls every view's pairs with ``bvh.cull``
-    (pairs whose rigorous ``D_hat`` bound is below ``eps A / (pi alpha^2)``); compacts the lists to
-    their valid pairs on the host; renders with a jitted `render_pairs`. Coverage always uses the
-    unculled list.
+    Bins with `bin_pairs`; when ``eps > 0`` culls every view's pairs with `cull_pairs`
+    (``bvh.cull``: pairs whose rigorous ``D_hat`` bound is below ``eps A / (pi alpha^2)``); lays
+    the lists out for the mesh's pixel shards; renders with a jitted `render_pairs`. Coverage
+    always uses the unculled list.
 
     **Arguments:** `scratches`, `views`, `board`; `eps` culling tolerance (0 keeps every pair);
     `chunk`, `mesh`, `axis_names` as in `render_pairs`; `return_pairs` also return the pair
@@ -1022,12 +1158,16 @@ def render(scratches: Scratches, views: Views, board: Board, *, eps: float = 0.0
     """
     if eps < 0 or not math.isfinite(eps):
         raise ValueError(f"render: `eps` must be finite and >= 0; got {eps}")
-    full_c = bin_pairs(scratches, board, chunk=chunk)
+    axis_names = tuple(axis_names) if isinstance(axis_names, list) else axis_names
+    shards = _n_shards(mesh, _mesh_axes(mesh, axis_names))
+    full_c = bin_pairs(scratches, board, chunk=chunk, shards=shards)
     if eps == 0:
         pairs, cov_pairs = full_c, None
     else:
-        pairs, cov_pairs = cull_pairs(full_c, scratches, views, board, eps, chunk=chunk), full_c
-    axis_names = tuple(axis_names) if isinstance(axis_names, list) else axis_names
+        pairs = cull_pairs(full_c, scratches, views, board, eps, chunk=chunk, shards=shards)
+        cov_pairs = full_c
+    if mesh is not None:  # on one device first: sharded, a bad value would only give NaN
+        jax.block_until_ready(_checked_scene(scratches, views))
     fn = _jitted_render_pairs(chunk, mesh, axis_names)
     rad = fn(scratches, views, board, pairs, cov_pairs)
     if return_pairs:

@@ -251,8 +251,9 @@ def test_gradients_f64_match_finite_differences():
 
 
 def test_sharded_equals_single_device_and_f64_stress_gradients_finite():
-    """The pair axis sharded over 4 (forced CPU) devices: same radiance and gradients as on one;
-    and float64 gradients are finite on the stress scene (same compilation)."""
+    """The pixel axis sharded over 4 (forced CPU) devices: same radiance and gradients as on one
+    (the pair list laid out for 4 pixel blocks by `bin_pairs`); and float64 gradients are finite
+    on the stress scene (same compilation)."""
     _check_stress(jnp.float64)
     s, v = _scene()
     pairs = _pairs(s)
@@ -260,11 +261,47 @@ def test_sharded_equals_single_device_and_f64_stress_gradients_finite():
     (val, rad), (gs, gv) = _vg((s, v), pairs, wts)
     assert len(jax.devices()) >= 4
     mesh = jax.sharding.Mesh(np.asarray(jax.devices()[:4]), ("d",))
-    (val4, rad4), g4 = _vg((s, v), pairs, wts, mesh)
+    pairs4 = R.bin_pairs(s, BOARD, shards=4, chunk=64)
+    (val4, rad4), g4 = _vg((s, v), pairs4, wts, mesh)
     np.testing.assert_allclose(np.asarray(rad4), np.asarray(rad), rtol=1e-12)
     for a, b in zip(jax.tree_util.tree_leaves(g4), jax.tree_util.tree_leaves((gs, gv))):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10,
                                    atol=1e-12 * float(jnp.max(jnp.abs(b))))
+
+
+def test_sharded_per_view_lists_and_layout_check():
+    """Culled per-view lists (M, L) with the unculled coverage list, over 2 x 2 devices (10 rows:
+    3 per shard, the pixel axis padded) and over 2 devices: equal to the unsharded render, and
+    over 2 devices the output comes back split into row strips; a list not laid out for the
+    mesh's pixel blocks is refused with an error that says how to build one (NaN under jit)."""
+    s, v = _scene()
+    mesh = jax.sharding.Mesh(np.asarray(jax.devices()[:4]).reshape(2, 2), ("a", "b"))
+    full1 = R.bin_pairs(s, BOARD, chunk=64)
+    full4 = R.bin_pairs(s, BOARD, chunk=64, shards=4)
+    cull1 = R.cull_pairs(full1, s, v, BOARD, 1e-2, chunk=64)
+    cull4 = R.cull_pairs(full4, s, v, BOARD, 1e-2, chunk=64, shards=4)
+    # culling removed pairs in some view, so this is not the shared-list path again
+    assert int(cull1.valid.sum()) < 3 * int(full1.valid.sum())
+    f = jax.jit(lambda s, v, p, c, mesh=None: R.render_pairs(s, v, BOARD, p, c, chunk=64,
+                                                            mesh=mesh),
+                static_argnames="mesh", compiler_options=FAST)
+    rad1 = f(s, v, cull1, full1)
+    rad4 = f(s, v, cull4, full4, mesh=mesh)
+    np.testing.assert_allclose(np.asarray(rad4), np.asarray(rad1), rtol=1e-12)
+    # Over 2 devices (5 rows each) the radiance comes back split into row strips.
+    mesh2 = jax.sharding.Mesh(np.asarray(jax.devices()[:2]), ("d",))
+    rad2 = f(s, v, R.cull_pairs(full1, s, v, BOARD, 1e-2, chunk=64, shards=2),
+             R.bin_pairs(s, BOARD, chunk=64, shards=2), mesh=mesh2)
+    np.testing.assert_allclose(np.asarray(rad2), np.asarray(rad1), rtol=1e-12)
+    assert sorted(x.data.shape for x in rad2.addressable_shards) == [(3, 5, 10)] * 2
+    # A list not laid out for the mesh: eagerly a ValueError; under jit NaN radiance (a runtime
+    # error on one device of a multi-device program would hang the others).
+    with pytest.raises(ValueError, match=r"not laid out for 4 pixel shards.*shards=4"):
+        R.render_pairs(s, v, BOARD, cull1, full4, chunk=64, mesh=mesh)
+    assert bool(jnp.all(jnp.isnan(f(s, v, cull1, full4, mesh=mesh))))
+    with pytest.raises(ValueError, match="not a multiple of the 4"):
+        R.render_pairs(s, v, BOARD, bvh.Pairs(full1.pixel[:-1], full1.scratch[:-1],
+                                              full1.valid[:-1], full1.overflow), mesh=mesh)
 
 
 def test_gradients_f32_finite_on_stress_scene():
