@@ -22,8 +22,8 @@ reported apart), then takes the median of repeated `block_until_ready` runs. Res
    needs to reach the same error, and the speed-up.
 5. ``design``: SSIM per view against iterations and time for the default design.
 
-``--quick`` shrinks every section (measured 70 s on a 2-core CPU, mostly compilation; the goal is
-under a minute); the test suite runs it as a smoke test.
+``--quick`` shrinks every section (measured 49-51 s on a 2-core CPU, mostly compilation); the
+test suite runs it as a smoke test.
 """
 
 from __future__ import annotations
@@ -389,7 +389,7 @@ def run_bench(sections=SECTIONS, quick: bool = False, out: str | Path = "bench_o
 
 def main(argv=None):
     p = argparse.ArgumentParser(prog="python -m jscratch.bench", description=__doc__.split("\n\n")[0])
-    p.add_argument("--quick", action="store_true", help="small sizes (about 70 s on 2 CPU cores)")
+    p.add_argument("--quick", action="store_true", help="small sizes (about 50 s on 2 CPU cores)")
     p.add_argument("--out", default="bench_out", help="output folder (default: bench_out)")
     p.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=SECTIONS,
                    help="sections to run (default: all)")
