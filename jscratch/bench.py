@@ -68,19 +68,26 @@ def compile_once(fn, *args, options: dict | None = None):
     return _COMPILED[key]
 
 
-def time_compiled(fn, *args, reps: int = 5, min_time: float = 0.2, options: dict | None = None):
-    """Compile `fn` for `args` (`compile_once`, with XLA compiler `options`; timed apart) and
-    return `(compile_s, median_run_s, out)`: the median over `reps` runs (at least `min_time` s
-    in all) of `block_until_ready`."""
-    compiled, compile_s = compile_once(fn, *args, options=options)
-    out = jax.block_until_ready(compiled(*args))  # warm-up
+def median_time(fn, reps: int = 5, min_time: float = 0.0):
+    """`(median_s, out)`: ``fn()`` run once to warm up, then timed with `block_until_ready` at
+    least `reps` times and, up to 50 runs, until `min_time` seconds have passed."""
+    out = jax.block_until_ready(fn())
     times = []
     t_start = time.perf_counter()
-    while len(times) < reps or (time.perf_counter() - t_start < min_time and len(times) < 50):
+    while len(times) < max(1, reps) or (time.perf_counter() - t_start < min_time
+                                        and len(times) < 50):
         t0 = time.perf_counter()
-        jax.block_until_ready(compiled(*args))
+        jax.block_until_ready(fn())
         times.append(time.perf_counter() - t0)
-    return compile_s, statistics.median(times), out
+    return statistics.median(times), out
+
+
+def time_compiled(fn, *args, reps: int = 5, min_time: float = 0.2, options: dict | None = None):
+    """Compile `fn` for `args` (`compile_once`, with XLA compiler `options`; timed apart) and
+    return `(compile_s, median_run_s, out)` (`median_time` with `reps` and `min_time`)."""
+    compiled, compile_s = compile_once(fn, *args, options=options)
+    med, out = median_time(lambda: compiled(*args), reps, min_time)
+    return compile_s, med, out
 
 
 def machine_info() -> dict:

@@ -21,7 +21,6 @@ numbers (what it writes to JSON). Scenes follow SPEC section 5 (`render.Scratche
 from __future__ import annotations
 
 import math
-import statistics
 import tempfile
 import time
 from pathlib import Path
@@ -39,13 +38,9 @@ DEFAULT_VIEWS = 4
 
 def _median_time(fn, repeats: int) -> float:
     """Median wall time of `repeats` `block_until_ready` calls of `fn()` after one warm-up."""
-    jax.block_until_ready(fn())
-    ts = []
-    for _ in range(max(1, repeats)):
-        t = time.perf_counter()
-        jax.block_until_ready(fn())
-        ts.append(time.perf_counter() - t)
-    return statistics.median(ts)
+    from jscratch.bench import median_time
+
+    return median_time(fn, repeats)[0]
 
 
 def _compiled_mib(compiled) -> float:
