@@ -727,6 +727,14 @@ def cull_ratio(
     return jnp.where(pairs.valid, rho, 0.0)
 
 
+def _checked_eps(eps, dtype) -> Array:
+    """The culling tolerance as a scalar of `dtype`; `eqx.error_if` unless finite and >= 0."""
+    eps = jnp.asarray(eps, dtype)
+    if eps.shape != ():
+        raise ValueError(f"eps must be a scalar, got shape {eps.shape}")
+    return eqx.error_if(eps, ~(jnp.isfinite(eps) & (eps >= 0)), "eps must be finite and >= 0")
+
+
 @jax.jit
 def cull(
     pairs: Pairs,
@@ -751,10 +759,7 @@ def cull(
     **Returns:** [`Pairs`][] of the same capacity with fewer valid slots.
     """
     rho = cull_ratio(pairs, p0, p1, width, depth, alpha, h_pixel)
-    eps = jnp.asarray(eps, rho.dtype)
-    if eps.shape != ():
-        raise ValueError(f"eps must be a scalar, got shape {eps.shape}")
-    eps = eqx.error_if(eps, ~(jnp.isfinite(eps) & (eps >= 0)), "eps must be finite and >= 0")
+    eps = _checked_eps(eps, rho.dtype)
     valid = pairs.valid & ~(rho < eps)
     return eqx.tree_at(lambda p: p.valid, pairs, valid)
 
@@ -790,10 +795,7 @@ def cull_coverage(
         if n is not None and alpha.shape != (n,):
             raise ValueError(f"alpha must be a scalar or have shape ({n},), got {alpha.shape}")
         a = alpha.at[pairs.scratch].get(mode="clip")
-    eps = jnp.asarray(eps, dtype)
-    if eps.shape != ():
-        raise ValueError(f"eps must be a scalar, got shape {eps.shape}")
-    eps = eqx.error_if(eps, ~(jnp.isfinite(eps) & (eps >= 0)), "eps must be finite and >= 0")
+    eps = _checked_eps(eps, dtype)
     d = board_ndf.at[pairs.pixel].get(mode="clip")
     valid = pairs.valid & ((d * jnp.pi * a * a > eps) | (eps == 0))
     return eqx.tree_at(lambda p: p.valid, pairs, valid)
