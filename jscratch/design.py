@@ -371,29 +371,37 @@ def _adam(b1: float, b2: float, eps: float) -> optax.GradientTransformation:
     return optax.scale_by_adam(b1=b1, b2=b2, eps=eps)
 
 
+def _culled(params: DesignParams, pairs: bvh.Pairs, ctx: _Ctx) -> list[bvh.Pairs]:
+    """The ``M`` per-view culled lists (`bvh.cull`, same capacity as ``pairs``) and the coverage
+    list (`bvh.cull_coverage` when ``coverage_eps > 0``, else ``pairs`` itself). Needs
+    ``cull_eps > 0``."""
+    s = jax.lax.stop_gradient(params).scratches()
+    culled = [bvh.cull(pairs, s.p0, s.p1, s.width, s.depth, s.alpha, ctx.hs[j], ctx.cull_eps)
+              for j in range(ctx.hs.shape[0])]
+    if ctx.coverage_eps > 0:
+        return culled + [bvh.cull_coverage(pairs, s.alpha, ctx.board_ndf, ctx.coverage_eps)]
+    return culled + [pairs]
+
+
 def _view_lists(params: DesignParams, pairs: bvh.Pairs, ctx: _Ctx, caps: tuple[int, ...]):
-    """``(lists, coverage list, counts)``: per-view culled, compacted pair lists (`bvh.cull`), the
-    coverage list (`bvh.cull_coverage`: only pairs whose coverage matters at the same tolerance)
-    and the ``M + 1`` counts of kept pairs (views, then coverage). Unculled (``cull_eps == 0``):
-    the shared list, ``None`` (coverage from the same list) and ``M`` counts."""
+    """``(lists, coverage list, counts)``: per-view culled, compacted pair lists, the coverage
+    list (compacted when culled by `bvh.cull_coverage`) and the ``M + 1`` counts of kept pairs
+    (views, then coverage); see `_culled`. Unculled (``cull_eps == 0``): the shared list, ``None``
+    (coverage from the same list) and ``M`` counts."""
     m = ctx.hs.shape[0]
     if ctx.cull_eps == 0:
         n = jnp.sum(pairs.valid)
         return pairs, None, jnp.stack([n] * m)
-    s = jax.lax.stop_gradient(params).scratches()
-    culled = [bvh.cull(pairs, s.p0, s.p1, s.width, s.depth, s.alpha, ctx.hs[j], ctx.cull_eps)
-              for j in range(m)]
-    if ctx.coverage_eps > 0:
-        culled.append(bvh.cull_coverage(pairs, s.alpha, ctx.board_ndf, ctx.coverage_eps))
+    culled = _culled(params, pairs, ctx)
     counts = jnp.stack([jnp.sum(c.valid) for c in culled])
     # An overflowing list is incomplete: the host sees ``counts > caps``, throws the result away
     # and retries with larger capacities. The flag is cleared so that the renderer's own overflow
     # check does not abort the step first.
-    lists = [eqx.tree_at(lambda q: q.overflow, bvh.compact(c, cap), jnp.zeros((), bool))
-             for c, cap in zip(culled, caps)]
-    if ctx.coverage_eps > 0:
-        return lists[:m], lists[m], counts
-    return lists, pairs, jnp.concatenate([counts, jnp.sum(pairs.valid)[None]])
+    compacted = lambda c, cap: eqx.tree_at(lambda q: q.overflow, bvh.compact(c, cap),
+                                           jnp.zeros((), bool))
+    lists = [compacted(c, cap) for c, cap in zip(culled[:m], caps)]
+    cov = compacted(culled[m], caps[m]) if ctx.coverage_eps > 0 else pairs
+    return lists, cov, counts
 
 
 def _radiance(params: DesignParams, lists, cov, ctx: _Ctx) -> Array:
@@ -708,11 +716,7 @@ def _round_cap(x: float) -> int:
 
 @eqx.filter_jit
 def _cull_counts(params: DesignParams, pairs: bvh.Pairs, ctx: _Ctx) -> Array:
-    s = params.scratches()
-    return jnp.stack([
-        jnp.sum(bvh.cull(pairs, s.p0, s.p1, s.width, s.depth, s.alpha, ctx.hs[j], ctx.cull_eps).valid)
-        for j in range(ctx.hs.shape[0])]
-        + [jnp.sum(bvh.cull_coverage(pairs, s.alpha, ctx.board_ndf, ctx.coverage_eps).valid)])
+    return jnp.stack([jnp.sum(c.valid) for c in _culled(params, pairs, ctx)])
 
 
 def _measure_caps(params, pairs, ctx, m) -> tuple[int, ...]:

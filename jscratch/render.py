@@ -40,11 +40,12 @@ Consequence: forward-mode autodiff (``jax.jvp``) is not available through `rende
 over the mesh axes with `jax.shard_map`: the ``H*W`` pixels (row-major) are split into
 ``n_shards`` contiguous blocks of ``Pb = ceil(H / n_shards) W`` pixels (strips of rows), device
 ``s`` owns block ``s``: its half vectors, its accumulators and its slice of the output, which
-comes back sharded over image rows (when ``n_shards`` divides ``H``; else XLA reshards it). Parameters (scratches, views) are replicated; in the
-backward pass each device's parameter gradients are ``psum``-ed, pixel-side gradients stay on
-their device. The pair list must be laid out by block (``n_shards`` equal segments, segment ``s``
-holding only pixels of block ``s``): `bin_pairs` and `cull_pairs` build that with
-``shards=n_shards`` and `render` does it from the mesh; `render_pairs` checks it (`eqx.error_if`).
+comes back sharded over image rows (when ``n_shards`` divides ``H``; else XLA reshards it).
+Parameters (scratches, views) are replicated; in the backward pass each device's parameter
+gradients are ``psum``-ed, pixel-side gradients stay on their device. The pair list must be laid
+out by block (``n_shards`` equal segments, segment ``s`` holding only pixels of block ``s``):
+`bin_pairs` and `cull_pairs` build that with ``shards=n_shards`` and `render` does it from the
+mesh; `render_pairs` checks it (see its "Errors").
 The call and its result are the same as on one device (up to summation order). Each segment is
 padded to the fullest block, so a board whose scratches crowd into few blocks balances poorly.
 
@@ -626,7 +627,7 @@ def _split_index(cfg: _Cfg, out):
     return jnp.minimum(pix, cfg.H * cfg.W - 1), local
 
 
-def _gather(params, h_loc, pix, scr, local):
+def _gather(params, h_loc, scr, local):
     """Per-pair parameters ``(chunk, ...)`` and half vectors ``(V, chunk, 3)``."""
     p0, p1, w, d, a = params
     take = lambda x: x.at[scr].get(mode="clip")  # sentinel N -> N-1; masked below
@@ -690,7 +691,7 @@ def _fwd_local(cfg: _Cfg, params, h_loc, out, scr, valid):
         Ds, As = carry
         oc, sc, vc = xs
         pix, local = _split_index(cfg, oc)
-        D, A = _masked_chunk(cfg, xe, ye, pix, vc, *_gather(params, h_rows, pix, sc, local))
+        D, A = _masked_chunk(cfg, xe, ye, pix, vc, *_gather(params, h_rows, sc, local))
         if cfg.need_D:
             Ds = Ds.at[:, local].add(D, mode="drop")
         if cfg.need_A:
@@ -720,7 +721,7 @@ def _bwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, gD, gA):
             out = _masked_chunk(cfg, xe, ye, pix, vc, *gathered)
             return tuple(out[i] for i in pick)
 
-        _, vjp = jax.vjp(f, *_gather(params, h_rows, pix, sc, local))
+        _, vjp = jax.vjp(f, *_gather(params, h_rows, sc, local))
         cts = (gD.at[:, local].get(mode="clip"), gA.at[local].get(mode="clip"))
         d0, d1, dw, dd, da, dh = vjp(tuple(cts[i] for i in pick))
         # The sentinel index N is out of range: mode="drop" discards padding slots (already zero).
@@ -1027,8 +1028,8 @@ def grad_compiler_options() -> dict:
     as ``jax.jit(f, compiler_options=grad_compiler_options())``).
 
     On the CPU: ``xla_cpu_use_fusion_emitters=False``. Measured on a 2-core CPU (jax 0.10.1, see
-    ``benchmarks/RESULTS.md``): a render value-and-gradient compiles ~40% faster and runs ~15%
-    faster; a forward-only render runs ~15% slower with it, so it is not for forward-only
+    ``benchmarks/RESULTS.md``): a render value-and-gradient compiles ~35% faster and runs ~17%
+    faster; a forward-only render runs 15-25% slower with it, so it is not for forward-only
     functions. Elsewhere, or where this XLA does not know the option (checked once by compiling a
     trivial function), ``{}``.
     """
