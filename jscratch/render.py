@@ -687,7 +687,7 @@ def _fwd_local(cfg: _Cfg, params, h_loc, out, scr, valid):
     h_rows = _flat_h(cfg, h_loc)
     V, n_loc = h_rows.shape[:2]
 
-    def body(carry, xs):
+    def add_chunk(carry, xs):
         Ds, As = carry
         oc, sc, vc = xs
         pix, local = _split_index(cfg, oc)
@@ -696,7 +696,11 @@ def _fwd_local(cfg: _Cfg, params, h_loc, out, scr, valid):
             Ds = Ds.at[:, local].add(D, mode="drop")
         if cfg.need_A:
             As = As.at[local].add(A, mode="drop")
-        return (Ds, As), None
+        return Ds, As
+
+    def body(carry, xs):
+        # Chunks of padding only (`_valid_first` puts them last) are skipped.
+        return jax.lax.cond(jnp.any(xs[2]), add_chunk, lambda c, _: c, carry, xs), None
 
     init = _varying(cfg, (jnp.zeros((V, n_loc), dt), jnp.zeros((n_loc,), dt)))
     (Ds, As), _ = jax.lax.scan(body, init, _chunks(cfg, out, scr, valid))
@@ -712,7 +716,7 @@ def _bwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, gD, gA):
     # Differentiate only the outputs the caller uses, so XLA does no dead reverse work.
     pick = [i for i, need in enumerate((cfg.need_D, cfg.need_A)) if need]
 
-    def body(carry, xs):
+    def add_chunk(carry, xs):
         gp0, gp1, gw, gd, ga, gh = carry
         oc, sc, vc = xs
         pix, local = _split_index(cfg, oc)
@@ -731,7 +735,10 @@ def _bwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, gD, gA):
         gd = gd.at[sc].add(dd, mode="drop")
         ga = ga.at[sc].add(da, mode="drop")
         gh = gh.at[:, local].add(dh, mode="drop")
-        return (gp0, gp1, gw, gd, ga, gh), None
+        return gp0, gp1, gw, gd, ga, gh
+
+    def body(carry, xs):
+        return jax.lax.cond(jnp.any(xs[2]), add_chunk, lambda c, _: c, carry, xs), None
 
     # (zeros_like of the device-local half vectors is already device-varying)
     init = _varying(cfg, tuple(jnp.zeros_like(x) for x in params)) + (jnp.zeros_like(h_rows),)
@@ -809,6 +816,23 @@ def _pixels_per_shard(board: Board, shards: int) -> int:
     return -(-board.H // shards) * board.W
 
 
+def _valid_first(out, scr, valid, shards: int):
+    """Each shard's segment of the pair list with its valid pairs first, in their order (a stable
+    partition, O(L)), so that the chunks holding only padding come last and are skipped: a pair
+    list built with spare capacity (`bvh.build_pairs`, per-view culled lists) otherwise costs a
+    full kernel evaluation per padding slot."""
+    L = out.shape[0]
+    # (a barrier: a pair list closed over as a constant would otherwise be folded at compile time)
+    v = jax.lax.optimization_barrier(valid).reshape(shards, L // shards)
+    n_valid = jnp.sum(v, axis=1, keepdims=True, dtype=jnp.int32)
+    pos = jnp.where(v, jnp.cumsum(v, axis=1, dtype=jnp.int32) - 1,
+                    n_valid + jnp.cumsum(~v, axis=1, dtype=jnp.int32) - 1)
+    pos = (pos + (jnp.arange(shards, dtype=jnp.int32) * (L // shards))[:, None]).reshape(-1)
+    source = jnp.zeros((L,), jnp.int32).at[pos].set(jnp.arange(L, dtype=jnp.int32),
+                                                      unique_indices=True)
+    return out[source], scr[source], valid[source]
+
+
 def _run_pair_sums(scratches: Scratches, board: Board, h_views, out, scr, valid, *, per_view,
                    chunk, mesh, axes, need_D, need_A):
     """Pad every shard's segment of the pair list to a multiple of the chunk, pad the pixel axis
@@ -828,6 +852,7 @@ def _run_pair_sums(scratches: Scratches, board: Board, h_views, out, scr, valid,
 
     if Ls_pad != Ls:
         out, scr, valid = pad(out, 0), pad(scr, n), pad(valid, False)
+    out, scr, valid = _valid_first(out, scr, valid, shards)
     if Pb * shards != P:
         fill = jnp.zeros(h_views.shape[:1] + (Pb * shards - P, 3), h_views.dtype).at[..., 2].set(1)
         h_views = jnp.concatenate([h_views, fill], 1)
