@@ -40,7 +40,7 @@ would cancel, ``T1`` is integrated by Gauss-Legendre instead: there the integran
 ``s = ±i`` are far outside the piece (Bernstein ellipse parameter at least 3.7), so the rule is
 exact to rounding. ``T2 <= T1`` is smooth and bounded by 1 on the lit range (its poles lie on the
 unlit side, about half a groove width away), and is integrated by the same fixed Gauss-Legendre
-rule on every piece (8 nodes in float32, 16 in float64).
+rule on every piece (4 nodes in float32, 16 in float64; `_nodes`).
 
 **One clipping path for every intersection type.** By Green's theorem with
 ``P = -Y(y) D(u)``, ``Y(y) = clamp(y, 0, L) - y_ref``,
@@ -48,15 +48,25 @@ rule on every piece (8 nodes in float32, 16 in float64).
     D_hat = -w ∮_{∂F} Y(y) D~(u) du,    D~ = D on the lit slab [u_lo, u_hi], 0 outside,
 
 since ``∂Y/∂y`` is the indicator of ``0 <= y <= L``. The slab ``[u_lo, u_hi]`` is
-``[-x_max, x_max] / w`` cut to where ``N > 0`` (``chi+``). Each footprint edge contributes its part
-inside ``0 <= y <= L`` and the slab (a Liang-Barsky interval), where ``Y`` is linear. Where the
-boundary runs below ``y = 0`` (above ``y = L``) ``Y`` is constant and ``D~ du`` is exact, so that
-whole chain contributes ``Y * ∫ D~ du`` between the points where it enters and leaves, clamped to
-the slab. That is six pieces per pair, whatever the footprint-groove configuration (all eight
-types of the paper's Fig. 7, and footprints larger or smaller than the groove). ``A`` is the same
-sum with ``D = 1`` over ``[-x_max, x_max] / w``. ``y_ref`` (the mean ``y`` of the clipped
-edges) and coordinates taken relative to a footprint vertex keep a small footprint far along a
-long scratch, or one that only nicks a groove, free of cancellation.
+``[-x_max, x_max] / w`` cut to where ``N > 0`` (``chi+``). The evaluation has two stages:
+
+1. *Per pair, for every view* (`_groove`, `_strip_pieces`): the footprint in the scratch frame
+   cut to the scratch's length, ``Q = F ∩ {0 <= y <= L}``, as six boundary pieces: each
+   footprint edge's part inside ``0 <= y <= L`` (a Liang-Barsky interval), where ``Y`` is
+   linear, and the two chains where the boundary runs below ``y = 0`` (above ``y = L``), where
+   ``Y`` is constant and ``D~ du`` exact, so each contributes ``Y * ∫ D~ du`` between the points
+   where it leaves and re-enters. Nothing here depends on the half vector, so a renderer that
+   vmaps the kernel over views (with the scratch and footprint unbatched) computes it, and its
+   reverse pass, once per pair.
+2. *Per view* (`_cut`, `_lit_sum`): the pieces clamped to the lit slab (a piece outside it
+   becomes a point) and integrated. ``A`` is the same sum with ``D = 1`` over the whole groove
+   ``[-x_max, x_max] / w`` (`_area_sum`), once per pair.
+
+Six pieces per pair, whatever the footprint-groove configuration (all eight types of the
+paper's Fig. 7, and footprints larger or smaller than the groove). ``y_ref`` (the mean ``y`` of
+the clipped edges, and again of the pieces cut to the slab: a constant shift on a closed
+boundary) and coordinates taken relative to a footprint vertex keep a small footprint far along
+a long scratch, or a slab that only nicks ``Q``, free of cancellation.
 
 **Derivatives.** Reverse mode is hand-written where autodiff is costly (on the CPU the XLA
 reverse graph of the closed form and its clipping was 10-20x the forward). Each piece's value
@@ -65,10 +75,14 @@ reverse graph of the closed form and its clipping was 10-20x the forward). Each 
 linear in its coefficients ``c`` (the basis integrals come with the closed form) and depends on
 the peak position ``u1`` and half-width ``q1`` only through ``s``, which integration by parts turns
 into end values and the moments already computed; the smooth lobe's parameter derivatives use the
-same Gauss-Legendre nodes. Clipping parameters (Liang-Barsky) are found without gradient and
-carry the derivative of the one constraint that sets each (implicit function theorem), so the
-branch logic never enters the reverse pass. `_pair_integral(..., hand_vjp=False)` differentiates
-the same forward by plain autodiff; the tests compare the two on every test pair.
+same Gauss-Legendre nodes. The per-view stage is one `jax.custom_vjp` (`_lit_sum`): its
+forward pass chains these partials through the hand-written transpose of the slab clamp
+(`_cut_transpose`), so the backward pass is a few products (autodiff of the clamp, the closed
+form's branches and the view algebra compiled to many small XLA fusions that moved more bytes
+than the arithmetic). The strip clip's parameters are found without gradient and carry the
+derivative of the one constraint that sets each (implicit function theorem), so its branch logic
+never enters the reverse pass. `_pair_integral(..., hand_vjp=False)` differentiates the same
+forward by plain autodiff; the tests compare the two on every test pair.
 
 Degenerate input (zero-length scratch, zero depth, vertices on groove edges, edges parallel to
 the scratch) gives finite values and finite gradients: every division and square root that can
