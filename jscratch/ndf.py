@@ -110,6 +110,7 @@ __all__ = [
     "point_ndf",
     "local_frame",
     "lit_interval",
+    "within_length",
 ]
 
 
@@ -515,10 +516,11 @@ def _implicit_jvp(primals, tangents):
     return t, -d_residual / jnp.where(slope == 0, 1, slope)
 
 
-def _strip_pieces(u, y, y_lo, y_hi):
+def _strip_pieces(u, y, y_lo, y_hi, ends: bool = True):
     """The boundary of `Q = F ∩ {y_lo <= y <= y_hi}` (the footprint cut to the scratch's length)
     as six pieces; it does not depend on the half vector, so a renderer computes it once per pair
-    for all views.
+    for all views. `ends=False` returns the four edge pieces only: exact when every footprint
+    vertex lies in the strip (`within_length`), where the two chains are empty.
 
     `u, y`: `(4,)` footprint vertices (local, `y` relative to vertex 0). Returns
     `(ua, ub, Ya, Yb)`, each `(6,)`: the four footprint edges clipped to the strip (possibly
@@ -567,6 +569,8 @@ def _strip_pieces(u, y, y_lo, y_hi):
     )
     Y_lo = y_lo - y_ref
     Y_hi = y_hi - y_ref
+    if not ends:
+        return e_ua, e_ub, e_ya - y_ref, e_yb - y_ref
     ua = jnp.concatenate([e_ua, jnp.stack([lo_in, hi_in])])
     ub = jnp.concatenate([e_ub, jnp.stack([lo_out, hi_out])])
     Ya = jnp.concatenate([e_ya - y_ref, jnp.stack([Y_lo, Y_hi])])
@@ -736,7 +740,10 @@ class _Groove(NamedTuple):
     pieces: tuple  # Q's boundary: (ua, ub, Ya, Yb), each (6,)
 
 
-def _groove(footprint, p0, p1, width, depth) -> _Groove:
+def _strip_frame(footprint, p0, p1):
+    """The footprint in the scratch frame: `(t, b, L, q, x_c, y, y_lo, y_hi)`: `q` the vertices
+    relative to vertex 0, `x_c` vertex 0's across coordinate (m), `y` the along coordinates
+    relative to vertex 0 and the scratch's start and end `y_lo, y_hi` on the same axis (m)."""
     t, b, L = local_frame(p0, p1)
     # Origin at vertex 0: `footprint - c` is exact for pixel footprints (Sterbenz), and the
     # origin's own across-scratch coordinate is computed with compensated arithmetic.
@@ -746,16 +753,29 @@ def _groove(footprint, p0, p1, width, depth) -> _Groove:
     # Elementwise products, not `@`: under vmap a tiny batched matmul is slow on the CPU.
     x_c = jnp.where(L > 0, _cross_accurate(c, p0, p1) / jnp.where(L > 0, L, 1), _dot2(cp, b))
     y_c = _dot2(cp, t)
+    return t, b, L, q, x_c, _dot2(q, t), -y_c, L - y_c
+
+
+def within_length(footprint: Float[ArrayLike, "4 2"], p0: Float[ArrayLike, "2"],
+                  p1: Float[ArrayLike, "2"]) -> Array:
+    """Whether every vertex of `footprint` lies between the scratch's ends along it
+    (`0 <= y <= L`), computed as `pair_integral` computes it: then `pair_integral(...,
+    ends=False)` is exact. Jittable, vmappable; a scalar bool."""
+    footprint, p0, p1 = (jnp.asarray(v, _dtype(footprint, p0, p1)) for v in (footprint, p0, p1))
+    *_, y, y_lo, y_hi = _strip_frame(footprint, p0, p1)
+    return jnp.all((y >= y_lo) & (y <= y_hi))
+
+
+def _groove(footprint, p0, p1, width, depth, ends: bool = True) -> _Groove:
+    t, b, L, q, x_c, y, y_lo, y_hi = _strip_frame(footprint, p0, p1)
     u = (_dot2(q, b) + x_c) / width
-    y = _dot2(q, t)
-    y_lo = -y_c
-    y_hi = L - y_c
     # Orientation of the footprint (so a clockwise quad also gives positive values).
     qn = jnp.roll(q, -1, axis=0)
     area2 = jnp.sum(q[:, 0] * qn[:, 1] - qn[:, 0] * q[:, 1])
     sign = jnp.where(area2 >= 0, 1, -1).astype(q.dtype)
     X = groove_half_width(width, depth) / width
-    return _Groove(u, y, y_lo, y_hi, sign, X, t, b, width, _strip_pieces(u, y, y_lo, y_hi))
+    return _Groove(u, y, y_lo, y_hi, sign, X, t, b, width,
+                   _strip_pieces(u, y, y_lo, y_hi, ends))
 
 
 def _view(G: _Groove, h):
@@ -784,6 +804,8 @@ def pair_integral(
     width: Float[ArrayLike, ""],
     depth: Float[ArrayLike, ""],
     alpha: Float[ArrayLike, ""],
+    *,
+    ends: bool = True,
 ) -> tuple[Float[Array, ""], Float[Array, ""]]:
     """Closed-form pair integral of SPEC section 3 for one footprint and one scratch.
 
@@ -793,6 +815,9 @@ def pair_integral(
     - `footprint`: `(4, 2)` convex quad, counter-clockwise, board metres.
     - `p0, p1`: `(2,)` scratch endpoints (m).
     - `width, depth`: scratch width `w` and depth `d` (m); `alpha`: GGX roughness in (0, 1).
+    - `ends` (static): `False` skips the two boundary pieces that only a footprint reaching past
+      a scratch end has (a third less work); exact where `within_length(footprint, p0, p1)`,
+      wrong elsewhere. A renderer sorts its pairs by that test (`jscratch.render`).
 
     **Returns:** `(D_hat, A)`: `∫∫_{F ∩ groove} D_x dx dy` and `area(F ∩ groove)`, both m^2, in the
     dtype of the inputs.
@@ -800,12 +825,12 @@ def pair_integral(
     Reverse-mode derivatives are hand-written (`_lit_sum`, `_area_sum`); forward mode (`jax.jvp`) is
     not available.
     """
-    return _pair_integral(h, footprint, p0, p1, width, depth, alpha, True)
+    return _pair_integral(h, footprint, p0, p1, width, depth, alpha, True, ends)
 
 
-def _pair_integral(h, footprint, p0, p1, width, depth, alpha, hand_vjp: bool):
+def _pair_integral(h, footprint, p0, p1, width, depth, alpha, hand_vjp: bool, ends: bool = True):
     h, footprint, p0, p1, width, depth, alpha = _as_inputs(h, footprint, p0, p1, width, depth, alpha)
-    G = _groove(footprint, p0, p1, width, depth)
+    G = _groove(footprint, p0, p1, width, depth, ends)
     n_gl = _nodes(h.dtype)
     hx, hy, hz, u_lo, u_hi = _view(G, h)
     lobe = _Lobe(hx, hy, hz, alpha)

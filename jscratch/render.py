@@ -593,23 +593,28 @@ class _Cfg(NamedTuple):
     per_view: bool  # pair outputs are (view, pixel): index v * P_pad + pixel; else pixel only
     need_D: bool
     need_A: bool
+    ends: bool = True  # evaluate the scratch-end pieces (`ndf.pair_integral`'s `ends`)
 
 
 def _board_of(cfg: _Cfg) -> Board:
     return Board(shape=(cfg.H, cfg.W), Sx=cfg.Sx, Sy=cfg.Sy)
 
 
-def _pair_kernel(cfg: _Cfg, xe, ye, p0, p1, w, d, a, h, pix):
-    """One (pixel, scratch) pair: ``(D_hat, A)`` from `ndf.pair_integral`. ``pix`` is the
-    pixel index ``r*W + c``; the footprint is rebuilt from it."""
-    from jscratch import ndf
-
+def _footprint(cfg: _Cfg, xe, ye, pix):
+    """The footprint ``(4, 2)`` of pixel ``pix = r*W + c`` from the pixel edges."""
     r = pix // cfg.W
     c = pix % cfg.W
     x0, x1, y0, y1 = xe[c], xe[c + 1], ye[r + 1], ye[r]
-    fp = jnp.stack([jnp.stack([x0, y0]), jnp.stack([x1, y0]), jnp.stack([x1, y1]),
-                    jnp.stack([x0, y1])])
-    return ndf.pair_integral(h, fp, p0, p1, w, d, a)
+    return jnp.stack([jnp.stack([x0, y0]), jnp.stack([x1, y0]), jnp.stack([x1, y1]),
+                      jnp.stack([x0, y1])])
+
+
+def _pair_kernel(cfg: _Cfg, xe, ye, p0, p1, w, d, a, h, pix):
+    """One (pixel, scratch) pair: ``(D_hat, A)`` from `ndf.pair_integral` (``cfg.ends``: see
+    its ``ends``). ``pix`` is the pixel index ``r*W + c``; the footprint is rebuilt from it."""
+    from jscratch import ndf
+
+    return ndf.pair_integral(h, _footprint(cfg, xe, ye, pix), p0, p1, w, d, a, ends=cfg.ends)
 
 
 def _split_index(cfg: _Cfg, out):
@@ -680,18 +685,25 @@ def _flat_h(cfg: _Cfg, h_loc):
     return h_loc.reshape(1, -1, 3) if cfg.per_view else h_loc
 
 
-def _fwd_local(cfg: _Cfg, params, h_loc, out, scr, valid):
+def _chunk_kind(valid, inner):
+    """Which evaluation a chunk needs: 0 none (padding only), 1 `ndf.pair_integral` without the
+    scratch-end pieces (every valid pair within its scratch's length), 2 the full kernel."""
+    return jnp.where(~jnp.any(valid), 0, jnp.where(jnp.all(inner | ~valid), 1, 2))
+
+
+def _fwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, inner):
     """This shard's sums: ``D`` ``(M, Pb)`` and ``A`` ``(1 or M, Pb)`` over its pairs."""
     dt = params[2].dtype
     xe, ye = _edges_in(cfg, dt)
     h_rows = _flat_h(cfg, h_loc)
     V, n_loc = h_rows.shape[:2]
 
-    def add_chunk(carry, xs):
+    def add_chunk(ends, carry, xs):
         Ds, As = carry
-        oc, sc, vc = xs
+        oc, sc, vc, _ = xs
         pix, local = _split_index(cfg, oc)
-        D, A = _masked_chunk(cfg, xe, ye, pix, vc, *_gather(params, h_rows, sc, local))
+        D, A = _masked_chunk(cfg._replace(ends=ends), xe, ye, pix, vc,
+                             *_gather(params, h_rows, sc, local))
         if cfg.need_D:
             Ds = Ds.at[:, local].add(D, mode="drop")
         if cfg.need_A:
@@ -699,15 +711,18 @@ def _fwd_local(cfg: _Cfg, params, h_loc, out, scr, valid):
         return Ds, As
 
     def body(carry, xs):
-        # Chunks of padding only (`_valid_first` puts them last) are skipped.
-        return jax.lax.cond(jnp.any(xs[2]), add_chunk, lambda c, _: c, carry, xs), None
+        # Chunks of padding only (`_sort_pairs` puts them last) are skipped. The values use the
+        # full kernel everywhere: measured, its forward is faster here than the kernel without
+        # scratch-end pieces (whose gain is in the reverse pass, `_bwd_local`).
+        return jax.lax.cond(jnp.any(xs[2]), functools.partial(add_chunk, True),
+                            lambda c, _: c, carry, xs), None
 
     init = _varying(cfg, (jnp.zeros((V, n_loc), dt), jnp.zeros((n_loc,), dt)))
-    (Ds, As), _ = jax.lax.scan(body, init, _chunks(cfg, out, scr, valid))
+    (Ds, As), _ = jax.lax.scan(body, init, _chunks(cfg, out, scr, valid, inner))
     return Ds.reshape(-1, cfg.Pb), As.reshape(-1, cfg.Pb)
 
 
-def _bwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, gD, gA):
+def _bwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, inner, gD, gA):
     dt = params[2].dtype
     xe, ye = _edges_in(cfg, dt)
     h_rows = _flat_h(cfg, h_loc)
@@ -716,13 +731,13 @@ def _bwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, gD, gA):
     # Differentiate only the outputs the caller uses, so XLA does no dead reverse work.
     pick = [i for i, need in enumerate((cfg.need_D, cfg.need_A)) if need]
 
-    def add_chunk(carry, xs):
+    def add_chunk(ends, carry, xs):
         gp0, gp1, gw, gd, ga, gh = carry
-        oc, sc, vc = xs
+        oc, sc, vc, _ = xs
         pix, local = _split_index(cfg, oc)
 
         def f(*gathered):
-            out = _masked_chunk(cfg, xe, ye, pix, vc, *gathered)
+            out = _masked_chunk(cfg._replace(ends=ends), xe, ye, pix, vc, *gathered)
             return tuple(out[i] for i in pick)
 
         _, vjp = jax.vjp(f, *_gather(params, h_rows, sc, local))
@@ -738,11 +753,13 @@ def _bwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, gD, gA):
         return gp0, gp1, gw, gd, ga, gh
 
     def body(carry, xs):
-        return jax.lax.cond(jnp.any(xs[2]), add_chunk, lambda c, _: c, carry, xs), None
+        branches = (lambda c, _: c, functools.partial(add_chunk, False),
+                    functools.partial(add_chunk, True))
+        return jax.lax.switch(_chunk_kind(xs[2], xs[3]), branches, carry, xs), None
 
     # (zeros_like of the device-local half vectors is already device-varying)
     init = _varying(cfg, tuple(jnp.zeros_like(x) for x in params)) + (jnp.zeros_like(h_rows),)
-    grads, _ = jax.lax.scan(body, init, _chunks(cfg, out, scr, valid))
+    grads, _ = jax.lax.scan(body, init, _chunks(cfg, out, scr, valid, inner))
     dparams = grads[:5]
     if cfg.mesh is not None:  # parameters are replicated: their gradient sums over all shards
         dparams = jax.lax.psum(dparams, cfg.axes)
@@ -766,27 +783,28 @@ _REP, _PIX, _PAIRS, _HV = (), (None, "p"), ("p",), (None, "p", None)
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
-def _pair_sums(cfg: _Cfg, params, h_views, out, scr, valid):
+def _pair_sums(cfg: _Cfg, params, h_views, out, scr, valid, inner):
     """Per-pixel sums over the pairs: ``sum D_hat`` ``(M, P_pad)`` and ``sum A``
     ``(1 or M, P_pad)``; ``h_views`` ``(M, P_pad, 3)``. ``out, scr, valid`` ``(L,)``: ``n_shards``
     equal segments, segment ``s`` holding only pairs of pixels ``[s Pb, (s+1) Pb)``, each a
     multiple of ``chunk`` long."""
     fn = _maybe_shard(cfg, functools.partial(_fwd_local, cfg),
-                      (_REP, _HV, _PAIRS, _PAIRS, _PAIRS), (_PIX, _PIX))
-    return fn(params, h_views, out, scr, valid)
+                      (_REP, _HV, _PAIRS, _PAIRS, _PAIRS, _PAIRS), (_PIX, _PIX))
+    return fn(params, h_views, out, scr, valid, inner)
 
 
-def _pair_sums_fwd(cfg, params, h_views, out, scr, valid):
-    return _pair_sums(cfg, params, h_views, out, scr, valid), (params, h_views, out, scr, valid)
+def _pair_sums_fwd(cfg, params, h_views, out, scr, valid, inner):
+    res = (params, h_views, out, scr, valid, inner)
+    return _pair_sums(cfg, *res), res
 
 
 def _pair_sums_bwd(cfg, res, g):
-    params, h_views, out, scr, valid = res
+    params, h_views, out, scr, valid, inner = res
     gD, gA = g
     fn = _maybe_shard(cfg, functools.partial(_bwd_local, cfg),
-                      (_REP, _HV, _PAIRS, _PAIRS, _PAIRS, _PIX, _PIX), (_REP, _HV))
-    dparams, dh = fn(params, h_views, out, scr, valid, gD, gA)
-    return dparams, dh, None, None, None
+                      (_REP, _HV, _PAIRS, _PAIRS, _PAIRS, _PAIRS, _PIX, _PIX), (_REP, _HV))
+    dparams, dh = fn(params, h_views, out, scr, valid, inner, gD, gA)
+    return dparams, dh, None, None, None, None
 
 
 _pair_sums.defvjp(_pair_sums_fwd, _pair_sums_bwd)
@@ -816,21 +834,48 @@ def _pixels_per_shard(board: Board, shards: int) -> int:
     return -(-board.H // shards) * board.W
 
 
-def _valid_first(out, scr, valid, shards: int):
-    """Each shard's segment of the pair list with its valid pairs first, in their order (a stable
-    partition, O(L)), so that the chunks holding only padding come last and are skipped: a pair
-    list built with spare capacity (`bvh.build_pairs`, per-view culled lists) otherwise costs a
-    full kernel evaluation per padding slot."""
+def _within_length(cfg: _Cfg, params, out, scr, valid):
+    """Per pair: valid, and its footprint within its scratch's length (`ndf.within_length`:
+    `ndf.pair_integral` may then skip the scratch-end pieces)."""
+    from jscratch import ndf
+
+    p0, p1 = params[0], params[1]
+    xe, ye = _edges_in(cfg, p0.dtype)
+    P_pad = cfg.Pb * _n_shards(cfg.mesh, cfg.axes)
+
+    def test(args):
+        out, scr = args
+        pix = jnp.minimum(out % P_pad if cfg.per_view else out, cfg.H * cfg.W - 1)
+        take = lambda x: x.at[scr].get(mode="clip")
+        return ndf.within_length(_footprint(cfg, xe, ye, pix), take(p0), take(p1))
+
+    # (chunk by chunk: no per-pair footprint array is materialised)
+    inner = jax.lax.map(test, (out, scr), batch_size=cfg.chunk)
+    return jax.lax.stop_gradient(valid & inner)
+
+
+def _sort_pairs(out, scr, valid, inner, shards: int):
+    """Each shard's segment of the pair list in three groups, each in its own order (a stable
+    partition, O(L)): valid pairs within their scratch's length, other valid pairs, padding.
+    Chunks then mostly hold one group: padding chunks are skipped and chunks of the first group
+    use the kernel without scratch-end pieces (`_chunk_kind`). A pair list built with spare
+    capacity (`bvh.build_pairs`, per-view culled lists) otherwise costs a full kernel evaluation
+    per padding slot, and every chunk the scratch-end pieces that few pairs have."""
     L = out.shape[0]
+    Ls = L // shards
     # (a barrier: a pair list closed over as a constant would otherwise be folded at compile time)
-    v = jax.lax.optimization_barrier(valid).reshape(shards, L // shards)
-    n_valid = jnp.sum(v, axis=1, keepdims=True, dtype=jnp.int32)
-    pos = jnp.where(v, jnp.cumsum(v, axis=1, dtype=jnp.int32) - 1,
-                    n_valid + jnp.cumsum(~v, axis=1, dtype=jnp.int32) - 1)
-    pos = (pos + (jnp.arange(shards, dtype=jnp.int32) * (L // shards))[:, None]).reshape(-1)
+    valid, inner = jax.lax.optimization_barrier((valid, inner))
+    groups = (inner, valid & ~inner, ~valid)
+    pos = jnp.zeros((shards, Ls), jnp.int32)
+    start = jnp.zeros((shards, 1), jnp.int32)
+    for g in groups:
+        g = g.reshape(shards, Ls)
+        pos = jnp.where(g, start + jnp.cumsum(g, axis=1, dtype=jnp.int32) - 1, pos)
+        start = start + jnp.sum(g, axis=1, keepdims=True, dtype=jnp.int32)
+    pos = (pos + (jnp.arange(shards, dtype=jnp.int32) * Ls)[:, None]).reshape(-1)
     source = jnp.zeros((L,), jnp.int32).at[pos].set(jnp.arange(L, dtype=jnp.int32),
                                                       unique_indices=True)
-    return out[source], scr[source], valid[source]
+    return out[source], scr[source], valid[source], inner[source]
 
 
 def _run_pair_sums(scratches: Scratches, board: Board, h_views, out, scr, valid, *, per_view,
@@ -852,14 +897,15 @@ def _run_pair_sums(scratches: Scratches, board: Board, h_views, out, scr, valid,
 
     if Ls_pad != Ls:
         out, scr, valid = pad(out, 0), pad(scr, n), pad(valid, False)
-    out, scr, valid = _valid_first(out, scr, valid, shards)
     if Pb * shards != P:
         fill = jnp.zeros(h_views.shape[:1] + (Pb * shards - P, 3), h_views.dtype).at[..., 2].set(1)
         h_views = jnp.concatenate([h_views, fill], 1)
     cfg = _Cfg(board.H, board.W, board.Sx, board.Sy, chunk, mesh, axes, Pb, per_view, need_D,
                need_A)
     params = (scratches.p0, scratches.p1, scratches.width, scratches.depth, scratches.alpha)
-    Ds, As = _pair_sums(cfg, params, h_views, out, scr, valid)
+    inner = _within_length(cfg, params, out, scr, valid)
+    out, scr, valid, inner = _sort_pairs(out, scr, valid, inner, shards)
+    Ds, As = _pair_sums(cfg, params, h_views, out, scr, valid, inner)
     return Ds[:, :P], As[:, :P]
 
 

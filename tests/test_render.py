@@ -304,6 +304,22 @@ def test_sharded_per_view_lists_and_layout_check():
                                               full1.valid[:-1], full1.overflow), mesh=mesh)
 
 
+def test_chunks_of_pairs_within_length_use_the_kernel_without_end_pieces():
+    """The gradient tests above run both evaluations: the scene's pairs, sorted by
+    `render._sort_pairs`, fill at least one chunk of 64 with pairs within their scratch's length
+    (evaluated without the scratch-end pieces) and at least one with others."""
+    s, v = _scene()
+    pairs = _pairs(s)
+    cfg = R._Cfg(BOARD.H, BOARD.W, BOARD.Sx, BOARD.Sy, 64, None, (), BOARD.n_pixels, False,
+                 True, True)
+    params = (s.p0, s.p1, s.width, s.depth, s.alpha)
+    inner = R._within_length(cfg, params, pairs.pixel, pairs.scratch, pairs.valid)
+    _, _, valid, inner = R._sort_pairs(pairs.pixel, pairs.scratch, pairs.valid, inner, 1)
+    kinds = [int(R._chunk_kind(valid[i:i + 64], inner[i:i + 64]))
+             for i in range(0, valid.shape[0], 64)]
+    assert kinds.count(1) >= 1 and kinds.count(2) >= 1, kinds
+
+
 def test_gradients_f32_finite_on_stress_scene():
     _check_stress(jnp.float32)
 
