@@ -127,9 +127,10 @@ def worker_render(repeats: int) -> dict:
 
 
 def worker_design(iterations: int) -> dict:
+    from jscratch import design  # in this process: the code this worker's PYTHONPATH selects
+
     with tempfile.TemporaryDirectory() as out:
-        subprocess.run([sys.executable, "-m", "jscratch.design", "--iterations", str(iterations),
-                        "--no-discard", "--quiet", "--out", out], check=True)
+        design.main(["--iterations", str(iterations), "--no-discard", "--quiet", "--out", out])
         m = json.loads(Path(out, "metrics.json").read_text())
     return {"step_median_s": m["time_step_median"], "first_step_s": m["time_first_step"],
             "loss": m["loss"]}
@@ -159,8 +160,10 @@ def _run_worker(code: str | None, args: list[str]) -> dict:
     env = dict(os.environ)
     if code is not None:  # the exported base package shadows the installed one
         env["PYTHONPATH"] = code + os.pathsep + env.get("PYTHONPATH", "")
-    res = subprocess.run([sys.executable, os.path.abspath(__file__), "--worker", *args], env=env,
-                         check=True, capture_output=True, text=True)
+    # (run from a temporary folder: a working directory holding a `jscratch` folder would shadow)
+    with tempfile.TemporaryDirectory() as cwd:
+        res = subprocess.run([sys.executable, os.path.abspath(__file__), "--worker", *args],
+                             env=env, check=True, capture_output=True, text=True, cwd=cwd)
     return json.loads(res.stdout.strip().splitlines()[-1])
 
 

@@ -8,15 +8,17 @@ alpha``) under a half vector ``h`` give
 
 **Public API:**
 
-- `pair_integral(h, footprint, p0, p1, width, depth, alpha) -> (D_hat, A)`: the closed-form
-  boundary integral (below). Pure, jittable, vmappable, differentiable in every float argument,
-  float32 and float64 (it follows the dtype of its inputs).
+- `pair_integral(h, footprint, p0, p1, width, depth, alpha, *, ends=True) -> (D_hat, A)`: the
+  closed-form boundary integral (below). Pure, jittable, vmappable, differentiable in every float
+  argument, float32 and float64 (it follows the dtype of its inputs). `ends=False` skips the two
+  pieces only a footprint reaching past a scratch end needs: exact where
+  `within_length(footprint, p0, p1)`, a third less work.
 - `pair_integral_quadrature(h, footprint, p0, p1, width, depth, alpha, n)`: the same integral by
   ``n``-point Gauss-Legendre quadrature of the chord-length form ``∫ chord(x) D_x(x) dx`` over the
   lit part of the groove. Independent of the boundary machinery; the comparison point of the
   run-time-against-error benchmark.
 - Building blocks: `height_profile`, `groove_half_width` (``x_max``), `normal`, `ggx`,
-  `point_ndf`, `local_frame`, `lit_interval`.
+  `point_ndf`, `local_frame`, `lit_interval`, `within_length`.
 
 **How the closed form works.** In the scratch frame (SPEC section 1) write ``u = x / w``. The GGX
 of SPEC section 3 with ``k = sqrt(1 - alpha^2)``, ``B = 1 + 4u^2``, ``N = hz (1 - 4u^2) - 4 hx u``,

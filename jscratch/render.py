@@ -36,6 +36,13 @@ gradients), so a gradient step also holds ``O(M H W + N + chunk)`` floats beyond
 Cost: the backward pass re-evaluates the forward kernel once (as `jax.checkpoint` would).
 Consequence: forward-mode autodiff (``jax.jvp``) is not available through `render_pairs`.
 
+**Work skipped.** Before the scans, each shard's pairs are sorted (stably, O(L)) into pairs whose
+footprint lies within their scratch's length (`ndf.within_length`), other pairs, and padding.
+Chunks of padding only are skipped (a pair list with spare capacity costs nothing for it), and
+the reverse pass evaluates chunks of the first group with `ndf.pair_integral(..., ends=False)`,
+which skips the scratch-end pieces those pairs do not have (a third of the kernel's pieces; most
+pairs of a scene are of this kind). The results are those of the full kernel.
+
 **Multiple devices.** Given a `jax.sharding.Mesh`, `render_pairs` shards the *pixel* axis
 over the mesh axes with `jax.shard_map`: the ``H*W`` pixels (row-major) are split into
 ``n_shards`` contiguous blocks of ``Pb = ceil(H / n_shards) W`` pixels (strips of rows), device
@@ -787,7 +794,8 @@ def _pair_sums(cfg: _Cfg, params, h_views, out, scr, valid, inner):
     """Per-pixel sums over the pairs: ``sum D_hat`` ``(M, P_pad)`` and ``sum A``
     ``(1 or M, P_pad)``; ``h_views`` ``(M, P_pad, 3)``. ``out, scr, valid`` ``(L,)``: ``n_shards``
     equal segments, segment ``s`` holding only pairs of pixels ``[s Pb, (s+1) Pb)``, each a
-    multiple of ``chunk`` long."""
+    multiple of ``chunk`` long and sorted by `_sort_pairs`; ``inner`` ``(L,)`` marks the valid
+    pairs within their scratch's length (`_within_length`)."""
     fn = _maybe_shard(cfg, functools.partial(_fwd_local, cfg),
                       (_REP, _HV, _PAIRS, _PAIRS, _PAIRS, _PAIRS), (_PIX, _PIX))
     return fn(params, h_views, out, scr, valid, inner)
