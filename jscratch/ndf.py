@@ -8,17 +8,17 @@ alpha``) under a half vector ``h`` give
 
 **Public API:**
 
-- `pair_integral(h, footprint, p0, p1, width, depth, alpha, *, pieces=6) -> (D_hat, A)`: the
+- `pair_integral(h, footprint, p0, p1, width, depth, alpha, *, ends=True) -> (D_hat, A)`: the
   closed-form boundary integral (below). Pure, jittable, vmappable, differentiable in every float
-  argument, float32 and float64 (it follows the dtype of its inputs). `pieces=k < 6` integrates
-  only `k` boundary pieces per view: exact where `piece_count(footprint, p0, p1, width, depth)
-  <= k` (most pairs have 2), and that much less work.
+  argument, float32 and float64 (it follows the dtype of its inputs). `ends=False` skips the two
+  pieces only a footprint reaching past a scratch end needs: exact where
+  `within_length(footprint, p0, p1)`, a third less work.
 - `pair_integral_quadrature(h, footprint, p0, p1, width, depth, alpha, n)`: the same integral by
   ``n``-point Gauss-Legendre quadrature of the chord-length form ``∫ chord(x) D_x(x) dx`` over the
   lit part of the groove. Independent of the boundary machinery; the comparison point of the
   run-time-against-error benchmark.
 - Building blocks: `height_profile`, `groove_half_width` (``x_max``), `normal`, `ggx`,
-  `point_ndf`, `local_frame`, `lit_interval`, `piece_count`.
+  `point_ndf`, `local_frame`, `lit_interval`, `within_length`.
 
 **How the closed form works.** In the scratch frame (SPEC section 1) write ``u = x / w``. The GGX
 of SPEC section 3 with ``k = sqrt(1 - alpha^2)``, ``B = 1 + 4u^2``, ``N = hz (1 - 4u^2) - 4 hx u``,
@@ -60,12 +60,9 @@ since ``∂Y/∂y`` is the indicator of ``0 <= y <= L``. The slab ``[u_lo, u_hi]
    where it leaves and re-enters. Nothing here depends on the half vector, so a renderer that
    vmaps the kernel over views (with the scratch and footprint unbatched) computes it, and its
    reverse pass, once per pair.
-   The pieces are then cut to the groove ``[-x_max, x_max] / w`` (`_cut`; a piece outside
-   becomes a point): ``A`` is their sum with ``D = 1``, and the pieces that are not points are
-   what every view integrates (`piece_count`; typically two: the footprint edges the groove
-   crosses), so a renderer that sorts its pairs by that count integrates fewer (`pieces`).
-2. *Per view* (`_lit_sum`): the pieces clamped to the lit slab, which lies inside the groove,
-   and integrated.
+2. *Per view* (`_cut`, `_lit_sum`): the pieces clamped to the lit slab (a piece outside it
+   becomes a point) and integrated. ``A`` is the same sum with ``D = 1`` over the whole groove
+   ``[-x_max, x_max] / w`` (`_area_sum`), once per pair.
 
 Six pieces per pair, whatever the footprint-groove configuration (all eight types of the
 paper's Fig. 7, and footprints larger or smaller than the groove). ``y_ref`` (the mean ``y`` of
@@ -115,7 +112,7 @@ __all__ = [
     "point_ndf",
     "local_frame",
     "lit_interval",
-    "piece_count",
+    "within_length",
 ]
 
 
@@ -521,10 +518,11 @@ def _implicit_jvp(primals, tangents):
     return t, -d_residual / jnp.where(slope == 0, 1, slope)
 
 
-def _strip_pieces(u, y, y_lo, y_hi):
+def _strip_pieces(u, y, y_lo, y_hi, ends: bool = True):
     """The boundary of `Q = F ∩ {y_lo <= y <= y_hi}` (the footprint cut to the scratch's length)
     as six pieces; it does not depend on the half vector, so a renderer computes it once per pair
-    for all views.
+    for all views. `ends=False` returns the four edge pieces only: exact when every footprint
+    vertex lies in the strip (`within_length`), where the two chains are empty.
 
     `u, y`: `(4,)` footprint vertices (local, `y` relative to vertex 0). Returns
     `(ua, ub, Ya, Yb)`, each `(6,)`: the four footprint edges clipped to the strip (possibly
@@ -573,6 +571,8 @@ def _strip_pieces(u, y, y_lo, y_hi):
     )
     Y_lo = y_lo - y_ref
     Y_hi = y_hi - y_ref
+    if not ends:
+        return e_ua, e_ub, e_ya - y_ref, e_yb - y_ref
     ua = jnp.concatenate([e_ua, jnp.stack([lo_in, hi_in])])
     ub = jnp.concatenate([e_ub, jnp.stack([lo_out, hi_out])])
     Ya = jnp.concatenate([e_ya - y_ref, jnp.stack([Y_lo, Y_hi])])
@@ -700,27 +700,30 @@ def _lit_sum_bwd(n_gl, res, ct):
 _lit_sum.defvjp(_lit_sum_fwd, _lit_sum_bwd)
 
 
-def _cut_values(ua, ub, Ya, Yb, lo, hi):
+def _area_sum_values(ua, ub, Ya, Yb, lo, hi):
     c = _cut(ua, ub, Ya, Yb, lo, hi)
-    return c.ua, c.ub, c.Ya, c.Yb
+    return jnp.sum((c.Ya + c.Yb) / 2 * (c.ub - c.ua))
 
 
 @jax.custom_vjp
-def _cut_pieces(ua, ub, Ya, Yb, lo, hi):
-    """`_cut`'s pieces with its hand-written transpose (`_cut_transpose`) as the reverse pass."""
-    return _cut_values(ua, ub, Ya, Yb, lo, hi)
+def _area_sum(ua, ub, Ya, Yb, lo, hi):
+    """`∑ ∫ Y du` over the pieces cut to `[lo, hi]` (the area integral of Green's theorem), with
+    the hand-written reverse pass of `_lit_sum`."""
+    return _area_sum_values(ua, ub, Ya, Yb, lo, hi)
 
 
-def _cut_pieces_fwd(ua, ub, Ya, Yb, lo, hi):
+def _area_sum_fwd(ua, ub, Ya, Yb, lo, hi):
     c = _cut(ua, ub, Ya, Yb, lo, hi)
-    return (c.ua, c.ub, c.Ya, c.Yb), c
+    m = (c.Ya + c.Yb) / 2
+    half = (c.ub - c.ua) / 2
+    return jnp.sum(m * (c.ub - c.ua)), _cut_transpose(c, -m, m, half, half)
 
 
-def _cut_pieces_bwd(c, g):
-    return _cut_transpose(c, *g)
+def _area_sum_bwd(partials, ct):
+    return tuple(ct * d for d in partials)
 
 
-_cut_pieces.defvjp(_cut_pieces_fwd, _cut_pieces_bwd)
+_area_sum.defvjp(_area_sum_fwd, _area_sum_bwd)
 
 
 class _Groove(NamedTuple):
@@ -755,32 +758,17 @@ def _strip_frame(footprint, p0, p1):
     return t, b, L, q, x_c, _dot2(q, t), -y_c, L - y_c
 
 
-def piece_count(footprint: Float[ArrayLike, "4 2"], p0: Float[ArrayLike, "2"],
-                p1: Float[ArrayLike, "2"], width: Float[ArrayLike, ""],
-                depth: Float[ArrayLike, ""]) -> Array:
-    """How many boundary pieces of `footprint ∩ groove` the closed form integrates (0 where the
-    footprint misses the groove, at most 6), computed as `pair_integral` computes them: with
-    `pieces=k` it is exact for every pair whose count is at most `k`. It does not depend on the
-    half vector. Jittable, vmappable; a scalar int32."""
-    dt = _dtype(footprint, p0, p1, width, depth)
-    footprint, p0, p1, width, depth = (jnp.asarray(v, dt) for v in (footprint, p0, p1, width,
-                                                                     depth))
-    G = _groove(footprint, p0, p1, width, depth)
-    ua, ub, Ya, Yb = _cut_values(*G.pieces, -G.X, G.X)
-    return jnp.sum(~((ua == ub) & (Ya == Yb)), dtype=jnp.int32)
+def within_length(footprint: Float[ArrayLike, "4 2"], p0: Float[ArrayLike, "2"],
+                  p1: Float[ArrayLike, "2"]) -> Array:
+    """Whether every vertex of `footprint` lies between the scratch's ends along it
+    (`0 <= y <= L`), computed as `pair_integral` computes it: then `pair_integral(...,
+    ends=False)` is exact. Jittable, vmappable; a scalar bool."""
+    footprint, p0, p1 = (jnp.asarray(v, _dtype(footprint, p0, p1)) for v in (footprint, p0, p1))
+    *_, y, y_lo, y_hi = _strip_frame(footprint, p0, p1)
+    return jnp.all((y >= y_lo) & (y <= y_hi))
 
 
-def _compact(pieces, k: int):
-    """The first `k` pieces that are not points, in order, then points at `u = 0` (inside every
-    lit slab): `(4,)`-tuples of `(k,)` arrays. Exact when at most `k` pieces are not points."""
-    ua, ub, Ya, Yb = pieces
-    keep = ~((ua == ub) & (Ya == Yb))
-    pos = jnp.cumsum(keep) - 1
-    sel = keep[None, :] & (pos[None, :] == jnp.arange(k)[:, None])  # (k, 6): slot <- piece
-    return tuple(jnp.sum(jnp.where(sel, x[None, :], 0), axis=1) for x in pieces)
-
-
-def _groove(footprint, p0, p1, width, depth) -> _Groove:
+def _groove(footprint, p0, p1, width, depth, ends: bool = True) -> _Groove:
     t, b, L, q, x_c, y, y_lo, y_hi = _strip_frame(footprint, p0, p1)
     u = (_dot2(q, b) + x_c) / width
     # Orientation of the footprint (so a clockwise quad also gives positive values).
@@ -788,7 +776,8 @@ def _groove(footprint, p0, p1, width, depth) -> _Groove:
     area2 = jnp.sum(q[:, 0] * qn[:, 1] - qn[:, 0] * q[:, 1])
     sign = jnp.where(area2 >= 0, 1, -1).astype(q.dtype)
     X = groove_half_width(width, depth) / width
-    return _Groove(u, y, y_lo, y_hi, sign, X, t, b, width, _strip_pieces(u, y, y_lo, y_hi))
+    return _Groove(u, y, y_lo, y_hi, sign, X, t, b, width,
+                   _strip_pieces(u, y, y_lo, y_hi, ends))
 
 
 def _view(G: _Groove, h):
@@ -818,7 +807,7 @@ def pair_integral(
     depth: Float[ArrayLike, ""],
     alpha: Float[ArrayLike, ""],
     *,
-    pieces: int = 6,
+    ends: bool = True,
 ) -> tuple[Float[Array, ""], Float[Array, ""]]:
     """Closed-form pair integral of SPEC section 3 for one footprint and one scratch.
 
@@ -828,33 +817,33 @@ def pair_integral(
     - `footprint`: `(4, 2)` convex quad, counter-clockwise, board metres.
     - `p0, p1`: `(2,)` scratch endpoints (m).
     - `width, depth`: scratch width `w` and depth `d` (m); `alpha`: GGX roughness in (0, 1).
-    - `pieces` (static, 1..6): how many boundary pieces of `footprint ∩ groove` each view
-      integrates. Fewer is less work (the per-view integrals are most of the cost) and exact
-      for every pair whose `piece_count` is at most `pieces` (wrong for the others); most pairs
-      of a scene have two. A renderer sorts its pairs by that count (`jscratch.render`).
+    - `ends` (static): `False` skips the two boundary pieces that only a footprint reaching past
+      a scratch end has (a third less work); exact where `within_length(footprint, p0, p1)`,
+      wrong elsewhere. A renderer sorts its pairs by that test (`jscratch.render`).
 
     **Returns:** `(D_hat, A)`: `∫∫_{F ∩ groove} D_x dx dy` and `area(F ∩ groove)`, both m^2, in the
     dtype of the inputs.
 
-    Reverse-mode derivatives are hand-written (`_lit_sum`, `_cut_pieces`); forward mode (`jax.jvp`) is
+    Reverse-mode derivatives are hand-written (`_lit_sum`, `_area_sum`); forward mode (`jax.jvp`) is
     not available.
     """
-    return _pair_integral(h, footprint, p0, p1, width, depth, alpha, True, pieces)
+    return _pair_integral(h, footprint, p0, p1, width, depth, alpha, True, ends)
 
 
-def _pair_integral(h, footprint, p0, p1, width, depth, alpha, hand_vjp: bool, pieces: int = 6):
+def _pair_integral(h, footprint, p0, p1, width, depth, alpha, hand_vjp: bool, ends: bool = True):
     h, footprint, p0, p1, width, depth, alpha = _as_inputs(h, footprint, p0, p1, width, depth, alpha)
-    G = _groove(footprint, p0, p1, width, depth)
+    G = _groove(footprint, p0, p1, width, depth, ends)
     n_gl = _nodes(h.dtype)
     hx, hy, hz, u_lo, u_hi = _view(G, h)
     lobe = _Lobe(hx, hy, hz, alpha)
-    # Q's boundary cut to the groove, once per pair: the area, and the pieces every view cuts
-    # further to its lit slab (inside the groove), compacted to the `pieces` that are not points.
-    ua, ub, Ya, Yb = (_cut_pieces if hand_vjp else _cut_values)(*G.pieces, -G.X, G.X)
-    A = -width * G.sign * jnp.sum((Ya + Yb) / 2 * (ub - ua))
-    groove = (ua, ub, Ya, Yb) if pieces >= 6 else _compact((ua, ub, Ya, Yb), pieces)
-    lit = (_lit_sum if hand_vjp else _lit_sum_values)(n_gl, *groove, u_lo, u_hi, lobe.params())
+    if hand_vjp:
+        lit = _lit_sum(n_gl, *G.pieces, u_lo, u_hi, lobe.params())
+        area = _area_sum(*G.pieces, -G.X, G.X)
+    else:
+        lit = _lit_sum_values(n_gl, *G.pieces, u_lo, u_hi, lobe.params())
+        area = _area_sum_values(*G.pieces, -G.X, G.X)
     D_hat = -width * G.sign * lobe.pref * lit
+    A = -width * G.sign * area
     return D_hat, A
 
 

@@ -36,13 +36,12 @@ gradients), so a gradient step also holds ``O(M H W + N + chunk)`` floats beyond
 Cost: the backward pass re-evaluates the forward kernel once (as `jax.checkpoint` would).
 Consequence: forward-mode autodiff (``jax.jvp``) is not available through `render_pairs`.
 
-**Work skipped.** Before the scans, each shard's pairs are sorted (stably, O(L)) by class
-(`_pair_classes`): by how many boundary pieces of footprint ∩ groove the kernel must integrate
-(`ndf.piece_count`: at most 2, at most 4, more), padding and pairs that miss their groove last.
-Each chunk is evaluated with the smallest piece budget exact for all its pairs
-(`ndf.pair_integral(..., pieces=k)`), and chunks of padding and misses not at all. Most pairs
-of a scene have two pieces (the footprint edges the groove crosses) where the general kernel
-integrates six. The results are those of the full kernel.
+**Work skipped.** Before the scans, each shard's pairs are sorted (stably, O(L)) into pairs whose
+footprint lies within their scratch's length (`ndf.within_length`), other pairs, and padding.
+Chunks of padding only are skipped (a pair list with spare capacity costs nothing for it), and
+the reverse pass evaluates chunks of the first group with `ndf.pair_integral(..., ends=False)`,
+which skips the scratch-end pieces those pairs do not have (a third of the kernel's pieces; most
+pairs of a scene are of this kind). The results are those of the full kernel.
 
 **Multiple devices.** Given a `jax.sharding.Mesh`, `render_pairs` shards the *pixel* axis
 over the mesh axes with `jax.shard_map`: the ``H*W`` pixels (row-major) are split into
@@ -601,7 +600,7 @@ class _Cfg(NamedTuple):
     per_view: bool  # pair outputs are (view, pixel): index v * P_pad + pixel; else pixel only
     need_D: bool
     need_A: bool
-    pieces: int = 6  # boundary pieces per pair and view (`ndf.pair_integral`'s `pieces`)
+    ends: bool = True  # evaluate the scratch-end pieces (`ndf.pair_integral`'s `ends`)
 
 
 def _board_of(cfg: _Cfg) -> Board:
@@ -618,12 +617,11 @@ def _footprint(cfg: _Cfg, xe, ye, pix):
 
 
 def _pair_kernel(cfg: _Cfg, xe, ye, p0, p1, w, d, a, h, pix):
-    """One (pixel, scratch) pair: ``(D_hat, A)`` from `ndf.pair_integral` (``cfg.pieces``: see
-    its ``pieces``). ``pix`` is the pixel index ``r*W + c``; the footprint is rebuilt from it."""
+    """One (pixel, scratch) pair: ``(D_hat, A)`` from `ndf.pair_integral` (``cfg.ends``: see
+    its ``ends``). ``pix`` is the pixel index ``r*W + c``; the footprint is rebuilt from it."""
     from jscratch import ndf
 
-    return ndf.pair_integral(h, _footprint(cfg, xe, ye, pix), p0, p1, w, d, a,
-                             pieces=cfg.pieces)
+    return ndf.pair_integral(h, _footprint(cfg, xe, ye, pix), p0, p1, w, d, a, ends=cfg.ends)
 
 
 def _split_index(cfg: _Cfg, out):
@@ -694,35 +692,24 @@ def _flat_h(cfg: _Cfg, h_loc):
     return h_loc.reshape(1, -1, 3) if cfg.per_view else h_loc
 
 
-#: Piece budgets of the pair classes (`_pair_classes`): class c > 0 holds the pairs with at most
-#: `PIECE_CLASSES[c - 1]` pieces; class 0 the padding and the pairs that miss their groove.
-PIECE_CLASSES = (2, 4, 6)
+def _chunk_kind(valid, inner):
+    """Which evaluation a chunk needs: 0 none (padding only), 1 `ndf.pair_integral` without the
+    scratch-end pieces (every valid pair within its scratch's length), 2 the full kernel."""
+    return jnp.where(~jnp.any(valid), 0, jnp.where(jnp.all(inner | ~valid), 1, 2))
 
 
-def _chunk_kind(klass):
-    """Which evaluation a chunk of pair classes needs: 0 none (padding and misses only), else
-    the kernel with the largest piece budget among its pairs (`PIECE_CLASSES`)."""
-    return jnp.max(klass).astype(jnp.int32)
-
-
-def _kernels(add_chunk):
-    """`lax.switch` branches for `_chunk_kind`: skip, then `add_chunk(pieces, carry, xs)` for
-    each budget."""
-    return (lambda c, _: c, *(functools.partial(add_chunk, k) for k in PIECE_CLASSES))
-
-
-def _fwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, klass):
+def _fwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, inner):
     """This shard's sums: ``D`` ``(M, Pb)`` and ``A`` ``(1 or M, Pb)`` over its pairs."""
     dt = params[2].dtype
     xe, ye = _edges_in(cfg, dt)
     h_rows = _flat_h(cfg, h_loc)
     V, n_loc = h_rows.shape[:2]
 
-    def add_chunk(pieces, carry, xs):
+    def add_chunk(ends, carry, xs):
         Ds, As = carry
         oc, sc, vc, _ = xs
         pix, local = _split_index(cfg, oc)
-        D, A = _masked_chunk(cfg._replace(pieces=pieces), xe, ye, pix, vc,
+        D, A = _masked_chunk(cfg._replace(ends=ends), xe, ye, pix, vc,
                              *_gather(params, h_rows, sc, local))
         if cfg.need_D:
             Ds = Ds.at[:, local].add(D, mode="drop")
@@ -731,16 +718,18 @@ def _fwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, klass):
         return Ds, As
 
     def body(carry, xs):
-        # `_sort_pairs` groups the pairs by class: each chunk gets the smallest piece budget that
-        # is exact for all its pairs; chunks of padding and misses are skipped.
-        return jax.lax.switch(_chunk_kind(xs[3]), _kernels(add_chunk), carry, xs), None
+        # Chunks of padding only (`_sort_pairs` puts them last) are skipped. The values use the
+        # full kernel everywhere: measured, its forward is faster here than the kernel without
+        # scratch-end pieces (whose gain is in the reverse pass, `_bwd_local`).
+        return jax.lax.cond(jnp.any(xs[2]), functools.partial(add_chunk, True),
+                            lambda c, _: c, carry, xs), None
 
     init = _varying(cfg, (jnp.zeros((V, n_loc), dt), jnp.zeros((n_loc,), dt)))
-    (Ds, As), _ = jax.lax.scan(body, init, _chunks(cfg, out, scr, valid, klass))
+    (Ds, As), _ = jax.lax.scan(body, init, _chunks(cfg, out, scr, valid, inner))
     return Ds.reshape(-1, cfg.Pb), As.reshape(-1, cfg.Pb)
 
 
-def _bwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, klass, gD, gA):
+def _bwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, inner, gD, gA):
     dt = params[2].dtype
     xe, ye = _edges_in(cfg, dt)
     h_rows = _flat_h(cfg, h_loc)
@@ -749,13 +738,13 @@ def _bwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, klass, gD, gA):
     # Differentiate only the outputs the caller uses, so XLA does no dead reverse work.
     pick = [i for i, need in enumerate((cfg.need_D, cfg.need_A)) if need]
 
-    def add_chunk(pieces, carry, xs):
+    def add_chunk(ends, carry, xs):
         gp0, gp1, gw, gd, ga, gh = carry
         oc, sc, vc, _ = xs
         pix, local = _split_index(cfg, oc)
 
         def f(*gathered):
-            out = _masked_chunk(cfg._replace(pieces=pieces), xe, ye, pix, vc, *gathered)
+            out = _masked_chunk(cfg._replace(ends=ends), xe, ye, pix, vc, *gathered)
             return tuple(out[i] for i in pick)
 
         _, vjp = jax.vjp(f, *_gather(params, h_rows, sc, local))
@@ -771,11 +760,13 @@ def _bwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, klass, gD, gA):
         return gp0, gp1, gw, gd, ga, gh
 
     def body(carry, xs):
-        return jax.lax.switch(_chunk_kind(xs[3]), _kernels(add_chunk), carry, xs), None
+        branches = (lambda c, _: c, functools.partial(add_chunk, False),
+                    functools.partial(add_chunk, True))
+        return jax.lax.switch(_chunk_kind(xs[2], xs[3]), branches, carry, xs), None
 
     # (zeros_like of the device-local half vectors is already device-varying)
     init = _varying(cfg, tuple(jnp.zeros_like(x) for x in params)) + (jnp.zeros_like(h_rows),)
-    grads, _ = jax.lax.scan(body, init, _chunks(cfg, out, scr, valid, klass))
+    grads, _ = jax.lax.scan(body, init, _chunks(cfg, out, scr, valid, inner))
     dparams = grads[:5]
     if cfg.mesh is not None:  # parameters are replicated: their gradient sums over all shards
         dparams = jax.lax.psum(dparams, cfg.axes)
@@ -799,28 +790,28 @@ _REP, _PIX, _PAIRS, _HV = (), (None, "p"), ("p",), (None, "p", None)
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
-def _pair_sums(cfg: _Cfg, params, h_views, out, scr, valid, klass):
+def _pair_sums(cfg: _Cfg, params, h_views, out, scr, valid, inner):
     """Per-pixel sums over the pairs: ``sum D_hat`` ``(M, P_pad)`` and ``sum A``
     ``(1 or M, P_pad)``; ``h_views`` ``(M, P_pad, 3)``. ``out, scr, valid`` ``(L,)``: ``n_shards``
     equal segments, segment ``s`` holding only pairs of pixels ``[s Pb, (s+1) Pb)``, each a
-    multiple of ``chunk`` long and sorted by `_sort_pairs`; ``klass`` ``(L,)`` the pairs' classes
-    (`_pair_classes`)."""
+    multiple of ``chunk`` long and sorted by `_sort_pairs`; ``inner`` ``(L,)`` marks the valid
+    pairs within their scratch's length (`_within_length`)."""
     fn = _maybe_shard(cfg, functools.partial(_fwd_local, cfg),
                       (_REP, _HV, _PAIRS, _PAIRS, _PAIRS, _PAIRS), (_PIX, _PIX))
-    return fn(params, h_views, out, scr, valid, klass)
+    return fn(params, h_views, out, scr, valid, inner)
 
 
-def _pair_sums_fwd(cfg, params, h_views, out, scr, valid, klass):
-    res = (params, h_views, out, scr, valid, klass)
+def _pair_sums_fwd(cfg, params, h_views, out, scr, valid, inner):
+    res = (params, h_views, out, scr, valid, inner)
     return _pair_sums(cfg, *res), res
 
 
 def _pair_sums_bwd(cfg, res, g):
-    params, h_views, out, scr, valid, klass = res
+    params, h_views, out, scr, valid, inner = res
     gD, gA = g
     fn = _maybe_shard(cfg, functools.partial(_bwd_local, cfg),
                       (_REP, _HV, _PAIRS, _PAIRS, _PAIRS, _PAIRS, _PIX, _PIX), (_REP, _HV))
-    dparams, dh = fn(params, h_views, out, scr, valid, klass, gD, gA)
+    dparams, dh = fn(params, h_views, out, scr, valid, inner, gD, gA)
     return dparams, dh, None, None, None, None
 
 
@@ -851,49 +842,48 @@ def _pixels_per_shard(board: Board, shards: int) -> int:
     return -(-board.H // shards) * board.W
 
 
-def _pair_classes(cfg: _Cfg, params, out, scr, valid):
-    """Per pair, its class: 0 for padding and pairs whose footprint misses the groove, else the
-    index + 1 of the smallest budget in `PIECE_CLASSES` that holds its `ndf.piece_count`. int8."""
+def _within_length(cfg: _Cfg, params, out, scr, valid):
+    """Per pair: valid, and its footprint within its scratch's length (`ndf.within_length`:
+    `ndf.pair_integral` may then skip the scratch-end pieces)."""
     from jscratch import ndf
 
-    p0, p1, w, d = params[:4]
+    p0, p1 = params[0], params[1]
     xe, ye = _edges_in(cfg, p0.dtype)
     P_pad = cfg.Pb * _n_shards(cfg.mesh, cfg.axes)
 
-    def count(args):
+    def test(args):
         out, scr = args
         pix = jnp.minimum(out % P_pad if cfg.per_view else out, cfg.H * cfg.W - 1)
         take = lambda x: x.at[scr].get(mode="clip")
-        n = ndf.piece_count(_footprint(cfg, xe, ye, pix), take(p0), take(p1), take(w), take(d))
-        return n.astype(jnp.int8)
+        return ndf.within_length(_footprint(cfg, xe, ye, pix), take(p0), take(p1))
 
     # (chunk by chunk: no per-pair footprint array is materialised)
-    n = jax.lax.map(count, (out, scr), batch_size=cfg.chunk)
-    klass = sum((n > k).astype(jnp.int8) for k in (0, *PIECE_CLASSES[:-1]))
-    return jax.lax.stop_gradient(jnp.where(valid, klass, 0).astype(jnp.int8))
+    inner = jax.lax.map(test, (out, scr), batch_size=cfg.chunk)
+    return jax.lax.stop_gradient(valid & inner)
 
 
-def _sort_pairs(out, scr, valid, klass, shards: int):
-    """Each shard's segment of the pair list grouped by class (`_pair_classes`: 1, 2, ..., then 0),
-    each group in its own order (a stable partition, O(L)). Chunks then mostly hold one class:
-    chunks of padding and misses are skipped and the others integrate only the pieces their
-    pairs have (`_chunk_kind`). A pair list built with spare capacity (`bvh.build_pairs`,
-    per-view culled lists) otherwise costs a full kernel evaluation per padding slot, and every
-    pair the six pieces that few pairs have."""
+def _sort_pairs(out, scr, valid, inner, shards: int):
+    """Each shard's segment of the pair list in three groups, each in its own order (a stable
+    partition, O(L)): valid pairs within their scratch's length, other valid pairs, padding.
+    Chunks then mostly hold one group: padding chunks are skipped and chunks of the first group
+    use the kernel without scratch-end pieces (`_chunk_kind`). A pair list built with spare
+    capacity (`bvh.build_pairs`, per-view culled lists) otherwise costs a full kernel evaluation
+    per padding slot, and every chunk the scratch-end pieces that few pairs have."""
     L = out.shape[0]
     Ls = L // shards
     # (a barrier: a pair list closed over as a constant would otherwise be folded at compile time)
-    klass = jax.lax.optimization_barrier(klass)
+    valid, inner = jax.lax.optimization_barrier((valid, inner))
+    groups = (inner, valid & ~inner, ~valid)
     pos = jnp.zeros((shards, Ls), jnp.int32)
     start = jnp.zeros((shards, 1), jnp.int32)
-    for c in (*range(1, len(PIECE_CLASSES) + 1), 0):
-        g = (klass == c).reshape(shards, Ls)
+    for g in groups:
+        g = g.reshape(shards, Ls)
         pos = jnp.where(g, start + jnp.cumsum(g, axis=1, dtype=jnp.int32) - 1, pos)
         start = start + jnp.sum(g, axis=1, keepdims=True, dtype=jnp.int32)
     pos = (pos + (jnp.arange(shards, dtype=jnp.int32) * Ls)[:, None]).reshape(-1)
     source = jnp.zeros((L,), jnp.int32).at[pos].set(jnp.arange(L, dtype=jnp.int32),
                                                       unique_indices=True)
-    return out[source], scr[source], valid[source], klass[source]
+    return out[source], scr[source], valid[source], inner[source]
 
 
 def _run_pair_sums(scratches: Scratches, board: Board, h_views, out, scr, valid, *, per_view,
@@ -921,9 +911,9 @@ def _run_pair_sums(scratches: Scratches, board: Board, h_views, out, scr, valid,
     cfg = _Cfg(board.H, board.W, board.Sx, board.Sy, chunk, mesh, axes, Pb, per_view, need_D,
                need_A)
     params = (scratches.p0, scratches.p1, scratches.width, scratches.depth, scratches.alpha)
-    klass = _pair_classes(cfg, params, out, scr, valid)
-    out, scr, valid, klass = _sort_pairs(out, scr, valid, klass, shards)
-    Ds, As = _pair_sums(cfg, params, h_views, out, scr, valid, klass)
+    inner = _within_length(cfg, params, out, scr, valid)
+    out, scr, valid, inner = _sort_pairs(out, scr, valid, inner, shards)
+    Ds, As = _pair_sums(cfg, params, h_views, out, scr, valid, inner)
     return Ds[:, :P], As[:, :P]
 
 
