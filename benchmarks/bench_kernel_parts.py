@@ -19,8 +19,6 @@ time apart, gradients compiled with `render.grad_compiler_options`):
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
 
 import jax
 import jax.numpy as jnp
@@ -28,17 +26,12 @@ import numpy as np
 
 from jscratch import ndf
 from jscratch import render
+from jscratch.bench import median_time
 from jscratch.ndf_cases import random_cases
 
 
 def _ns(fn, args, per, repeats):
-    jax.block_until_ready(fn(*args))
-    ts = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        ts.append(time.perf_counter() - t)
-    return 1e9 * statistics.median(ts) / per
+    return 1e9 * median_time(lambda: fn(*args), repeats)[0] / per
 
 
 def _row(name, f, args, argnums, per, repeats):

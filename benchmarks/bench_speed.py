@@ -29,11 +29,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 N_PAIRS = 16384
@@ -45,15 +43,10 @@ VIEWS = (1, 3, 5)
 
 
 def _median_ns(fn, args, per: int, repeats: int) -> float:
-    import jax
+    """Median ns per item (`per` items a call) of `repeats` timed calls after a warm-up."""
+    from jscratch.bench import median_time  # (in the base code too)
 
-    jax.block_until_ready(fn(*args))
-    ts = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        ts.append(time.perf_counter() - t)
-    return 1e9 * statistics.median(ts) / per
+    return 1e9 * median_time(lambda: fn(*args), repeats)[0] / per
 
 
 def _cost(compiled, per: int) -> dict:
