@@ -738,7 +738,6 @@ class _Groove(NamedTuple):
     X: Array  # groove half-width x_max / w
     t: Array  # (2,) along the scratch
     b: Array  # (2,) across the scratch
-    width: Array
     pieces: tuple  # Q's boundary: (ua, ub, Ya, Yb), each (6,)
 
 
@@ -776,8 +775,7 @@ def _groove(footprint, p0, p1, width, depth, ends: bool = True) -> _Groove:
     area2 = jnp.sum(q[:, 0] * qn[:, 1] - qn[:, 0] * q[:, 1])
     sign = jnp.where(area2 >= 0, 1, -1).astype(q.dtype)
     X = groove_half_width(width, depth) / width
-    return _Groove(u, y, y_lo, y_hi, sign, X, t, b, width,
-                   _strip_pieces(u, y, y_lo, y_hi, ends))
+    return _Groove(u, y, y_lo, y_hi, sign, X, t, b, _strip_pieces(u, y, y_lo, y_hi, ends))
 
 
 def _view(G: _Groove, h):
