@@ -8,17 +8,19 @@ alpha``) under a half vector ``h`` give
 
 **Public API:**
 
-- `pair_integral(h, footprint, p0, p1, width, depth, alpha, *, ends=True) -> (D_hat, A)`: the
-  closed-form boundary integral (below). Pure, jittable, vmappable, differentiable in every float
-  argument, float32 and float64 (it follows the dtype of its inputs). `ends=False` skips the two
-  pieces only a footprint reaching past a scratch end needs: exact where
-  `within_length(footprint, p0, p1)`, a third less work.
+- `pair_integral(h, footprint, p0, p1, width, depth, alpha) -> (D_hat, A)`: the closed-form
+  boundary integral (below). Pure, jittable, vmappable, differentiable in every float argument,
+  float32 and float64 (it follows the dtype of its inputs).
+- Its two stages, for renderers with several views: `pair_geometry(footprint, p0, p1, width,
+  depth) -> PairGeometry` (no view changes it: `A` and the boundary pieces, non-points first,
+  with their `count`), and `lit_integral(geometry, h, alpha, *, pieces=(start, stop))` per view,
+  which may integrate a group of the pieces only: a group at or past `count` is exactly zero.
 - `pair_integral_quadrature(h, footprint, p0, p1, width, depth, alpha, n)`: the same integral by
   ``n``-point Gauss-Legendre quadrature of the chord-length form ``∫ chord(x) D_x(x) dx`` over the
   lit part of the groove. Independent of the boundary machinery; the comparison point of the
   run-time-against-error benchmark.
 - Building blocks: `height_profile`, `groove_half_width` (``x_max``), `normal`, `ggx`,
-  `point_ndf`, `local_frame`, `lit_interval`, `within_length`.
+  `point_ndf`, `local_frame`, `lit_interval`.
 
 **How the closed form works.** In the scratch frame (SPEC section 1) write ``u = x / w``. The GGX
 of SPEC section 3 with ``k = sqrt(1 - alpha^2)``, ``B = 1 + 4u^2``, ``N = hz (1 - 4u^2) - 4 hx u``,
@@ -60,9 +62,13 @@ since ``∂Y/∂y`` is the indicator of ``0 <= y <= L``. The slab ``[u_lo, u_hi]
    where it leaves and re-enters. Nothing here depends on the half vector, so a renderer that
    vmaps the kernel over views (with the scratch and footprint unbatched) computes it, and its
    reverse pass, once per pair.
-2. *Per view* (`_cut`, `_lit_sum`): the pieces clamped to the lit slab (a piece outside it
-   becomes a point) and integrated. ``A`` is the same sum with ``D = 1`` over the whole groove
-   ``[-x_max, x_max] / w`` (`_area_sum`), once per pair.
+   The pieces are then cut to the groove ``[-x_max, x_max] / w`` (`_cut`; a piece outside
+   becomes a point): ``A`` is their sum with ``D = 1``, and the pieces that are not points,
+   moved to the front (`_compact`, `PairGeometry.count`; typically two: the footprint edges the
+   groove crosses), are what every view integrates.
+2. *Per view* (`lit_integral`, `_lit_sum`): the pieces clamped to the lit slab, which lies
+   inside the groove, and integrated; a renderer that sorts its pairs by `count` integrates
+   only the groups of pieces a chunk of pairs has (`jscratch.render`).
 
 Six pieces per pair, whatever the footprint-groove configuration (all eight types of the
 paper's Fig. 7, and footprints larger or smaller than the groove). ``y_ref`` (the mean ``y`` of
@@ -112,7 +118,10 @@ __all__ = [
     "point_ndf",
     "local_frame",
     "lit_interval",
-    "within_length",
+    "pair_geometry",
+    "lit_integral",
+    "PairGeometry",
+    "N_PIECES",
 ]
 
 
@@ -518,11 +527,10 @@ def _implicit_jvp(primals, tangents):
     return t, -d_residual / jnp.where(slope == 0, 1, slope)
 
 
-def _strip_pieces(u, y, y_lo, y_hi, ends: bool = True):
+def _strip_pieces(u, y, y_lo, y_hi):
     """The boundary of `Q = F ∩ {y_lo <= y <= y_hi}` (the footprint cut to the scratch's length)
     as six pieces; it does not depend on the half vector, so a renderer computes it once per pair
-    for all views. `ends=False` returns the four edge pieces only: exact when every footprint
-    vertex lies in the strip (`within_length`), where the two chains are empty.
+    for all views.
 
     `u, y`: `(4,)` footprint vertices (local, `y` relative to vertex 0). Returns
     `(ua, ub, Ya, Yb)`, each `(6,)`: the four footprint edges clipped to the strip (possibly
@@ -571,8 +579,6 @@ def _strip_pieces(u, y, y_lo, y_hi, ends: bool = True):
     )
     Y_lo = y_lo - y_ref
     Y_hi = y_hi - y_ref
-    if not ends:
-        return e_ua, e_ub, e_ya - y_ref, e_yb - y_ref
     ua = jnp.concatenate([e_ua, jnp.stack([lo_in, hi_in])])
     ub = jnp.concatenate([e_ub, jnp.stack([lo_out, hi_out])])
     Ya = jnp.concatenate([e_ya - y_ref, jnp.stack([Y_lo, Y_hi])])
@@ -601,7 +607,23 @@ class _Cut(NamedTuple):
     inv_du: Array  # 1 / (ub - ua) of the original piece (1 where it is 0)
 
 
-def _cut(ua, ub, Ya, Yb, lo, hi) -> _Cut:
+def _centre(ca, cb, Ya, Yb):
+    """The length-weighted mean `Y` of pieces (no gradient): the re-centring constant."""
+    sg = jax.lax.stop_gradient
+    wgt = sg(jnp.abs(cb - ca) + jnp.abs(Yb - Ya))
+    sw = jnp.sum(wgt)
+    return sg(jnp.where(sw > 0, jnp.sum(wgt * (Ya + Yb) / 2) / jnp.where(sw > 0, sw, 1), 0))
+
+
+def _slab_centre(ua, ub, Ya, Yb, lo, hi):
+    """`_cut`'s re-centring constant of all the pieces, so that pieces integrated in separate
+    groups (`lit_integral`'s `pieces`) share it: values only, no gradient."""
+    sg = jax.lax.stop_gradient
+    c = _cut(*(sg(x) for x in (ua, ub, Ya, Yb, lo, hi)), ref=jnp.zeros((), ua.dtype))
+    return _centre(c.ua, c.ub, c.Ya, c.Yb)
+
+
+def _cut(ua, ub, Ya, Yb, lo, hi, ref=None) -> _Cut:
     """The pieces of `_strip_pieces` cut to the slab `lo <= u <= hi` (the part a view lights, or
     the whole groove): each end clamped into the slab, `Y` where the piece crosses a bound; a
     piece outside the slab becomes a point. Then `Y` is re-centred on the cut region (a constant
@@ -635,9 +657,8 @@ def _cut(ua, ub, Ya, Yb, lo, hi) -> _Cut:
     point = jnp.where(nz, ca == cb, moved_a)
     cb = jnp.where(point, ca, cb)
     Yb2 = jnp.where(point, Ya2, Yb2)
-    wgt = sg(jnp.abs(cb - ca) + jnp.abs(Yb2 - Ya2))
-    sw = jnp.sum(wgt)
-    ref = sg(jnp.where(sw > 0, jnp.sum(wgt * (Ya2 + Yb2) / 2) / jnp.where(sw > 0, sw, 1), 0))
+    if ref is None:
+        ref = _centre(ca, cb, Ya2, Yb2)
     return _Cut(ca, cb, Ya2 - ref, Yb2 - ref, ta, tb, ta_free, tb_free, lo_a, hi_a, lo_b, hi_b,
                 point, dY, inv_du)
 
@@ -670,60 +691,58 @@ def _cut_transpose(c: _Cut, g_ca, g_cb, g_Ya, g_Yb):
     return g_ua, g_ub, g_Ya0, g_Yb0, g_lo, g_hi
 
 
-def _lit_sum_values(n_gl, ua, ub, Ya, Yb, lo, hi, p):
-    c = _cut(ua, ub, Ya, Yb, lo, hi)
+def _lit_sum_values(n_gl, ua, ub, Ya, Yb, lo, hi, ref, p):
+    c = _cut(ua, ub, Ya, Yb, lo, hi, ref)
     return jnp.sum(_piece_values(n_gl, c.ua, c.ub, c.Ya, c.Yb, p, False))
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
-def _lit_sum(n_gl, ua, ub, Ya, Yb, lo, hi, p):
-    """`∑ ∫ Y (F1 + F2) du` over `Q`'s boundary pieces cut to the lit slab `[lo, hi]`, lobe
+def _lit_sum(n_gl, ua, ub, Ya, Yb, lo, hi, ref, p):
+    """`∑ ∫ (Y - ref) (F1 + F2) du` over boundary pieces cut to the lit slab `[lo, hi]`, lobe
     parameters `p` (`_Lobe.params`), with a hand-written reverse pass: the piece partials of
     `_piece_values` chained through `_cut_transpose` in the forward pass, so the backward pass
     is a few products (the autodiff graph of the cut and of the closed form's branches was
-    several times the forward's cost on the CPU)."""
-    return _lit_sum_values(n_gl, ua, ub, Ya, Yb, lo, hi, p)
+    several times the forward's cost on the CPU). `ref` (`_slab_centre`) carries no gradient."""
+    return _lit_sum_values(n_gl, ua, ub, Ya, Yb, lo, hi, ref, p)
 
 
-def _lit_sum_fwd(n_gl, ua, ub, Ya, Yb, lo, hi, p):
-    c = _cut(ua, ub, Ya, Yb, lo, hi)
+def _lit_sum_fwd(n_gl, ua, ub, Ya, Yb, lo, hi, ref, p):
+    c = _cut(ua, ub, Ya, Yb, lo, hi, ref)
     value, (d_ua, d_ub, d_Ya, d_Yb, d_p) = _piece_values(n_gl, c.ua, c.ub, c.Ya, c.Yb, p, True)
     partials = _cut_transpose(c, d_ua, d_ub, d_Ya, d_Yb)
-    return jnp.sum(value), (partials, tuple(jnp.sum(d) for d in d_p))
+    return jnp.sum(value), (partials, tuple(jnp.sum(d) for d in d_p), jnp.zeros_like(ref))
 
 
 def _lit_sum_bwd(n_gl, res, ct):
-    partials, d_p = res
-    return (*(ct * d for d in partials), tuple(ct * d for d in d_p))
+    partials, d_p, zero = res
+    *g_pieces, g_lo, g_hi = (ct * d for d in partials)
+    return (*g_pieces, g_lo, g_hi, zero, tuple(ct * d for d in d_p))
 
 
 _lit_sum.defvjp(_lit_sum_fwd, _lit_sum_bwd)
 
 
-def _area_sum_values(ua, ub, Ya, Yb, lo, hi):
+def _cut_values(ua, ub, Ya, Yb, lo, hi):
     c = _cut(ua, ub, Ya, Yb, lo, hi)
-    return jnp.sum((c.Ya + c.Yb) / 2 * (c.ub - c.ua))
+    return c.ua, c.ub, c.Ya, c.Yb
 
 
 @jax.custom_vjp
-def _area_sum(ua, ub, Ya, Yb, lo, hi):
-    """`∑ ∫ Y du` over the pieces cut to `[lo, hi]` (the area integral of Green's theorem), with
-    the hand-written reverse pass of `_lit_sum`."""
-    return _area_sum_values(ua, ub, Ya, Yb, lo, hi)
+def _cut_pieces(ua, ub, Ya, Yb, lo, hi):
+    """`_cut`'s pieces with its hand-written transpose (`_cut_transpose`) as the reverse pass."""
+    return _cut_values(ua, ub, Ya, Yb, lo, hi)
 
 
-def _area_sum_fwd(ua, ub, Ya, Yb, lo, hi):
+def _cut_pieces_fwd(ua, ub, Ya, Yb, lo, hi):
     c = _cut(ua, ub, Ya, Yb, lo, hi)
-    m = (c.Ya + c.Yb) / 2
-    half = (c.ub - c.ua) / 2
-    return jnp.sum(m * (c.ub - c.ua)), _cut_transpose(c, -m, m, half, half)
+    return (c.ua, c.ub, c.Ya, c.Yb), c
 
 
-def _area_sum_bwd(partials, ct):
-    return tuple(ct * d for d in partials)
+def _cut_pieces_bwd(c, g):
+    return _cut_transpose(c, *g)
 
 
-_area_sum.defvjp(_area_sum_fwd, _area_sum_bwd)
+_cut_pieces.defvjp(_cut_pieces_fwd, _cut_pieces_bwd)
 
 
 class _Groove(NamedTuple):
@@ -757,17 +776,22 @@ def _strip_frame(footprint, p0, p1):
     return t, b, L, q, x_c, _dot2(q, t), -y_c, L - y_c
 
 
-def within_length(footprint: Float[ArrayLike, "4 2"], p0: Float[ArrayLike, "2"],
-                  p1: Float[ArrayLike, "2"]) -> Array:
-    """Whether every vertex of `footprint` lies between the scratch's ends along it
-    (`0 <= y <= L`), computed as `pair_integral` computes it: then `pair_integral(...,
-    ends=False)` is exact. Jittable, vmappable; a scalar bool."""
-    footprint, p0, p1 = (jnp.asarray(v, _dtype(footprint, p0, p1)) for v in (footprint, p0, p1))
-    *_, y, y_lo, y_hi = _strip_frame(footprint, p0, p1)
-    return jnp.all((y >= y_lo) & (y <= y_hi))
+#: Boundary pieces per pair: the four footprint edges and the two chains (`_strip_pieces`).
+N_PIECES = 6
 
 
-def _groove(footprint, p0, p1, width, depth, ends: bool = True) -> _Groove:
+def _compact(pieces):
+    """The pieces that are not points first, in order, then points at the origin; and how many
+    are not points. `pieces`: `(ua, ub, Ya, Yb)`, each `(6,)`."""
+    ua, ub, Ya, Yb = pieces
+    keep = ~((ua == ub) & (Ya == Yb))
+    pos = jnp.cumsum(keep) - 1
+    sel = keep[None, :] & (pos[None, :] == jnp.arange(ua.shape[0])[:, None])  # slot <- piece
+    return (tuple(jnp.sum(jnp.where(sel, x[None, :], 0), axis=1) for x in pieces),
+            jnp.sum(keep, dtype=jnp.int32))
+
+
+def _groove(footprint, p0, p1, width, depth) -> _Groove:
     t, b, L, q, x_c, y, y_lo, y_hi = _strip_frame(footprint, p0, p1)
     u = (_dot2(q, b) + x_c) / width
     # Orientation of the footprint (so a clockwise quad also gives positive values).
@@ -775,11 +799,11 @@ def _groove(footprint, p0, p1, width, depth, ends: bool = True) -> _Groove:
     area2 = jnp.sum(q[:, 0] * qn[:, 1] - qn[:, 0] * q[:, 1])
     sign = jnp.where(area2 >= 0, 1, -1).astype(q.dtype)
     X = groove_half_width(width, depth) / width
-    return _Groove(u, y, y_lo, y_hi, sign, X, t, b, _strip_pieces(u, y, y_lo, y_hi, ends))
+    return _Groove(u, y, y_lo, y_hi, sign, X, t, b, _strip_pieces(u, y, y_lo, y_hi))
 
 
-def _view(G: _Groove, h):
-    """`(hx, hy, hz, u_lo, u_hi)`: the local components of the normalised half vector and the lit
+def _view(G, h):
+    """`(hx, hy, hz, u_lo, u_hi)` for a `_Groove` or `PairGeometry` `G`: the local components of the normalised half vector and the lit
     slab, `[-X, X]` cut to where `N > 0`."""
     hn = h / jnp.sqrt(h[0] * h[0] + h[1] * h[1] + h[2] * h[2])
     hx = hn[0] * G.b[0] + hn[1] * G.b[1]
@@ -791,9 +815,69 @@ def _view(G: _Groove, h):
     return hx, hy, hz, u_lo, u_hi
 
 
-def _as_inputs(h, footprint, p0, p1, width, depth, alpha):
-    dt = _dtype(h, footprint, p0, p1, width, depth, alpha)
-    return tuple(jnp.asarray(v, dt) for v in (h, footprint, p0, p1, width, depth, alpha))
+def _as_inputs(*xs):
+    dt = _dtype(*xs)
+    return tuple(jnp.asarray(v, dt) for v in xs)
+
+
+class PairGeometry(NamedTuple):
+    """The view-independent part of one pixel-scratch pair (`pair_geometry`), which every view's
+    `lit_integral` reads. Arrays in the inputs' dtype (`count`: int32); under `jax.vmap` each
+    field gains a leading pair axis."""
+
+    pieces: tuple  # (ua, ub, Ya, Yb), each (6,): the boundary of F ∩ groove, non-points first
+    count: Array  # how many pieces are not points (0 where the footprint misses the groove)
+    area: Array  # A = area(F ∩ groove), m^2
+    scale: Array  # -w * (footprint orientation sign), m
+    t: Array  # (2,) unit vector along the scratch
+    b: Array  # (2,) unit vector across the scratch
+    X: Array  # groove half-width in widths, x_max / w
+
+
+def _pair_geometry(footprint, p0, p1, width, depth, hand_vjp: bool = True) -> PairGeometry:
+    G = _groove(footprint, p0, p1, width, depth)
+    # Q's boundary cut to the groove, once per pair: the area, and the pieces every view cuts
+    # further to its lit slab (inside the groove), those that are not points first.
+    ua, ub, Ya, Yb = (_cut_pieces if hand_vjp else _cut_values)(*G.pieces, -G.X, G.X)
+    scale = -width * G.sign
+    area = scale * jnp.sum((Ya + Yb) / 2 * (ub - ua))
+    pieces, count = _compact((ua, ub, Ya, Yb))
+    return PairGeometry(pieces, count, area, scale, G.t, G.b, G.X)
+
+
+def pair_geometry(footprint: Float[ArrayLike, "4 2"], p0: Float[ArrayLike, "2"],
+                  p1: Float[ArrayLike, "2"], width: Float[ArrayLike, ""],
+                  depth: Float[ArrayLike, ""]) -> PairGeometry:
+    """Stage 1 of `pair_integral`, which no view changes: the footprint cut to the scratch's
+    length and to its groove, as `N_PIECES` boundary pieces with the `count` that are not points
+    first (typically two: the footprint edges the groove crosses), and the area `A`. Same
+    arguments as `pair_integral`; jittable, vmappable, differentiable (reverse mode)."""
+    return _pair_geometry(*_as_inputs(footprint, p0, p1, width, depth))
+
+
+def _lit_integral(geometry: PairGeometry, h, alpha, pieces: tuple, hand_vjp: bool = True):
+    start, stop = pieces
+    hx, hy, hz, u_lo, u_hi = _view(geometry, h)
+    lobe = _Lobe(hx, hy, hz, alpha)
+    # One re-centring of Y for all the pieces, so groups integrated apart add up (`_cut`).
+    ref = _slab_centre(*geometry.pieces, u_lo, u_hi)
+    part = tuple(x[start:stop] for x in geometry.pieces)
+    lit = (_lit_sum if hand_vjp else _lit_sum_values)(
+        _nodes(h.dtype), *part, u_lo, u_hi, ref, lobe.params())
+    return geometry.scale * lobe.pref * lit
+
+
+def lit_integral(geometry: PairGeometry, h: Float[ArrayLike, "3"], alpha: Float[ArrayLike, ""],
+                 *, pieces: tuple[int, int] = (0, N_PIECES)) -> Array:
+    """Stage 2 of `pair_integral`, per view: `D_hat` from `geometry` (`pair_geometry`) under the
+    half vector `h` with roughness `alpha`, in the geometry's dtype.
+
+    `pieces = (start, stop)` (static) integrates only the geometry's pieces `start..stop-1`:
+    the results over a partition of `0..N_PIECES` add up to `D_hat`, and a group starting at or
+    after `geometry.count` holds only points and is exactly zero, value and gradient, so a
+    renderer may skip it (`jscratch.render` does, chunk by chunk)."""
+    dt = geometry.area.dtype
+    return _lit_integral(geometry, jnp.asarray(h, dt), jnp.asarray(alpha, dt), tuple(pieces))
 
 
 def pair_integral(
@@ -804,8 +888,6 @@ def pair_integral(
     width: Float[ArrayLike, ""],
     depth: Float[ArrayLike, ""],
     alpha: Float[ArrayLike, ""],
-    *,
-    ends: bool = True,
 ) -> tuple[Float[Array, ""], Float[Array, ""]]:
     """Closed-form pair integral of SPEC section 3 for one footprint and one scratch.
 
@@ -815,34 +897,21 @@ def pair_integral(
     - `footprint`: `(4, 2)` convex quad, counter-clockwise, board metres.
     - `p0, p1`: `(2,)` scratch endpoints (m).
     - `width, depth`: scratch width `w` and depth `d` (m); `alpha`: GGX roughness in (0, 1).
-    - `ends` (static): `False` skips the two boundary pieces that only a footprint reaching past
-      a scratch end has (a third less work); exact where `within_length(footprint, p0, p1)`,
-      wrong elsewhere. A renderer sorts its pairs by that test (`jscratch.render`).
 
     **Returns:** `(D_hat, A)`: `∫∫_{F ∩ groove} D_x dx dy` and `area(F ∩ groove)`, both m^2, in the
-    dtype of the inputs.
+    dtype of the inputs. The same as `lit_integral(pair_geometry(footprint, ...), h, alpha)` and
+    that geometry's `area`: a renderer with several views computes the geometry once.
 
-    Reverse-mode derivatives are hand-written (`_lit_sum`, `_area_sum`); forward mode (`jax.jvp`) is
-    not available.
+    Reverse-mode derivatives are hand-written (`_lit_sum`, `_cut_pieces`); forward mode (`jax.jvp`)
+    is not available.
     """
-    return _pair_integral(h, footprint, p0, p1, width, depth, alpha, True, ends)
+    return _pair_integral(h, footprint, p0, p1, width, depth, alpha, True)
 
 
-def _pair_integral(h, footprint, p0, p1, width, depth, alpha, hand_vjp: bool, ends: bool = True):
+def _pair_integral(h, footprint, p0, p1, width, depth, alpha, hand_vjp: bool):
     h, footprint, p0, p1, width, depth, alpha = _as_inputs(h, footprint, p0, p1, width, depth, alpha)
-    G = _groove(footprint, p0, p1, width, depth, ends)
-    n_gl = _nodes(h.dtype)
-    hx, hy, hz, u_lo, u_hi = _view(G, h)
-    lobe = _Lobe(hx, hy, hz, alpha)
-    if hand_vjp:
-        lit = _lit_sum(n_gl, *G.pieces, u_lo, u_hi, lobe.params())
-        area = _area_sum(*G.pieces, -G.X, G.X)
-    else:
-        lit = _lit_sum_values(n_gl, *G.pieces, u_lo, u_hi, lobe.params())
-        area = _area_sum_values(*G.pieces, -G.X, G.X)
-    D_hat = -width * G.sign * lobe.pref * lit
-    A = -width * G.sign * area
-    return D_hat, A
+    geometry = _pair_geometry(footprint, p0, p1, width, depth, hand_vjp)
+    return _lit_integral(geometry, h, alpha, (0, N_PIECES), hand_vjp), geometry.area
 
 
 def _chord(u, y, y_lo, y_hi, uq):

@@ -36,12 +36,16 @@ gradients), so a gradient step also holds ``O(M H W + N + chunk)`` floats beyond
 Cost: the backward pass re-evaluates the forward kernel once (as `jax.checkpoint` would).
 Consequence: forward-mode autodiff (``jax.jvp``) is not available through `render_pairs`.
 
-**Work skipped.** Before the scans, each shard's pairs are sorted (stably, O(L)) into pairs whose
-footprint lies within their scratch's length (`ndf.within_length`), other pairs, and padding.
-Chunks of padding only are skipped (a pair list with spare capacity costs nothing for it), and
-the reverse pass evaluates chunks of the first group with `ndf.pair_integral(..., ends=False)`,
-which skips the scratch-end pieces those pairs do not have (a third of the kernel's pieces; most
-pairs of a scene are of this kind). The results are those of the full kernel.
+**Work skipped.** Before the scans, each shard's pairs are sorted (stably, O(L)) by class
+(`_pair_classes`): by how many of the `ndf.N_PIECES` boundary pieces of footprint ∩ groove
+are not points (`ndf.PairGeometry.count`: at most 2, 3, more), padding last. Per chunk the
+kernel computes each pair's view-independent geometry once (`ndf.pair_geometry`) and, per
+view, integrates the groups of pieces in `PIECE_GROUPS` that some pair of the chunk has
+(`ndf.lit_integral(..., pieces=group)`, the others are exactly zero); chunks of padding are
+not evaluated. Most pairs of a scene have two pieces (the footprint edges the groove crosses)
+where the general kernel integrates six. The decision is the kernel's own (the count it
+computes), so the sorting decides only the speed: the results are those of the full kernel
+whatever the layout.
 
 **Multiple devices.** Given a `jax.sharding.Mesh`, `render_pairs` shards the *pixel* axis
 over the mesh axes with `jax.shard_map`: the ``H*W`` pixels (row-major) are split into
@@ -73,6 +77,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import PartitionSpec
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from jscratch import ndf
 
 __all__ = [
     "DEFAULT_CHUNK",
@@ -600,7 +606,6 @@ class _Cfg(NamedTuple):
     per_view: bool  # pair outputs are (view, pixel): index v * P_pad + pixel; else pixel only
     need_D: bool
     need_A: bool
-    ends: bool = True  # evaluate the scratch-end pieces (`ndf.pair_integral`'s `ends`)
 
 
 def _board_of(cfg: _Cfg) -> Board:
@@ -614,14 +619,6 @@ def _footprint(cfg: _Cfg, xe, ye, pix):
     x0, x1, y0, y1 = xe[c], xe[c + 1], ye[r + 1], ye[r]
     return jnp.stack([jnp.stack([x0, y0]), jnp.stack([x1, y0]), jnp.stack([x1, y1]),
                       jnp.stack([x0, y1])])
-
-
-def _pair_kernel(cfg: _Cfg, xe, ye, p0, p1, w, d, a, h, pix):
-    """One (pixel, scratch) pair: ``(D_hat, A)`` from `ndf.pair_integral` (``cfg.ends``: see
-    its ``ends``). ``pix`` is the pixel index ``r*W + c``; the footprint is rebuilt from it."""
-    from jscratch import ndf
-
-    return ndf.pair_integral(h, _footprint(cfg, xe, ye, pix), p0, p1, w, d, a, ends=cfg.ends)
 
 
 def _split_index(cfg: _Cfg, out):
@@ -647,12 +644,17 @@ def _gather(params, h_loc, scr, local):
             h_loc.at[:, local].get(mode="clip"))
 
 
+#: Groups of `ndf.pair_geometry`'s pieces a chunk of pairs integrates apart: the first whenever
+#: the chunk has a valid pair, each later one only where some pair has more pieces than its start.
+PIECE_GROUPS = ((0, 2), (2, 3), (3, ndf.N_PIECES))
+
+
 def _masked_chunk(cfg: _Cfg, xe, ye, pix, valid, p0, p1, w, d, a, h):
     """Per-pair ``D_hat`` ``(V, chunk)`` (one row per view) and ``A`` ``(chunk,)`` for a chunk,
     zero on padding slots. Padding slots get a benign off-board dummy pair first (double-where),
-    so no value or gradient there can be NaN. ``h`` is ``(V, chunk, 3)``; the scratch geometry
-    and footprint are shared by the views (vmap keeps ``A``, which does not depend on ``h``,
-    unbatched)."""
+    so no value or gradient there can be NaN. ``h`` is ``(V, chunk, 3)``; the view-independent
+    geometry (`ndf.pair_geometry`, with ``A``) is computed once per pair, then each view
+    integrates the `PIECE_GROUPS` some pair of the chunk has (`lax.cond` on the chunk)."""
     dt = w.dtype
     v1 = valid[:, None]
     p0 = jnp.where(v1, p0, jnp.asarray([-1.0, -1.0], dt))
@@ -661,13 +663,27 @@ def _masked_chunk(cfg: _Cfg, xe, ye, pix, valid, p0, p1, w, d, a, h):
     d = jnp.where(valid, d, jnp.asarray(1e-4, dt))
     a = jnp.where(valid, a, jnp.asarray(0.5, dt))
     h = jnp.where(v1[None], h, jnp.asarray([0.0, 0.0, 1.0], dt))
-    kern = functools.partial(_pair_kernel, cfg, xe, ye)
-    over_pairs = jax.vmap(kern)
-    D, A = jax.vmap(over_pairs, in_axes=(None, None, None, None, None, 0, None))(
-        p0, p1, w, d, a, h, pix)
-    A = A[0]  # A does not depend on h: vmap left it unbatched and XLA folds the broadcast
+    footprints = jax.vmap(functools.partial(_footprint, cfg, xe, ye))(pix)
+    geometry = jax.vmap(ndf.pair_geometry)(footprints, p0, p1, w, d)
     zero = jnp.zeros((), dt)
-    return jnp.where(valid[None], D, zero), jnp.where(valid, A, zero)
+    A = jnp.where(valid, geometry.area, zero)
+    if not cfg.need_D:
+        return jnp.zeros(h.shape[:2], dt), A
+    count = jnp.where(valid, geometry.count, 0)
+
+    def group(pieces):
+        lit = functools.partial(ndf.lit_integral, pieces=pieces)
+        over_views = jax.vmap(jax.vmap(lit), in_axes=(None, 0, None))
+        return lambda: over_views(geometry, h, a)
+
+    D = None
+    for start, stop in PIECE_GROUPS:
+        if D is None:
+            D = group((start, stop))()
+        else:  # exactly zero for pairs with at most `start` pieces: skipped if all are
+            D = D + jax.lax.cond(jnp.any(count > start), group((start, stop)),
+                                 lambda: jnp.zeros_like(D))
+    return jnp.where(valid[None], D, zero), A
 
 
 def _edges_in(cfg: _Cfg, dtype):
@@ -692,25 +708,18 @@ def _flat_h(cfg: _Cfg, h_loc):
     return h_loc.reshape(1, -1, 3) if cfg.per_view else h_loc
 
 
-def _chunk_kind(valid, inner):
-    """Which evaluation a chunk needs: 0 none (padding only), 1 `ndf.pair_integral` without the
-    scratch-end pieces (every valid pair within its scratch's length), 2 the full kernel."""
-    return jnp.where(~jnp.any(valid), 0, jnp.where(jnp.all(inner | ~valid), 1, 2))
-
-
-def _fwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, inner):
+def _fwd_local(cfg: _Cfg, params, h_loc, out, scr, valid):
     """This shard's sums: ``D`` ``(M, Pb)`` and ``A`` ``(1 or M, Pb)`` over its pairs."""
     dt = params[2].dtype
     xe, ye = _edges_in(cfg, dt)
     h_rows = _flat_h(cfg, h_loc)
     V, n_loc = h_rows.shape[:2]
 
-    def add_chunk(ends, carry, xs):
+    def add_chunk(carry, xs):
         Ds, As = carry
-        oc, sc, vc, _ = xs
+        oc, sc, vc = xs
         pix, local = _split_index(cfg, oc)
-        D, A = _masked_chunk(cfg._replace(ends=ends), xe, ye, pix, vc,
-                             *_gather(params, h_rows, sc, local))
+        D, A = _masked_chunk(cfg, xe, ye, pix, vc, *_gather(params, h_rows, sc, local))
         if cfg.need_D:
             Ds = Ds.at[:, local].add(D, mode="drop")
         if cfg.need_A:
@@ -718,18 +727,15 @@ def _fwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, inner):
         return Ds, As
 
     def body(carry, xs):
-        # Chunks of padding only (`_sort_pairs` puts them last) are skipped. The values use the
-        # full kernel everywhere: measured, its forward is faster here than the kernel without
-        # scratch-end pieces (whose gain is in the reverse pass, `_bwd_local`).
-        return jax.lax.cond(jnp.any(xs[2]), functools.partial(add_chunk, True),
-                            lambda c, _: c, carry, xs), None
+        # Chunks of padding only (`_sort_pairs` puts them last) are skipped.
+        return jax.lax.cond(jnp.any(xs[2]), add_chunk, lambda c, _: c, carry, xs), None
 
     init = _varying(cfg, (jnp.zeros((V, n_loc), dt), jnp.zeros((n_loc,), dt)))
-    (Ds, As), _ = jax.lax.scan(body, init, _chunks(cfg, out, scr, valid, inner))
+    (Ds, As), _ = jax.lax.scan(body, init, _chunks(cfg, out, scr, valid))
     return Ds.reshape(-1, cfg.Pb), As.reshape(-1, cfg.Pb)
 
 
-def _bwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, inner, gD, gA):
+def _bwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, gD, gA):
     dt = params[2].dtype
     xe, ye = _edges_in(cfg, dt)
     h_rows = _flat_h(cfg, h_loc)
@@ -738,13 +744,13 @@ def _bwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, inner, gD, gA):
     # Differentiate only the outputs the caller uses, so XLA does no dead reverse work.
     pick = [i for i, need in enumerate((cfg.need_D, cfg.need_A)) if need]
 
-    def add_chunk(ends, carry, xs):
+    def add_chunk(carry, xs):
         gp0, gp1, gw, gd, ga, gh = carry
-        oc, sc, vc, _ = xs
+        oc, sc, vc = xs
         pix, local = _split_index(cfg, oc)
 
         def f(*gathered):
-            out = _masked_chunk(cfg._replace(ends=ends), xe, ye, pix, vc, *gathered)
+            out = _masked_chunk(cfg, xe, ye, pix, vc, *gathered)
             return tuple(out[i] for i in pick)
 
         _, vjp = jax.vjp(f, *_gather(params, h_rows, sc, local))
@@ -760,13 +766,11 @@ def _bwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, inner, gD, gA):
         return gp0, gp1, gw, gd, ga, gh
 
     def body(carry, xs):
-        branches = (lambda c, _: c, functools.partial(add_chunk, False),
-                    functools.partial(add_chunk, True))
-        return jax.lax.switch(_chunk_kind(xs[2], xs[3]), branches, carry, xs), None
+        return jax.lax.cond(jnp.any(xs[2]), add_chunk, lambda c, _: c, carry, xs), None
 
     # (zeros_like of the device-local half vectors is already device-varying)
     init = _varying(cfg, tuple(jnp.zeros_like(x) for x in params)) + (jnp.zeros_like(h_rows),)
-    grads, _ = jax.lax.scan(body, init, _chunks(cfg, out, scr, valid, inner))
+    grads, _ = jax.lax.scan(body, init, _chunks(cfg, out, scr, valid))
     dparams = grads[:5]
     if cfg.mesh is not None:  # parameters are replicated: their gradient sums over all shards
         dparams = jax.lax.psum(dparams, cfg.axes)
@@ -790,29 +794,28 @@ _REP, _PIX, _PAIRS, _HV = (), (None, "p"), ("p",), (None, "p", None)
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
-def _pair_sums(cfg: _Cfg, params, h_views, out, scr, valid, inner):
+def _pair_sums(cfg: _Cfg, params, h_views, out, scr, valid):
     """Per-pixel sums over the pairs: ``sum D_hat`` ``(M, P_pad)`` and ``sum A``
     ``(1 or M, P_pad)``; ``h_views`` ``(M, P_pad, 3)``. ``out, scr, valid`` ``(L,)``: ``n_shards``
     equal segments, segment ``s`` holding only pairs of pixels ``[s Pb, (s+1) Pb)``, each a
-    multiple of ``chunk`` long and sorted by `_sort_pairs`; ``inner`` ``(L,)`` marks the valid
-    pairs within their scratch's length (`_within_length`)."""
+    multiple of ``chunk`` long (in any order; `_sort_pairs`' order is the fast one)."""
     fn = _maybe_shard(cfg, functools.partial(_fwd_local, cfg),
-                      (_REP, _HV, _PAIRS, _PAIRS, _PAIRS, _PAIRS), (_PIX, _PIX))
-    return fn(params, h_views, out, scr, valid, inner)
+                      (_REP, _HV, _PAIRS, _PAIRS, _PAIRS), (_PIX, _PIX))
+    return fn(params, h_views, out, scr, valid)
 
 
-def _pair_sums_fwd(cfg, params, h_views, out, scr, valid, inner):
-    res = (params, h_views, out, scr, valid, inner)
+def _pair_sums_fwd(cfg, params, h_views, out, scr, valid):
+    res = (params, h_views, out, scr, valid)
     return _pair_sums(cfg, *res), res
 
 
 def _pair_sums_bwd(cfg, res, g):
-    params, h_views, out, scr, valid, inner = res
+    params, h_views, out, scr, valid = res
     gD, gA = g
     fn = _maybe_shard(cfg, functools.partial(_bwd_local, cfg),
-                      (_REP, _HV, _PAIRS, _PAIRS, _PAIRS, _PAIRS, _PIX, _PIX), (_REP, _HV))
-    dparams, dh = fn(params, h_views, out, scr, valid, inner, gD, gA)
-    return dparams, dh, None, None, None, None
+                      (_REP, _HV, _PAIRS, _PAIRS, _PAIRS, _PIX, _PIX), (_REP, _HV))
+    dparams, dh = fn(params, h_views, out, scr, valid, gD, gA)
+    return dparams, dh, None, None, None
 
 
 _pair_sums.defvjp(_pair_sums_fwd, _pair_sums_bwd)
@@ -842,48 +845,48 @@ def _pixels_per_shard(board: Board, shards: int) -> int:
     return -(-board.H // shards) * board.W
 
 
-def _within_length(cfg: _Cfg, params, out, scr, valid):
-    """Per pair: valid, and its footprint within its scratch's length (`ndf.within_length`:
-    `ndf.pair_integral` may then skip the scratch-end pieces)."""
-    from jscratch import ndf
-
-    p0, p1 = params[0], params[1]
+def _pair_classes(cfg: _Cfg, params, out, scr, valid):
+    """Per pair, how many of `PIECE_GROUPS` its footprint needs (``1 + #{groups after the first
+    whose start is below ndf.PairGeometry.count}``), 0 for padding; int8. Only the order of the
+    evaluation depends on it (`_sort_pairs`), not the results."""
+    p0, p1, w, d = params[:4]
     xe, ye = _edges_in(cfg, p0.dtype)
     P_pad = cfg.Pb * _n_shards(cfg.mesh, cfg.axes)
 
-    def test(args):
+    def count(args):
         out, scr = args
         pix = jnp.minimum(out % P_pad if cfg.per_view else out, cfg.H * cfg.W - 1)
         take = lambda x: x.at[scr].get(mode="clip")
-        return ndf.within_length(_footprint(cfg, xe, ye, pix), take(p0), take(p1))
+        return ndf.pair_geometry(_footprint(cfg, xe, ye, pix), take(p0), take(p1), take(w),
+                                 take(d)).count.astype(jnp.int8)
 
     # (chunk by chunk: no per-pair footprint array is materialised)
-    inner = jax.lax.map(test, (out, scr), batch_size=cfg.chunk)
-    return jax.lax.stop_gradient(valid & inner)
+    n = jax.lax.map(count, (out, scr), batch_size=cfg.chunk)
+    klass = 1 + sum((n > start).astype(jnp.int8) for start, _ in PIECE_GROUPS[1:])
+    return jax.lax.stop_gradient(jnp.where(valid, klass, 0).astype(jnp.int8))
 
 
-def _sort_pairs(out, scr, valid, inner, shards: int):
-    """Each shard's segment of the pair list in three groups, each in its own order (a stable
-    partition, O(L)): valid pairs within their scratch's length, other valid pairs, padding.
-    Chunks then mostly hold one group: padding chunks are skipped and chunks of the first group
-    use the kernel without scratch-end pieces (`_chunk_kind`). A pair list built with spare
-    capacity (`bvh.build_pairs`, per-view culled lists) otherwise costs a full kernel evaluation
-    per padding slot, and every chunk the scratch-end pieces that few pairs have."""
+def _sort_pairs(out, scr, valid, klass, shards: int):
+    """Each shard's segment of the pair list grouped by class (`_pair_classes`: 1, 2, ..., then
+    0, the padding), each group in its own order (a stable partition, O(L)). Chunks then mostly
+    hold one class: chunks of padding are skipped and the others integrate only the groups of
+    pieces their pairs have (`_masked_chunk`). A pair list built with spare capacity
+    (`bvh.build_pairs`, per-view culled lists) otherwise costs a full kernel evaluation per
+    padding slot, and every pair the six pieces that few pairs have."""
     L = out.shape[0]
     Ls = L // shards
     # (a barrier: a pair list closed over as a constant would otherwise be folded at compile time)
-    valid, inner = jax.lax.optimization_barrier((valid, inner))
-    groups = (inner, valid & ~inner, ~valid)
+    klass = jax.lax.optimization_barrier(klass)
     pos = jnp.zeros((shards, Ls), jnp.int32)
     start = jnp.zeros((shards, 1), jnp.int32)
-    for g in groups:
-        g = g.reshape(shards, Ls)
+    for c in (*range(1, len(PIECE_GROUPS) + 1), 0):
+        g = (klass == c).reshape(shards, Ls)
         pos = jnp.where(g, start + jnp.cumsum(g, axis=1, dtype=jnp.int32) - 1, pos)
         start = start + jnp.sum(g, axis=1, keepdims=True, dtype=jnp.int32)
     pos = (pos + (jnp.arange(shards, dtype=jnp.int32) * Ls)[:, None]).reshape(-1)
     source = jnp.zeros((L,), jnp.int32).at[pos].set(jnp.arange(L, dtype=jnp.int32),
                                                       unique_indices=True)
-    return out[source], scr[source], valid[source], inner[source]
+    return out[source], scr[source], valid[source]
 
 
 def _run_pair_sums(scratches: Scratches, board: Board, h_views, out, scr, valid, *, per_view,
@@ -911,9 +914,9 @@ def _run_pair_sums(scratches: Scratches, board: Board, h_views, out, scr, valid,
     cfg = _Cfg(board.H, board.W, board.Sx, board.Sy, chunk, mesh, axes, Pb, per_view, need_D,
                need_A)
     params = (scratches.p0, scratches.p1, scratches.width, scratches.depth, scratches.alpha)
-    inner = _within_length(cfg, params, out, scr, valid)
-    out, scr, valid, inner = _sort_pairs(out, scr, valid, inner, shards)
-    Ds, As = _pair_sums(cfg, params, h_views, out, scr, valid, inner)
+    klass = _pair_classes(cfg, params, out, scr, valid)
+    out, scr, valid = _sort_pairs(out, scr, valid, klass, shards)
+    Ds, As = _pair_sums(cfg, params, h_views, out, scr, valid)
     return Ds[:, :P], As[:, :P]
 
 
@@ -1266,7 +1269,6 @@ def render_reference(scratches: Scratches, views: Views, board: Board, *,
 
     **Returns:** radiance ``(M, H, W)`` (W/(sr m^2)).
     """
-    from jscratch import ndf
 
     dtype = scratches.dtype
     scratches, views = _check_values(scratches, views)

@@ -48,8 +48,13 @@ def _scene(dtype=jnp.float64, seed=4):
 # LLVM optimisation buys nothing on scenes this small (same results, 3x faster compiles).
 FAST = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
 
+# Pairs per chunk of the reference and gradient tests: small enough that the test scene's pairs,
+# sorted by class, fill chunks needing different piece budgets (see
+# `test_gradient_tests_run_several_piece_budgets`), so every kernel variant is checked.
+CHUNK = 32
+
 _ref = jax.jit(lambda s, v: R.render_reference(s, v, BOARD), compiler_options=FAST)
-_fwd = jax.jit(lambda s, v, pairs: R.render_pairs(s, v, BOARD, pairs, chunk=64),
+_fwd = jax.jit(lambda s, v, pairs: R.render_pairs(s, v, BOARD, pairs, chunk=CHUNK),
                compiler_options=FAST)
 
 
@@ -173,7 +178,7 @@ def _loss_weights(dtype):
 
 def _objective(sv, pairs, weights, mesh=None):
     s, v = sv
-    rad = R.render_pairs(s, v, BOARD, pairs, chunk=64, mesh=mesh)
+    rad = R.render_pairs(s, v, BOARD, pairs, chunk=CHUNK, mesh=mesh)
     return jnp.sum(weights * rad) / rad.size, rad
 
 
@@ -304,20 +309,22 @@ def test_sharded_per_view_lists_and_layout_check():
                                               full1.valid[:-1], full1.overflow), mesh=mesh)
 
 
-def test_chunks_of_pairs_within_length_use_the_kernel_without_end_pieces():
-    """The gradient tests above run both evaluations: the scene's pairs, sorted by
-    `render._sort_pairs`, fill at least one chunk of 64 with pairs within their scratch's length
-    (evaluated without the scratch-end pieces) and at least one with others."""
+def test_gradient_tests_run_chunks_with_several_groups_of_pieces():
+    """The reference and gradient tests above evaluate chunks with different groups of pieces
+    (`render.PIECE_GROUPS`): the scene's pairs, sorted by class (`render._sort_pairs`), fill
+    chunks of `CHUNK` where only the first group is integrated and chunks where more are."""
     s, v = _scene()
     pairs = _pairs(s)
-    cfg = R._Cfg(BOARD.H, BOARD.W, BOARD.Sx, BOARD.Sy, 64, None, (), BOARD.n_pixels, False,
+    cfg = R._Cfg(BOARD.H, BOARD.W, BOARD.Sx, BOARD.Sy, CHUNK, None, (), BOARD.n_pixels, False,
                  True, True)
     params = (s.p0, s.p1, s.width, s.depth, s.alpha)
-    inner = R._within_length(cfg, params, pairs.pixel, pairs.scratch, pairs.valid)
-    _, _, valid, inner = R._sort_pairs(pairs.pixel, pairs.scratch, pairs.valid, inner, 1)
-    kinds = [int(R._chunk_kind(valid[i:i + 64], inner[i:i + 64]))
-             for i in range(0, valid.shape[0], 64)]
-    assert kinds.count(1) >= 1 and kinds.count(2) >= 1, kinds
+    klass = R._pair_classes(cfg, params, pairs.pixel, pairs.scratch, pairs.valid)
+    _, _, valid = R._sort_pairs(pairs.pixel, pairs.scratch, pairs.valid, klass, 1)
+    klass = np.sort(np.asarray(klass))  # the sorted order: classes 1, 2, 3, then padding (0)
+    klass = np.concatenate([klass[klass > 0], klass[klass == 0]])
+    assert np.array_equal(klass > 0, np.asarray(valid))
+    groups = {int(klass[i:i + CHUNK].max()) for i in range(0, klass.shape[0], CHUNK)}
+    assert 1 in groups and len(groups - {0, 1}) >= 1, groups
 
 
 def test_gradients_f32_finite_on_stress_scene():
@@ -340,7 +347,12 @@ def test_gradient_memory_does_not_grow_with_pairs(monkeypatch):
             z = jnp.sin(z) * w + jnp.exp(-z * z)
         return z, jnp.cos(z)
 
-    monkeypatch.setattr(R, "_pair_kernel", kernel)
+    def chunk(cfg, xe, ye, pix, valid, p0, p1, w, d, a, h):
+        per_pair = jax.vmap(functools.partial(kernel, cfg, xe, ye))
+        D, A = jax.vmap(per_pair, in_axes=(None,) * 5 + (0, None))(p0, p1, w, d, a, h, pix)
+        return jnp.where(valid, D, 0), jnp.where(valid, A[0], 0)
+
+    monkeypatch.setattr(R, "_masked_chunk", chunk)
     s, v = _scene(jnp.float32)
     wts = _loss_weights(jnp.float32)
 
