@@ -13,8 +13,8 @@ alpha``) under a half vector ``h`` give
   float32 and float64 (it follows the dtype of its inputs).
 - Its two stages, for renderers with several views: `pair_geometry(footprint, p0, p1, width,
   depth) -> PairGeometry` (no view changes it: `A` and the boundary pieces, non-points first,
-  with their `count`), and `lit_integral(geometry, h, alpha, *, pieces=(start, stop))` per view,
-  which may integrate a group of the pieces only: a group at or past `count` is exactly zero.
+  with their `count`), and `lit_integral(geometry, h, alpha, *, pieces=k)` per view, which may
+  integrate the first `k` pieces only: exact where `count <= k`, and that much less work.
 - `pair_integral_quadrature(h, footprint, p0, p1, width, depth, alpha, n)`: the same integral by
   ``n``-point Gauss-Legendre quadrature of the chord-length form ``∫ chord(x) D_x(x) dx`` over the
   lit part of the groove. Independent of the boundary machinery; the comparison point of the
@@ -67,8 +67,8 @@ since ``∂Y/∂y`` is the indicator of ``0 <= y <= L``. The slab ``[u_lo, u_hi]
    moved to the front (`_compact`, `PairGeometry.count`; typically two: the footprint edges the
    groove crosses), are what every view integrates.
 2. *Per view* (`lit_integral`, `_lit_sum`): the pieces clamped to the lit slab, which lies
-   inside the groove, and integrated; a renderer that sorts its pairs by `count` integrates
-   only the groups of pieces a chunk of pairs has (`jscratch.render`).
+   inside the groove, and integrated; a renderer integrates only the first pieces, as many as
+   the largest `count` of a chunk of pairs (`jscratch.render`, which sorts pairs by `count`).
 
 Six pieces per pair, whatever the footprint-groove configuration (all eight types of the
 paper's Fig. 7, and footprints larger or smaller than the groove). ``y_ref`` (the mean ``y`` of
@@ -615,15 +615,7 @@ def _centre(ca, cb, Ya, Yb):
     return sg(jnp.where(sw > 0, jnp.sum(wgt * (Ya + Yb) / 2) / jnp.where(sw > 0, sw, 1), 0))
 
 
-def _slab_centre(ua, ub, Ya, Yb, lo, hi):
-    """`_cut`'s re-centring constant of all the pieces, so that pieces integrated in separate
-    groups (`lit_integral`'s `pieces`) share it: values only, no gradient."""
-    sg = jax.lax.stop_gradient
-    c = _cut(*(sg(x) for x in (ua, ub, Ya, Yb, lo, hi)), ref=jnp.zeros((), ua.dtype))
-    return _centre(c.ua, c.ub, c.Ya, c.Yb)
-
-
-def _cut(ua, ub, Ya, Yb, lo, hi, ref=None) -> _Cut:
+def _cut(ua, ub, Ya, Yb, lo, hi) -> _Cut:
     """The pieces of `_strip_pieces` cut to the slab `lo <= u <= hi` (the part a view lights, or
     the whole groove): each end clamped into the slab, `Y` where the piece crosses a bound; a
     piece outside the slab becomes a point. Then `Y` is re-centred on the cut region (a constant
@@ -657,8 +649,7 @@ def _cut(ua, ub, Ya, Yb, lo, hi, ref=None) -> _Cut:
     point = jnp.where(nz, ca == cb, moved_a)
     cb = jnp.where(point, ca, cb)
     Yb2 = jnp.where(point, Ya2, Yb2)
-    if ref is None:
-        ref = _centre(ca, cb, Ya2, Yb2)
+    ref = _centre(ca, cb, Ya2, Yb2)
     return _Cut(ca, cb, Ya2 - ref, Yb2 - ref, ta, tb, ta_free, tb_free, lo_a, hi_a, lo_b, hi_b,
                 point, dY, inv_du)
 
@@ -691,32 +682,31 @@ def _cut_transpose(c: _Cut, g_ca, g_cb, g_Ya, g_Yb):
     return g_ua, g_ub, g_Ya0, g_Yb0, g_lo, g_hi
 
 
-def _lit_sum_values(n_gl, ua, ub, Ya, Yb, lo, hi, ref, p):
-    c = _cut(ua, ub, Ya, Yb, lo, hi, ref)
+def _lit_sum_values(n_gl, ua, ub, Ya, Yb, lo, hi, p):
+    c = _cut(ua, ub, Ya, Yb, lo, hi)
     return jnp.sum(_piece_values(n_gl, c.ua, c.ub, c.Ya, c.Yb, p, False))
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
-def _lit_sum(n_gl, ua, ub, Ya, Yb, lo, hi, ref, p):
-    """`∑ ∫ (Y - ref) (F1 + F2) du` over boundary pieces cut to the lit slab `[lo, hi]`, lobe
+def _lit_sum(n_gl, ua, ub, Ya, Yb, lo, hi, p):
+    """`∑ ∫ Y (F1 + F2) du` over boundary pieces cut to the lit slab `[lo, hi]`, lobe
     parameters `p` (`_Lobe.params`), with a hand-written reverse pass: the piece partials of
     `_piece_values` chained through `_cut_transpose` in the forward pass, so the backward pass
     is a few products (the autodiff graph of the cut and of the closed form's branches was
-    several times the forward's cost on the CPU). `ref` (`_slab_centre`) carries no gradient."""
-    return _lit_sum_values(n_gl, ua, ub, Ya, Yb, lo, hi, ref, p)
+    several times the forward's cost on the CPU)."""
+    return _lit_sum_values(n_gl, ua, ub, Ya, Yb, lo, hi, p)
 
 
-def _lit_sum_fwd(n_gl, ua, ub, Ya, Yb, lo, hi, ref, p):
-    c = _cut(ua, ub, Ya, Yb, lo, hi, ref)
+def _lit_sum_fwd(n_gl, ua, ub, Ya, Yb, lo, hi, p):
+    c = _cut(ua, ub, Ya, Yb, lo, hi)
     value, (d_ua, d_ub, d_Ya, d_Yb, d_p) = _piece_values(n_gl, c.ua, c.ub, c.Ya, c.Yb, p, True)
     partials = _cut_transpose(c, d_ua, d_ub, d_Ya, d_Yb)
-    return jnp.sum(value), (partials, tuple(jnp.sum(d) for d in d_p), jnp.zeros_like(ref))
+    return jnp.sum(value), (partials, tuple(jnp.sum(d) for d in d_p))
 
 
 def _lit_sum_bwd(n_gl, res, ct):
-    partials, d_p, zero = res
-    *g_pieces, g_lo, g_hi = (ct * d for d in partials)
-    return (*g_pieces, g_lo, g_hi, zero, tuple(ct * d for d in d_p))
+    partials, d_p = res
+    return (*(ct * d for d in partials), tuple(ct * d for d in d_p))
 
 
 _lit_sum.defvjp(_lit_sum_fwd, _lit_sum_bwd)
@@ -855,29 +845,26 @@ def pair_geometry(footprint: Float[ArrayLike, "4 2"], p0: Float[ArrayLike, "2"],
     return _pair_geometry(*_as_inputs(footprint, p0, p1, width, depth))
 
 
-def _lit_integral(geometry: PairGeometry, h, alpha, pieces: tuple, hand_vjp: bool = True):
-    start, stop = pieces
+def _lit_integral(geometry: PairGeometry, h, alpha, pieces: int, hand_vjp: bool = True):
     hx, hy, hz, u_lo, u_hi = _view(geometry, h)
     lobe = _Lobe(hx, hy, hz, alpha)
-    # One re-centring of Y for all the pieces, so groups integrated apart add up (`_cut`).
-    ref = _slab_centre(*geometry.pieces, u_lo, u_hi)
-    part = tuple(x[start:stop] for x in geometry.pieces)
+    first = tuple(x[:pieces] for x in geometry.pieces)
     lit = (_lit_sum if hand_vjp else _lit_sum_values)(
-        _nodes(h.dtype), *part, u_lo, u_hi, ref, lobe.params())
+        _nodes(h.dtype), *first, u_lo, u_hi, lobe.params())
     return geometry.scale * lobe.pref * lit
 
 
 def lit_integral(geometry: PairGeometry, h: Float[ArrayLike, "3"], alpha: Float[ArrayLike, ""],
-                 *, pieces: tuple[int, int] = (0, N_PIECES)) -> Array:
+                 *, pieces: int = N_PIECES) -> Array:
     """Stage 2 of `pair_integral`, per view: `D_hat` from `geometry` (`pair_geometry`) under the
     half vector `h` with roughness `alpha`, in the geometry's dtype.
 
-    `pieces = (start, stop)` (static) integrates only the geometry's pieces `start..stop-1`:
-    the results over a partition of `0..N_PIECES` add up to `D_hat`, and a group starting at or
-    after `geometry.count` holds only points and is exactly zero, value and gradient, so a
-    renderer may skip it (`jscratch.render` does, chunk by chunk)."""
+    `pieces` (static, 0..`N_PIECES`) integrates only the geometry's first `pieces` pieces:
+    exact, in value and gradient, wherever `geometry.count <= pieces` (the others are points,
+    which contribute exactly nothing), and wrong elsewhere; the cost is about proportional to
+    `pieces`. A renderer picks it per chunk of pairs from their counts (`jscratch.render`)."""
     dt = geometry.area.dtype
-    return _lit_integral(geometry, jnp.asarray(h, dt), jnp.asarray(alpha, dt), tuple(pieces))
+    return _lit_integral(geometry, jnp.asarray(h, dt), jnp.asarray(alpha, dt), int(pieces))
 
 
 def pair_integral(
@@ -911,7 +898,7 @@ def pair_integral(
 def _pair_integral(h, footprint, p0, p1, width, depth, alpha, hand_vjp: bool):
     h, footprint, p0, p1, width, depth, alpha = _as_inputs(h, footprint, p0, p1, width, depth, alpha)
     geometry = _pair_geometry(footprint, p0, p1, width, depth, hand_vjp)
-    return _lit_integral(geometry, h, alpha, (0, N_PIECES), hand_vjp), geometry.area
+    return _lit_integral(geometry, h, alpha, N_PIECES, hand_vjp), geometry.area
 
 
 def _chord(u, y, y_lo, y_hi, uq):

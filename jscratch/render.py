@@ -39,13 +39,13 @@ Consequence: forward-mode autodiff (``jax.jvp``) is not available through `rende
 **Work skipped.** Before the scans, each shard's pairs are sorted (stably, O(L)) by class
 (`_pair_classes`): by how many of the `ndf.N_PIECES` boundary pieces of footprint ∩ groove
 are not points (`ndf.PairGeometry.count`: at most 2, 3, more), padding last. Per chunk the
-kernel computes each pair's view-independent geometry once (`ndf.pair_geometry`) and, per
-view, integrates the groups of pieces in `PIECE_GROUPS` that some pair of the chunk has
-(`ndf.lit_integral(..., pieces=group)`, the others are exactly zero); chunks of padding are
-not evaluated. Most pairs of a scene have two pieces (the footprint edges the groove crosses)
-where the general kernel integrates six. The decision is the kernel's own (the count it
-computes), so the sorting decides only the speed: the results are those of the full kernel
-whatever the layout.
+kernel computes each pair's view-independent geometry once (`ndf.pair_geometry`) and then, per
+view, integrates only the first `k` pieces (`ndf.lit_integral(..., pieces=k)`), `k` the
+smallest of `PIECE_BUDGETS` that holds every count of the chunk (one `lax.switch` branch per
+budget, forward and reverse); chunks of padding are not evaluated. Most pairs of a scene have
+two pieces (the footprint edges the groove crosses) where the general kernel integrates six.
+The budget is chosen from the counts the kernel computes itself, so the sorting decides only
+the speed: the results are those of the full kernel whatever the layout.
 
 **Multiple devices.** Given a `jax.sharding.Mesh`, `render_pairs` shards the *pixel* axis
 over the mesh axes with `jax.shard_map`: the ``H*W`` pixels (row-major) are split into
@@ -644,46 +644,44 @@ def _gather(params, h_loc, scr, local):
             h_loc.at[:, local].get(mode="clip"))
 
 
-#: Groups of `ndf.pair_geometry`'s pieces a chunk of pairs integrates apart: the first whenever
-#: the chunk has a valid pair, each later one only where some pair has more pieces than its start.
-PIECE_GROUPS = ((0, 2), (2, 3), (3, ndf.N_PIECES))
+#: Piece budgets (`ndf.lit_integral`'s `pieces`): a chunk of pairs is integrated with the
+#: smallest budget that holds the largest `ndf.PairGeometry.count` among its valid pairs.
+PIECE_BUDGETS = (2, 3, ndf.N_PIECES)
 
 
-def _masked_chunk(cfg: _Cfg, xe, ye, pix, valid, p0, p1, w, d, a, h):
-    """Per-pair ``D_hat`` ``(V, chunk)`` (one row per view) and ``A`` ``(chunk,)`` for a chunk,
-    zero on padding slots. Padding slots get a benign off-board dummy pair first (double-where),
-    so no value or gradient there can be NaN. ``h`` is ``(V, chunk, 3)``; the view-independent
-    geometry (`ndf.pair_geometry`, with ``A``) is computed once per pair, then each view
-    integrates the `PIECE_GROUPS` some pair of the chunk has (`lax.cond` on the chunk)."""
+def _chunk_geometry(cfg: _Cfg, xe, ye, pix, valid, p0, p1, w, d):
+    """`ndf.pair_geometry` of a chunk's pairs (fields with a leading ``(chunk,)`` axis, ``count``
+    set to ``None``) and the budget index (`PIECE_BUDGETS`) its valid pairs' counts need.
+    Padding slots get a benign off-board dummy pair first (double-where), so no value or
+    gradient there can be NaN; their counts are ignored."""
     dt = w.dtype
     v1 = valid[:, None]
     p0 = jnp.where(v1, p0, jnp.asarray([-1.0, -1.0], dt))
     p1 = jnp.where(v1, p1, jnp.asarray([-0.99, -1.0], dt))
     w = jnp.where(valid, w, jnp.asarray(1e-4, dt))
     d = jnp.where(valid, d, jnp.asarray(1e-4, dt))
-    a = jnp.where(valid, a, jnp.asarray(0.5, dt))
-    h = jnp.where(v1[None], h, jnp.asarray([0.0, 0.0, 1.0], dt))
     footprints = jax.vmap(functools.partial(_footprint, cfg, xe, ye))(pix)
     geometry = jax.vmap(ndf.pair_geometry)(footprints, p0, p1, w, d)
-    zero = jnp.zeros((), dt)
-    A = jnp.where(valid, geometry.area, zero)
-    if not cfg.need_D:
-        return jnp.zeros(h.shape[:2], dt), A
-    count = jnp.where(valid, geometry.count, 0)
+    most = jnp.max(jnp.where(valid, geometry.count, 0))
+    budget = sum((most > k).astype(jnp.int32) for k in PIECE_BUDGETS[:-1])
+    return geometry._replace(count=None), budget
 
-    def group(pieces):
-        lit = functools.partial(ndf.lit_integral, pieces=pieces)
-        over_views = jax.vmap(jax.vmap(lit), in_axes=(None, 0, None))
-        return lambda: over_views(geometry, h, a)
 
-    D = None
-    for start, stop in PIECE_GROUPS:
-        if D is None:
-            D = group((start, stop))()
-        else:  # exactly zero for pairs with at most `start` pieces: skipped if all are
-            D = D + jax.lax.cond(jnp.any(count > start), group((start, stop)),
-                                 lambda: jnp.zeros_like(D))
-    return jnp.where(valid[None], D, zero), A
+def _chunk_lit(pieces: int, geometry, valid, a, h):
+    """Per-pair ``D_hat`` ``(V, chunk)``, one row per view of ``h`` ``(V, chunk, 3)``, from the
+    chunk's geometry with `ndf.lit_integral(..., pieces=pieces)`; zero on padding slots. The
+    geometry is shared by the views (vmap keeps it unbatched)."""
+    dt = a.dtype
+    a = jnp.where(valid, a, jnp.asarray(0.5, dt))
+    h = jnp.where(valid[None, :, None], h, jnp.asarray([0.0, 0.0, 1.0], dt))
+    lit = functools.partial(ndf.lit_integral, pieces=pieces)
+    D = jax.vmap(jax.vmap(lit), in_axes=(None, 0, None))(geometry, h, a)
+    return jnp.where(valid[None], D, jnp.zeros((), dt))
+
+
+def _budgets(fn):
+    """`lax.switch` branches: ``fn(pieces, ...)`` for each of `PIECE_BUDGETS`."""
+    return [functools.partial(fn, k) for k in PIECE_BUDGETS]
 
 
 def _edges_in(cfg: _Cfg, dtype):
@@ -719,11 +717,13 @@ def _fwd_local(cfg: _Cfg, params, h_loc, out, scr, valid):
         Ds, As = carry
         oc, sc, vc = xs
         pix, local = _split_index(cfg, oc)
-        D, A = _masked_chunk(cfg, xe, ye, pix, vc, *_gather(params, h_rows, sc, local))
+        p0, p1, w, d, a, h = _gather(params, h_rows, sc, local)
+        geometry, budget = _chunk_geometry(cfg, xe, ye, pix, vc, p0, p1, w, d)
         if cfg.need_D:
+            D = jax.lax.switch(budget, _budgets(_chunk_lit), geometry, vc, a, h)
             Ds = Ds.at[:, local].add(D, mode="drop")
         if cfg.need_A:
-            As = As.at[local].add(A, mode="drop")
+            As = As.at[local].add(jnp.where(vc, geometry.area, 0), mode="drop")
         return Ds, As
 
     def body(carry, xs):
@@ -741,21 +741,32 @@ def _bwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, gD, gA):
     h_rows = _flat_h(cfg, h_loc)
     gD = gD.reshape(h_rows.shape[:2])
     gA = gA.reshape(-1)
-    # Differentiate only the outputs the caller uses, so XLA does no dead reverse work.
-    pick = [i for i, need in enumerate((cfg.need_D, cfg.need_A)) if need]
+
+    def lit_vjp(pieces, geometry, valid, a, h, ct):
+        """The per-view stage's value and reverse pass in one `lax.switch` branch, so no
+        residuals cross the switch."""
+        _, vjp = jax.vjp(lambda g, a, h: _chunk_lit(pieces, g, valid, a, h), geometry, a, h)
+        return vjp(ct)
 
     def add_chunk(carry, xs):
         gp0, gp1, gw, gd, ga, gh = carry
         oc, sc, vc = xs
         pix, local = _split_index(cfg, oc)
-
-        def f(*gathered):
-            out = _masked_chunk(cfg, xe, ye, pix, vc, *gathered)
-            return tuple(out[i] for i in pick)
-
-        _, vjp = jax.vjp(f, *_gather(params, h_rows, sc, local))
-        cts = (gD.at[:, local].get(mode="clip"), gA.at[local].get(mode="clip"))
-        d0, d1, dw, dd, da, dh = vjp(tuple(cts[i] for i in pick))
+        p0, p1, w, d, a, h = _gather(params, h_rows, sc, local)
+        geometry, geometry_vjp, budget = jax.vjp(
+            lambda *x: _chunk_geometry(cfg, xe, ye, pix, vc, *x), p0, p1, w, d, has_aux=True)
+        # Only the outputs the caller uses are differentiated (no dead reverse work).
+        if cfg.need_D:
+            ctD = gD.at[:, local].get(mode="clip")
+            g_geometry, da, dh = jax.lax.switch(budget, _budgets(lit_vjp), geometry, vc, a, h,
+                                                ctD)
+        else:
+            g_geometry = jax.tree_util.tree_map(jnp.zeros_like, geometry)
+            da, dh = jnp.zeros_like(a), jnp.zeros_like(h)
+        if cfg.need_A:
+            ctA = jnp.where(vc, gA.at[local].get(mode="clip"), 0)
+            g_geometry = g_geometry._replace(area=g_geometry.area + ctA)
+        d0, d1, dw, dd = geometry_vjp(g_geometry)
         # The sentinel index N is out of range: mode="drop" discards padding slots (already zero).
         gp0 = gp0.at[sc].add(d0, mode="drop")
         gp1 = gp1.at[sc].add(d1, mode="drop")
@@ -846,9 +857,10 @@ def _pixels_per_shard(board: Board, shards: int) -> int:
 
 
 def _pair_classes(cfg: _Cfg, params, out, scr, valid):
-    """Per pair, how many of `PIECE_GROUPS` its footprint needs (``1 + #{groups after the first
-    whose start is below ndf.PairGeometry.count}``), 0 for padding; int8. Only the order of the
-    evaluation depends on it (`_sort_pairs`), not the results."""
+    """Per pair, 1 + the index of the smallest of `PIECE_BUDGETS` that holds its
+    `ndf.PairGeometry.count`, 0 for padding; int8. Only the order of the evaluation depends on
+    it (`_sort_pairs`), not the results: each chunk's budget is chosen by the kernel from the
+    counts it computes itself (`_chunk_geometry`)."""
     p0, p1, w, d = params[:4]
     xe, ye = _edges_in(cfg, p0.dtype)
     P_pad = cfg.Pb * _n_shards(cfg.mesh, cfg.axes)
@@ -862,15 +874,15 @@ def _pair_classes(cfg: _Cfg, params, out, scr, valid):
 
     # (chunk by chunk: no per-pair footprint array is materialised)
     n = jax.lax.map(count, (out, scr), batch_size=cfg.chunk)
-    klass = 1 + sum((n > start).astype(jnp.int8) for start, _ in PIECE_GROUPS[1:])
+    klass = 1 + sum((n > k).astype(jnp.int8) for k in PIECE_BUDGETS[:-1])
     return jax.lax.stop_gradient(jnp.where(valid, klass, 0).astype(jnp.int8))
 
 
 def _sort_pairs(out, scr, valid, klass, shards: int):
     """Each shard's segment of the pair list grouped by class (`_pair_classes`: 1, 2, ..., then
     0, the padding), each group in its own order (a stable partition, O(L)). Chunks then mostly
-    hold one class: chunks of padding are skipped and the others integrate only the groups of
-    pieces their pairs have (`_masked_chunk`). A pair list built with spare capacity
+    hold one class: chunks of padding are skipped and the others integrate only as many pieces
+    as their pairs have (`PIECE_BUDGETS`). A pair list built with spare capacity
     (`bvh.build_pairs`, per-view culled lists) otherwise costs a full kernel evaluation per
     padding slot, and every pair the six pieces that few pairs have."""
     L = out.shape[0]
@@ -879,7 +891,7 @@ def _sort_pairs(out, scr, valid, klass, shards: int):
     klass = jax.lax.optimization_barrier(klass)
     pos = jnp.zeros((shards, Ls), jnp.int32)
     start = jnp.zeros((shards, 1), jnp.int32)
-    for c in (*range(1, len(PIECE_GROUPS) + 1), 0):
+    for c in (*range(1, len(PIECE_BUDGETS) + 1), 0):
         g = (klass == c).reshape(shards, Ls)
         pos = jnp.where(g, start + jnp.cumsum(g, axis=1, dtype=jnp.int32) - 1, pos)
         start = start + jnp.sum(g, axis=1, keepdims=True, dtype=jnp.int32)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -309,10 +310,10 @@ def test_sharded_per_view_lists_and_layout_check():
                                               full1.valid[:-1], full1.overflow), mesh=mesh)
 
 
-def test_gradient_tests_run_chunks_with_several_groups_of_pieces():
-    """The reference and gradient tests above evaluate chunks with different groups of pieces
-    (`render.PIECE_GROUPS`): the scene's pairs, sorted by class (`render._sort_pairs`), fill
-    chunks of `CHUNK` where only the first group is integrated and chunks where more are."""
+def test_gradient_tests_run_chunks_with_several_piece_budgets():
+    """The reference and gradient tests above evaluate chunks with different piece budgets
+    (`render.PIECE_BUDGETS`): the scene's pairs, sorted by class (`render._sort_pairs`), fill
+    chunks of `CHUNK` with the smallest budget and chunks with a larger one."""
     s, v = _scene()
     pairs = _pairs(s)
     cfg = R._Cfg(BOARD.H, BOARD.W, BOARD.Sx, BOARD.Sy, CHUNK, None, (), BOARD.n_pixels, False,
@@ -347,12 +348,24 @@ def test_gradient_memory_does_not_grow_with_pairs(monkeypatch):
             z = jnp.sin(z) * w + jnp.exp(-z * z)
         return z, jnp.cos(z)
 
-    def chunk(cfg, xe, ye, pix, valid, p0, p1, w, d, a, h):
-        per_pair = jax.vmap(functools.partial(kernel, cfg, xe, ye))
-        D, A = jax.vmap(per_pair, in_axes=(None,) * 5 + (0, None))(p0, p1, w, d, a, h, pix)
-        return jnp.where(valid, D, 0), jnp.where(valid, A[0], 0)
+    class Geometry(NamedTuple):  # the renderer's two kernel stages, with the same stand-in
+        area: jax.Array
+        z: jax.Array
 
-    monkeypatch.setattr(R, "_masked_chunk", chunk)
+    def geometry(cfg, xe, ye, pix, valid, p0, p1, w, d):
+        z = jnp.sum(p1 - p0, axis=-1) + w * d + xe[pix % 3]
+        for _ in range(12):
+            z = jnp.sin(z) * w + jnp.exp(-z * z)
+        return Geometry(jnp.where(valid, jnp.cos(z), 0), z), jnp.int32(0)
+
+    def lit(pieces, g, valid, a, h):
+        z = g.z[None] * h[..., 2] / a
+        for _ in range(12):
+            z = jnp.sin(z) * a + jnp.exp(-z * z)
+        return jnp.where(valid[None], z, 0)
+
+    monkeypatch.setattr(R, "_chunk_geometry", geometry)
+    monkeypatch.setattr(R, "_chunk_lit", lit)
     s, v = _scene(jnp.float32)
     wts = _loss_weights(jnp.float32)
 
