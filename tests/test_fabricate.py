@@ -4,6 +4,7 @@ controller on a real pty with fault injection, journal and resume, bad inputs, t
 import itertools
 import json
 import os
+import stat
 import sys
 
 import numpy as np
@@ -434,3 +435,16 @@ def test_character_counting_respects_rx_buffer_and_overflow_is_caught():
             sim.close()
         assert bool(sim.wp.faults) == overflow, sim.wp.faults[:1]
         assert sim.wp.received == lines + ["G4 P0"] or overflow
+
+
+def test_save_design_respects_the_umask(tmp_path):
+    d = demo_design(5, seed=0)
+    old = os.umask(0o022)
+    try:
+        for mask, mode in ((0o022, 0o644), (0o077, 0o600), (0o002, 0o664)):
+            os.umask(mask)
+            f = tmp_path / f"d{mask:o}.npz"
+            save_design(f, d.p0, d.p1, d.width, d.depth, d.alpha, d.board)
+            assert stat.S_IMODE(os.stat(f).st_mode) == mode, (oct(mask), oct(os.stat(f).st_mode))
+    finally:
+        os.umask(old)
