@@ -10,20 +10,24 @@ progress survives crashes.
 - :func:`carve`: stream a G-code file to GRBL over a serial port with a journal and resume.
 - ``python -m jscratch.fabricate --help``: the command line.
 
-G-code layout (one block per scratch, at most 79 characters a line)::
+G-code layout (preamble ``G21 G90 G94 G17 G54``, then, with a spindle, ``M3 S..`` and a
+spin-up dwell ``G4 P..``; one block per scratch, at most 79 characters a line)::
 
     G0 X.. Y..        travel, at safe Z          (role "travel")
     G1 Z-p F..        plunge                     (role "plunge")
     G1 X.. Y.. F..    cut                        (role "cut")
     G0 Z..            retract to safe Z          (role "retract")
-    G4 P0             sync: its ok means the scratch is carved (role "sync")
+    G4 P0.000         sync: its ok means the scratch is carved (role "sync")
 
-GRBL answers ``G4 P0`` only once the planner is empty, so the journal records a scratch as carved
-when that ``ok`` arrives; at a fault, only the scratch after the last confirmed one can be partly cut.
+GRBL answers ``G4 P0.000`` only once the planner is empty, so the journal records a scratch as
+carved when that ``ok`` arrives; at a fault, only the scratch after the last confirmed one can be
+partly cut.
 
-Bounds: every X/Y emitted lies in ``[offset - margin, offset + S + margin]`` mm (``margin_mm``,
-default 0: design endpoints within the load tolerance are clamped onto the board), every Z in
-``[-max plunge, safe_z]``; :func:`make_program` checks each line before returning.
+Numbers: every word is written by :func:`jscratch.grbl.gword` (fixed decimals, no exponent, within
+GRBL's 8-digit reader); :func:`make_program` re-reads each line with
+:func:`jscratch.grbl.check_words` and checks the bounds: every X/Y in ``[offset - margin, offset + S
++ margin]`` mm (``margin_mm``, default 0: design endpoints within the load tolerance are clamped
+onto the board), every Z in ``[-max plunge, safe_z]``.
 """
 
 from __future__ import annotations
@@ -41,6 +45,7 @@ from typing import NamedTuple
 import numpy as np
 
 from .designfile import Design, DesignError, demo_design, groove_half_width, load_design
+from .grbl import check_words, clip, gword
 from .toolpath import order_scratches
 
 __all__ = [
@@ -66,6 +71,7 @@ class MachineConfig:
     - `margin_mm`: how far outside the board a coordinate may be (design endpoints are clamped).
     - `min_length_mm`: shorter scratches are an error (or dropped with `drop_short`).
     - `spindle_rpm`: 0 for no spindle commands, else `M3 S..` / `M5`.
+    - `spinup_s`: dwell after `M3` for the spindle to reach speed, seconds (also sent on resume).
     - `overhead_s`: per-scratch acceleration and settling time, for the estimate.
     """
 
@@ -81,6 +87,7 @@ class MachineConfig:
     min_length_mm: float = 0.01
     drop_short: bool = False
     spindle_rpm: float = 0.0
+    spinup_s: float = 3.0
     overhead_s: float = 0.2
 
     def __post_init__(self):
@@ -88,7 +95,7 @@ class MachineConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"machine setting {name} must be a finite number > 0, got {v!r}")
-        for name in ("margin_mm", "min_length_mm", "spindle_rpm", "overhead_s"):
+        for name in ("margin_mm", "min_length_mm", "spindle_rpm", "spinup_s", "overhead_s"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"machine setting {name} must be a finite number >= 0, got {v!r}")
@@ -100,6 +107,12 @@ class MachineConfig:
         if len(off) != 2 or not all(math.isfinite(v) for v in off):
             raise ValueError(f"board_offset_mm must be two finite numbers, got {self.board_offset_mm!r}")
         self.board_offset_mm = off
+        for name, letter in (("feed_mm_min", "F"), ("plunge_mm_min", "F"), ("safe_z_mm", "Z"),
+                             ("spindle_rpm", "S"), ("spinup_s", "P")):
+            try:
+                gword(letter, getattr(self, name))
+            except ValueError as exc:
+                raise ValueError(f"machine setting {name} = {getattr(self, name)!r} does not fit GRBL: {exc}") from None
 
     @classmethod
     def from_toml(cls, path, **overrides):
@@ -258,11 +271,6 @@ class Program(NamedTuple):
     info: dict
 
 
-def _num(v: float) -> str:
-    s = f"{v:.3f}"
-    return "0.000" if s == "-0.000" else s
-
-
 def check_design_for_cutting(design: Design, cfg: MachineConfig):
     """Scratches long enough to cut; raises :class:`DesignError` naming the first too-short scratch.
 
@@ -312,44 +320,36 @@ def make_program(design: Design, cfg: MachineConfig, *, improve: bool = True, ti
         roles.append(role)
 
     n = len(idx)
-    emit(f"(jscratch: {n} scratches, board {_num(board_mm[0])} x {_num(board_mm[1])} mm)", role="comment")
-    emit(f"(ball R {_num(cfg.cutter_radius_mm)} mm, feed {cfg.feed_mm_min:g} mm/min)", role="comment")
-    emit("G21 G90 G94 G17")
+    g = gword
+    emit(f"(jscratch: {n} scratches, board {board_mm[0]:.3f} x {board_mm[1]:.3f} mm, work zero G54)", role="comment")
+    emit(f"(ball R {cfg.cutter_radius_mm:.3f} mm, feed {cfg.feed_mm_min:.1f} mm/min)", role="comment")
+    emit("G21 G90 G94 G17 G54")
     if cfg.spindle_rpm > 0:
-        emit(f"M3 S{cfg.spindle_rpm:g}")
-    emit(f"G0 Z{_num(safe)}")
+        emit(f"M3 {g('S', cfg.spindle_rpm)}")
+        emit(f"G4 {g('P', cfg.spinup_s)}")  # spin-up: GRBL starts cutting as soon as M3 is parsed
+    emit(f"G0 {g('Z', safe)}")
     for k, j in enumerate(ordering.order.tolist()):
         a, b = (p1[j], p0[j]) if ordering.flipped[j] else (p0[j], p1[j])
         s = int(idx[j])
-        emit(f"G0 X{_num(a[0] + ox)} Y{_num(a[1] + oy)}", k, s, "travel")
-        emit(f"G1 Z{_num(-plunge[j])} F{cfg.plunge_mm_min:g}", k, s, "plunge")
-        emit(f"G1 X{_num(b[0] + ox)} Y{_num(b[1] + oy)} F{cfg.feed_mm_min:g}", k, s, "cut")
-        emit(f"G0 Z{_num(safe)}", k, s, "retract")
-        emit("G4 P0", k, s, "sync")
-    emit(f"G0 Z{_num(safe)}", role="post")
-    emit(f"G0 X{_num(ox)} Y{_num(oy)}", role="post")
+        emit(f"G0 {g('X', a[0] + ox)} {g('Y', a[1] + oy)}", k, s, "travel")
+        emit(f"G1 {g('Z', -plunge[j])} {g('F', cfg.plunge_mm_min)}", k, s, "plunge")
+        emit(f"G1 {g('X', b[0] + ox)} {g('Y', b[1] + oy)} {g('F', cfg.feed_mm_min)}", k, s, "cut")
+        emit(f"G0 {g('Z', safe)}", k, s, "retract")
+        emit(f"G4 {g('P', 0)}", k, s, "sync")
+    emit(f"G0 {g('Z', safe)}", role="post")
+    emit(f"G0 {g('X', ox)} {g('Y', oy)}", role="post")
     if cfg.spindle_rpm > 0:
         emit("M5", role="post")
     emit("M2", role="post")
 
-    # Every coordinate, re-read from the text, must lie in bounds.
+    # Every word, re-read from the text, must be strictly formatted and every coordinate in bounds.
     lo = (ox - cfg.margin_mm, oy - cfg.margin_mm, -float(plunge.max(initial=0.0)) - 1e-9)
     hi = (ox + board_mm[0] + cfg.margin_mm, oy + board_mm[1] + cfg.margin_mm, safe)
-    for ln, text in enumerate(lines, start=1):
-        if len(text) > MAX_LINE:
-            raise ValueError(f"G-code line {ln} is {len(text)} characters (> {MAX_LINE}): {text!r}")
-        if text.startswith("("):
-            continue
-        for word in text.split():
-            axis = "XYZ".find(word[0])
-            if axis >= 0:
-                v = float(word[1:])
-                if not (lo[axis] - 5e-4 <= v <= hi[axis] + 5e-4):
-                    raise ValueError(f"G-code line {ln} {text!r}: {word[0]} = {v} outside [{lo[axis]:.3f}, {hi[axis]:.3f}] mm")
+    ext = check_program_lines(lines, lo, hi)
     cut_len = float(np.hypot(*(p1 - p0).T).sum())
     est = (ordering.travel / cfg.rapid_mm_min + cut_len / cfg.feed_mm_min
            + float(plunge.sum()) / cfg.plunge_mm_min + n * 2 * safe / cfg.rapid_mm_min
-           + n * safe / cfg.plunge_mm_min) * 60.0 + n * cfg.overhead_s
+           + n * safe / cfg.plunge_mm_min) * 60.0 + n * cfg.overhead_s + (cfg.spinup_s if cfg.spindle_rpm > 0 else 0.0)
     info = {
         "scratches": n,
         "dropped_short": int((~keep).sum()),
@@ -360,7 +360,8 @@ def make_program(design: Design, cfg: MachineConfig, *, improve: bool = True, ti
         "travel_reduction": 1.0 - ordering.travel / ordering.travel_input if ordering.travel_input > 0 else 0.0,
         "ordering_seconds": ordering.seconds,
         "estimated_seconds": est,
-        "bounds_mm": {"x": [lo[0], hi[0]], "y": [lo[1], hi[1]], "z": [lo[2], hi[2]]},
+        "bounds_mm": ext,
+        "limits_mm": {"x": [lo[0], hi[0]], "y": [lo[1], hi[1]], "z": [lo[2], hi[2]]},
         "plunge_mm": [float(plunge.min()) if n else 0.0, float(plunge.max()) if n else 0.0],
         "cutter_radius_mm": cfg.cutter_radius_mm,
     }
@@ -374,6 +375,35 @@ def make_program(design: Design, cfg: MachineConfig, *, improve: bool = True, ti
             "unreachable": int(fit.unreachable.sum()),
         }
     return Program(lines, np.asarray(ks), np.asarray(ss), roles, info)
+
+
+def check_program_lines(lines, lo, hi) -> dict:
+    """The dry run's checker: line length, strict words (:func:`~jscratch.grbl.check_words`), bounds.
+
+    **Arguments:** `lines` G-code text lines; `lo`, `hi` the allowed `(x, y, z)` limits in mm.
+
+    **Returns:** the program's extents `{"x": [min, max], "y": .., "z": ..}` in mm (None for an axis
+    never written). **Raises:** `ValueError` naming the line.
+    """
+    ext = {a: None for a in "xyz"}
+    for ln, text in enumerate(lines, start=1):
+        if len(text) > MAX_LINE:
+            raise ValueError(f"G-code line {ln} is {len(text)} characters (> {MAX_LINE}): {clip(text, 40)!r}")
+        try:
+            check_words(text)
+        except ValueError as exc:
+            raise ValueError(f"G-code line {ln} {clip(text, 40)!r}: {exc}") from None
+        if text.startswith("("):
+            continue
+        for word in text.split():
+            axis = "XYZ".find(word[0])
+            if axis >= 0:
+                v = float(word[1:])
+                if not (lo[axis] - 5e-4 <= v <= hi[axis] + 5e-4):
+                    raise ValueError(f"G-code line {ln} {text!r}: {word[0]} = {v} outside [{lo[axis]:.3f}, {hi[axis]:.3f}] mm")
+                e = ext["xyz"[axis]]
+                ext["xyz"[axis]] = [v, v] if e is None else [min(e[0], v), max(e[1], v)]
+    return ext
 
 
 def write_program(prog: Program, gcode_path) -> str:
@@ -462,7 +492,10 @@ def write_preview(prog: Program, path, board_mm, offset_mm=(0.0, 0.0)):
 def summarize(info: dict) -> str:
     """Human-readable summary of :attr:`Program.info`."""
     t = info["estimated_seconds"]
-    b = info["bounds_mm"]
+
+    def box(b):
+        return "  ".join(f"{a.upper()} [{b[a][0]:.3f}, {b[a][1]:.3f}]" if b.get(a) else f"{a.upper()} -" for a in "xyz")
+
     out = [
         f"scratches        {info['scratches']}" + (f" ({info['dropped_short']} too short, dropped)" if info.get("dropped_short") else ""),
         f"cut length       {info['cut_length_mm'] / 1000:.3f} m",
@@ -470,10 +503,11 @@ def summarize(info: dict) -> str:
         f"greedy {info['travel_greedy_mm'] / 1000:.3f} m; reduction {100 * info['travel_reduction']:.1f}%, "
         f"ordering {info['ordering_seconds']:.1f} s)",
         f"estimated time   {t / 3600:.2f} h ({t:.0f} s)",
-        f"bounds (mm)      X [{b['x'][0]:.3f}, {b['x'][1]:.3f}]  Y [{b['y'][0]:.3f}, {b['y'][1]:.3f}]  "
-        f"Z [{b['z'][0]:.3f}, {b['z'][1]:.3f}]",
+        f"bounds (mm)      {box(info['bounds_mm'])}  (the program's extents)",
         f"plunge           {info['plunge_mm'][0]:.4f}-{info['plunge_mm'][1]:.4f} mm (ball R {info['cutter_radius_mm']} mm)",
     ]
+    if info.get("limits_mm"):
+        out.insert(5, f"limits (mm)      {box(info['limits_mm'])}  (allowed: board + margin, -max plunge to safe Z)")
     f = info.get("fit")
     if f:
         out.append(
@@ -669,6 +703,8 @@ def _parser():
     m.add_argument("--drop-short", dest="drop_short", action="store_const", const=True,
                    help="skip scratches shorter than --min-length instead of failing")
     m.add_argument("--spindle", dest="spindle_rpm", type=float, help="spindle rpm, 0 for none (default 0)")
+    m.add_argument("--spinup", dest="spinup_s", type=float,
+                   help="dwell after M3 for the spindle to reach speed, s (default 3; sent again on --resume)")
     m.add_argument("--no-improve", action="store_true", help="greedy ordering only (no 2-opt/Or-opt)")
     m.add_argument("--order-time", type=float, default=40.0, help="time limit for the ordering's local search, s (default 40)")
     s = p.add_argument_group("streaming")
@@ -725,7 +761,7 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         return 130
     except (DesignError, CarveError, FileNotFoundError, ValueError, RuntimeError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"error: {clip(exc, 600)}", file=sys.stderr)
         return 1
     return 0
 

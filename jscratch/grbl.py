@@ -10,13 +10,16 @@ Protocol notes (GRBL 1.1 interface documentation):
 - the real-time bytes ``?`` (status), ``!`` (feed hold), ``~`` (cycle start) and ``0x18`` (soft
   reset) bypass the receive buffer and are never answered with ``ok``;
 - the receive buffer holds ``rx_size - 1`` bytes (``rx_size`` from ``$I``'s ``[OPT:...,blocks,rx]``);
-  character counting keeps the bytes of unanswered lines within it.
+  character counting keeps the bytes of unanswered lines within it;
+- numbers are read as at most 8 significant digits without exponents: :func:`gword` writes every
+  word with fixed decimals inside :data:`WORD_FORMAT`'s ranges, :func:`check_words` checks a line.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import queue
 import re
@@ -27,10 +30,71 @@ from typing import Callable, NamedTuple, Sequence
 
 __all__ = [
     "Reply", "classify", "GrblError", "PortError", "NotGrblError", "AlarmLocked", "DeviceLost",
-    "JobFault", "Grbl", "Journal", "JournalError", "sha256_file",
+    "JobFault", "Grbl", "Journal", "JournalError", "sha256_file", "gword", "check_words",
+    "WORD_FORMAT", "clip",
 ]
 
 BANNER_RE = re.compile(r"^Grbl (\d+)\.(\d+)(\w*) \['\$' for help\]$")
+FEEDBACK_RE = re.compile(r"\[[A-Z][A-Z0-9]*:[\x20-\x7e]*\]")  # [MSG:..], [GC:..], [G54:..], [G92:..], [TLO:..]
+
+
+def clip(text, limit: int = 120) -> str:
+    """`text` as one printable ASCII line of at most `limit` characters (escaped, cut with `...`)."""
+    s = "".join(c if " " <= c <= "~" else ascii(c)[1:-1] for c in str(text))
+    return s if len(s) <= limit else s[:max(limit - 3, 0)] + "..."
+
+
+# Fixed decimals and the range of each word jscratch writes. GRBL reads a number as at most 8
+# significant digits (more are dropped silently) and knows no exponent, so every range keeps
+# the fixed-decimal text within 8 digits; F must be > 0, S and P >= 0.
+WORD_FORMAT = {  # letter: (decimals, lowest, highest)
+    "X": (3, -99999.999, 99999.999),
+    "Y": (3, -99999.999, 99999.999),
+    "Z": (3, -99999.999, 99999.999),
+    "F": (1, 0.1, 9999999.9),
+    "S": (0, 0.0, 99999999.0),
+    "P": (3, 0.0, 99999.999),
+}
+_COMMANDS = {"G": {0, 1, 4, 17, 21, 49, 54, 55, 56, 57, 58, 59, 90, 94}, "M": {2, 3, 5}}
+
+
+def gword(letter: str, value: float) -> str:
+    """One G-code word, e.g. `gword("F", 900) == "F900.0"`: fixed decimals, no exponent, in range.
+
+    **Raises:** `ValueError` naming the word when `value` is not finite or outside :data:`WORD_FORMAT`.
+    """
+    dec, lo, hi = WORD_FORMAT[letter]
+    v = float(value)
+    if not math.isfinite(v):
+        raise ValueError(f"G-code word {letter}: {value!r} is not a finite number")
+    text = f"{v:.{dec}f}"
+    if float(text) == 0.0:
+        text = text.lstrip("-")
+    if not lo <= float(text) <= hi:
+        raise ValueError(f"G-code word {letter}{text} is outside GRBL's range [{lo:.{dec}f}, {hi:.{dec}f}]")
+    return letter + text
+
+
+def check_words(line: str) -> None:
+    """Check that every word of a G-code line (comments allowed) is as :func:`gword` writes it.
+
+    Commands `G`/`M` must be whole numbers jscratch uses; `X Y Z F S P` fixed decimals in range.
+    **Raises:** `ValueError` naming the first bad word.
+    """
+    body = re.sub(r"\([^()]*\)", " ", line).split(";")[0]
+    for tok in body.split():
+        letter = tok[:1]
+        if letter in _COMMANDS:
+            if not (re.fullmatch(r"[GM](0|[1-9]\d*)", tok) and int(tok[1:]) in _COMMANDS[letter]):
+                raise ValueError(f"G-code word {tok!r} is not a command jscratch writes")
+        elif letter in WORD_FORMAT:
+            dec = WORD_FORMAT[letter][0]
+            frac = rf"\.\d{{{dec}}}" if dec else ""
+            if not re.fullmatch(rf"{letter}-?\d{{1,8}}{frac}", tok):
+                raise ValueError(f"G-code word {tok!r}: not fixed-point with {dec} decimals (no exponent)")
+            gword(letter, float(tok[1:]))
+        else:
+            raise ValueError(f"G-code word {tok!r}: letter {letter!r} is not written by jscratch")
 
 
 class Reply(NamedTuple):
@@ -57,7 +121,7 @@ def classify(line: str) -> Reply:
         return Reply("alarm", int(m.group(1)), line)
     if re.fullmatch(r"<[A-Za-z]+(:\d)?(\|[A-Za-z]+:[^|<>]*)*>", line):
         return Reply("status", None, line)
-    if re.fullmatch(r"\[[A-Z]+:[\x20-\x7e]*\]", line):
+    if FEEDBACK_RE.fullmatch(line):
         return Reply("msg", None, line)
     if BANNER_RE.match(line):
         return Reply("banner", None, line)

@@ -4,6 +4,7 @@ controller on a real pty with fault injection, journal and resume, bad inputs, t
 import itertools
 import json
 import os
+import re
 import stat
 import sys
 
@@ -16,9 +17,9 @@ from grbl_sim import GcodeError, GrblSim, Workpiece, check_line  # noqa: E402
 
 from jscratch.designfile import DesignError, demo_design, save_design  # noqa: E402
 from jscratch.fabricate import (  # noqa: E402
-    CarveError, MachineConfig, carve, fit_plunge, main, make_program, read_program, write_program,
+    CarveError, MachineConfig, carve, fit_plunge, main, make_program, read_program, summarize, write_program,
 )
-from jscratch.grbl import Journal, JournalError, classify, sha256_file  # noqa: E402
+from jscratch.grbl import Journal, JournalError, check_words, classify, sha256_file  # noqa: E402
 from jscratch.toolpath import (  # noqa: E402
     best_directions, greedy_order, improve_order, knn_grid, order_scratches, path_travel,
 )
@@ -146,7 +147,7 @@ def _check_program(d, prog, cfg):
         if role == "plunge":
             assert words["Z"] < 0 and set(words) >= {"Z", "F"}
         if role == "sync":
-            assert text == "G4 P0"
+            assert text == "G4 P0.000"  # fixed decimals (jscratch.grbl.gword)
     assert sorted(seen) == list(range(n))
     assert state["units"] == 21 and state["distance"] == 90
 
@@ -448,3 +449,37 @@ def test_save_design_respects_the_umask(tmp_path):
             assert stat.S_IMODE(os.stat(f).st_mode) == mode, (oct(mask), oct(os.stat(f).st_mode))
     finally:
         os.umask(old)
+
+
+def test_words_are_fixed_point_without_exponent_and_the_dry_run_checks_them(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main(["--dry-run", "--quiet", "--demo-n", "12", "--order-time", "1", "--plunge", "0.1",
+                 "--spindle", "1000000", "--feed", "1250000.04", "--plunge-feed", "0.25"]) == 0
+    lines = (tmp_path / "jscratch_demo.gcode").read_text().splitlines()
+    state = {}
+    for text in lines:
+        check_line(text, state)  # the strict grammar reads 'S1e+06' as a bad number
+    for text in lines:
+        check_words(text)
+    code = [t for t in lines if not t.startswith("(")]
+    assert "M3 S1000000" in code and not any(re.search(r"\d[eE]", t) for t in code)
+    assert {w for t in code for w in t.split() if w[0] == "F"} == {"F1250000.0", "F0.2"}
+    for bad in ("M3 S1e+06", "G1 X1.5 Y2.000 F900.0", "G1 Z-0.1000 F300.0", "G0 X1e2 Y0.000",
+                "G0 Z123456.000", "G4 P-1.000", "G1 X0.000 Y0.000 F0.0", "G1 X0.000 Y0.000 F900", "G0 X+1.000"):
+        with pytest.raises(ValueError, match="G-code word"):
+            check_words(bad)
+    for name, value in (("spindle_rpm", 1e9), ("feed_mm_min", 1e-3), ("spinup_s", 1e6)):
+        with pytest.raises(ValueError, match=f"machine setting {name} .* does not fit GRBL"):
+            MachineConfig(**{name: value})
+
+
+def test_summary_bounds_are_the_programs_extents(small):
+    d, prog = small
+    words = [(w[0], float(w[1:])) for t in prog.lines if not t.startswith("(") for w in t.split() if w[0] in "XYZ"]
+    ext = {a.lower(): [min(v for c, v in words if c == a), max(v for c, v in words if c == a)] for a in "XYZ"}
+    assert prog.info["bounds_mm"] == ext
+    assert prog.info["limits_mm"]["x"] == [0.0, 1000 * d.board[0]] and ext["x"][1] < 1000 * d.board[0]
+    text = summarize(prog.info).splitlines()
+    bounds = next(t for t in text if t.startswith("bounds (mm)"))
+    assert f"X [{ext['x'][0]:.3f}, {ext['x'][1]:.3f}]" in bounds and "extents" in bounds
+    assert any(t.startswith("limits (mm)") and "allowed" in t for t in text)
