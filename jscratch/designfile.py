@@ -200,6 +200,13 @@ def validate_design(p0, p1, width, depth, alpha, board, camera=None, light=None,
     return Design(**arrays, **views)
 
 
+def _umask() -> int:
+    """The process umask (read by setting and restoring it)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def save_design(path, p0, p1, width, depth, alpha, board, camera=None, light=None, intensity=None) -> Design:
     """Validate and write a design to a `.npz` file (SPEC section 9), atomically.
 
@@ -216,6 +223,7 @@ def save_design(path, p0, p1, width, depth, alpha, board, camera=None, light=Non
     directory = os.path.dirname(os.path.abspath(path))
     fd, tmp = tempfile.mkstemp(prefix=".design-", suffix=".npz.tmp", dir=directory)
     try:
+        os.fchmod(fd, 0o666 & ~_umask())  # mkstemp makes 0600; a design is an ordinary file
         with os.fdopen(fd, "wb") as f:
             np.savez(f, **payload)
             f.flush()

@@ -10,20 +10,30 @@ progress survives crashes.
 - :func:`carve`: stream a G-code file to GRBL over a serial port with a journal and resume.
 - ``python -m jscratch.fabricate --help``: the command line.
 
-G-code layout (one block per scratch, at most 79 characters a line)::
+G-code layout (preamble ``G21 G90 G94 G17 G54``, then, with a spindle, ``M3 S..`` and a
+spin-up dwell ``G4 P..``; one block per scratch, at most 79 characters a line)::
 
     G0 X.. Y..        travel, at safe Z          (role "travel")
     G1 Z-p F..        plunge                     (role "plunge")
     G1 X.. Y.. F..    cut                        (role "cut")
     G0 Z..            retract to safe Z          (role "retract")
-    G4 P0             sync: its ok means the scratch is carved (role "sync")
+    G4 P0.000         sync: its ok means the scratch is carved (role "sync")
 
-GRBL answers ``G4 P0`` only once the planner is empty, so the journal records a scratch as carved
-when that ``ok`` arrives; at a fault, only the scratch after the last confirmed one can be partly cut.
+GRBL answers ``G4 P0.000`` only once the planner is empty, so the journal records a scratch as
+carved when that ``ok`` arrives; at a fault, only the scratch after the last confirmed one can be
+partly cut.
 
-Bounds: every X/Y emitted lies in ``[offset - margin, offset + S + margin]`` mm (``margin_mm``,
-default 0: design endpoints within the load tolerance are clamped onto the board), every Z in
-``[-max plunge, safe_z]``; :func:`make_program` checks each line before returning.
+Work zero: the board corner on its surface is the origin of the ``G54`` work system, set on the
+machine with ``G10 L20 P1 X0 Y0 Z0`` (stored in GRBL's EEPROM, kept across resets and power
+cycles). :func:`carve` refuses a ``G92`` offset or a tool length offset (GRBL clears both at every
+reset, so a job relying on them would shift after a fault or on resume), journals the ``G54``
+offset and refuses to resume when it has changed (unless `rezeroed`).
+
+Numbers: every word is written by :func:`jscratch.grbl.gword` (fixed decimals, no exponent, within
+GRBL's 8-digit reader); :func:`make_program` re-reads each line with
+:func:`jscratch.grbl.check_words` and checks the bounds: every X/Y in ``[offset - margin, offset + S
++ margin]`` mm (``margin_mm``, default 0: design endpoints within the load tolerance are clamped
+onto the board), every Z in ``[-max plunge, safe_z]``.
 """
 
 from __future__ import annotations
@@ -41,6 +51,7 @@ from typing import NamedTuple
 import numpy as np
 
 from .designfile import Design, DesignError, demo_design, groove_half_width, load_design
+from .grbl import check_words, clip, gword
 from .toolpath import order_scratches
 
 __all__ = [
@@ -66,6 +77,7 @@ class MachineConfig:
     - `margin_mm`: how far outside the board a coordinate may be (design endpoints are clamped).
     - `min_length_mm`: shorter scratches are an error (or dropped with `drop_short`).
     - `spindle_rpm`: 0 for no spindle commands, else `M3 S..` / `M5`.
+    - `spinup_s`: dwell after `M3` for the spindle to reach speed, seconds (also sent on resume).
     - `overhead_s`: per-scratch acceleration and settling time, for the estimate.
     """
 
@@ -81,6 +93,7 @@ class MachineConfig:
     min_length_mm: float = 0.01
     drop_short: bool = False
     spindle_rpm: float = 0.0
+    spinup_s: float = 3.0
     overhead_s: float = 0.2
 
     def __post_init__(self):
@@ -88,7 +101,7 @@ class MachineConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"machine setting {name} must be a finite number > 0, got {v!r}")
-        for name in ("margin_mm", "min_length_mm", "spindle_rpm", "overhead_s"):
+        for name in ("margin_mm", "min_length_mm", "spindle_rpm", "spinup_s", "overhead_s"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"machine setting {name} must be a finite number >= 0, got {v!r}")
@@ -100,6 +113,12 @@ class MachineConfig:
         if len(off) != 2 or not all(math.isfinite(v) for v in off):
             raise ValueError(f"board_offset_mm must be two finite numbers, got {self.board_offset_mm!r}")
         self.board_offset_mm = off
+        for name, letter in (("feed_mm_min", "F"), ("plunge_mm_min", "F"), ("safe_z_mm", "Z"),
+                             ("spindle_rpm", "S"), ("spinup_s", "P")):
+            try:
+                gword(letter, getattr(self, name))
+            except ValueError as exc:
+                raise ValueError(f"machine setting {name} = {getattr(self, name)!r} does not fit GRBL: {exc}") from None
 
     @classmethod
     def from_toml(cls, path, **overrides):
@@ -258,11 +277,6 @@ class Program(NamedTuple):
     info: dict
 
 
-def _num(v: float) -> str:
-    s = f"{v:.3f}"
-    return "0.000" if s == "-0.000" else s
-
-
 def check_design_for_cutting(design: Design, cfg: MachineConfig):
     """Scratches long enough to cut; raises :class:`DesignError` naming the first too-short scratch.
 
@@ -312,44 +326,36 @@ def make_program(design: Design, cfg: MachineConfig, *, improve: bool = True, ti
         roles.append(role)
 
     n = len(idx)
-    emit(f"(jscratch: {n} scratches, board {_num(board_mm[0])} x {_num(board_mm[1])} mm)", role="comment")
-    emit(f"(ball R {_num(cfg.cutter_radius_mm)} mm, feed {cfg.feed_mm_min:g} mm/min)", role="comment")
-    emit("G21 G90 G94 G17")
+    g = gword
+    emit(f"(jscratch: {n} scratches, board {board_mm[0]:.3f} x {board_mm[1]:.3f} mm, work zero G54)", role="comment")
+    emit(f"(ball R {cfg.cutter_radius_mm:.3f} mm, feed {cfg.feed_mm_min:.1f} mm/min)", role="comment")
+    emit("G21 G90 G94 G17 G54")
     if cfg.spindle_rpm > 0:
-        emit(f"M3 S{cfg.spindle_rpm:g}")
-    emit(f"G0 Z{_num(safe)}")
+        emit(f"M3 {g('S', cfg.spindle_rpm)}")
+        emit(f"G4 {g('P', cfg.spinup_s)}")  # spin-up: GRBL starts cutting as soon as M3 is parsed
+    emit(f"G0 {g('Z', safe)}")
     for k, j in enumerate(ordering.order.tolist()):
         a, b = (p1[j], p0[j]) if ordering.flipped[j] else (p0[j], p1[j])
         s = int(idx[j])
-        emit(f"G0 X{_num(a[0] + ox)} Y{_num(a[1] + oy)}", k, s, "travel")
-        emit(f"G1 Z{_num(-plunge[j])} F{cfg.plunge_mm_min:g}", k, s, "plunge")
-        emit(f"G1 X{_num(b[0] + ox)} Y{_num(b[1] + oy)} F{cfg.feed_mm_min:g}", k, s, "cut")
-        emit(f"G0 Z{_num(safe)}", k, s, "retract")
-        emit("G4 P0", k, s, "sync")
-    emit(f"G0 Z{_num(safe)}", role="post")
-    emit(f"G0 X{_num(ox)} Y{_num(oy)}", role="post")
+        emit(f"G0 {g('X', a[0] + ox)} {g('Y', a[1] + oy)}", k, s, "travel")
+        emit(f"G1 {g('Z', -plunge[j])} {g('F', cfg.plunge_mm_min)}", k, s, "plunge")
+        emit(f"G1 {g('X', b[0] + ox)} {g('Y', b[1] + oy)} {g('F', cfg.feed_mm_min)}", k, s, "cut")
+        emit(f"G0 {g('Z', safe)}", k, s, "retract")
+        emit(f"G4 {g('P', 0)}", k, s, "sync")
+    emit(f"G0 {g('Z', safe)}", role="post")
+    emit(f"G0 {g('X', ox)} {g('Y', oy)}", role="post")
     if cfg.spindle_rpm > 0:
         emit("M5", role="post")
     emit("M2", role="post")
 
-    # Every coordinate, re-read from the text, must lie in bounds.
+    # Every word, re-read from the text, must be strictly formatted and every coordinate in bounds.
     lo = (ox - cfg.margin_mm, oy - cfg.margin_mm, -float(plunge.max(initial=0.0)) - 1e-9)
     hi = (ox + board_mm[0] + cfg.margin_mm, oy + board_mm[1] + cfg.margin_mm, safe)
-    for ln, text in enumerate(lines, start=1):
-        if len(text) > MAX_LINE:
-            raise ValueError(f"G-code line {ln} is {len(text)} characters (> {MAX_LINE}): {text!r}")
-        if text.startswith("("):
-            continue
-        for word in text.split():
-            axis = "XYZ".find(word[0])
-            if axis >= 0:
-                v = float(word[1:])
-                if not (lo[axis] - 5e-4 <= v <= hi[axis] + 5e-4):
-                    raise ValueError(f"G-code line {ln} {text!r}: {word[0]} = {v} outside [{lo[axis]:.3f}, {hi[axis]:.3f}] mm")
+    ext = check_program_lines(lines, lo, hi)
     cut_len = float(np.hypot(*(p1 - p0).T).sum())
     est = (ordering.travel / cfg.rapid_mm_min + cut_len / cfg.feed_mm_min
            + float(plunge.sum()) / cfg.plunge_mm_min + n * 2 * safe / cfg.rapid_mm_min
-           + n * safe / cfg.plunge_mm_min) * 60.0 + n * cfg.overhead_s
+           + n * safe / cfg.plunge_mm_min) * 60.0 + n * cfg.overhead_s + (cfg.spinup_s if cfg.spindle_rpm > 0 else 0.0)
     info = {
         "scratches": n,
         "dropped_short": int((~keep).sum()),
@@ -360,7 +366,8 @@ def make_program(design: Design, cfg: MachineConfig, *, improve: bool = True, ti
         "travel_reduction": 1.0 - ordering.travel / ordering.travel_input if ordering.travel_input > 0 else 0.0,
         "ordering_seconds": ordering.seconds,
         "estimated_seconds": est,
-        "bounds_mm": {"x": [lo[0], hi[0]], "y": [lo[1], hi[1]], "z": [lo[2], hi[2]]},
+        "bounds_mm": ext,
+        "limits_mm": {"x": [lo[0], hi[0]], "y": [lo[1], hi[1]], "z": [lo[2], hi[2]]},
         "plunge_mm": [float(plunge.min()) if n else 0.0, float(plunge.max()) if n else 0.0],
         "cutter_radius_mm": cfg.cutter_radius_mm,
     }
@@ -374,6 +381,35 @@ def make_program(design: Design, cfg: MachineConfig, *, improve: bool = True, ti
             "unreachable": int(fit.unreachable.sum()),
         }
     return Program(lines, np.asarray(ks), np.asarray(ss), roles, info)
+
+
+def check_program_lines(lines, lo, hi) -> dict:
+    """The dry run's checker: line length, strict words (:func:`~jscratch.grbl.check_words`), bounds.
+
+    **Arguments:** `lines` G-code text lines; `lo`, `hi` the allowed `(x, y, z)` limits in mm.
+
+    **Returns:** the program's extents `{"x": [min, max], "y": .., "z": ..}` in mm (None for an axis
+    never written). **Raises:** `ValueError` naming the line.
+    """
+    ext = {a: None for a in "xyz"}
+    for ln, text in enumerate(lines, start=1):
+        if len(text) > MAX_LINE:
+            raise ValueError(f"G-code line {ln} is {len(text)} characters (> {MAX_LINE}): {clip(text, 40)!r}")
+        try:
+            check_words(text)
+        except ValueError as exc:
+            raise ValueError(f"G-code line {ln} {clip(text, 40)!r}: {exc}") from None
+        if text.startswith("("):
+            continue
+        for word in text.split():
+            axis = "XYZ".find(word[0])
+            if axis >= 0:
+                v = float(word[1:])
+                if not (lo[axis] - 5e-4 <= v <= hi[axis] + 5e-4):
+                    raise ValueError(f"G-code line {ln} {text!r}: {word[0]} = {v} outside [{lo[axis]:.3f}, {hi[axis]:.3f}] mm")
+                e = ext["xyz"[axis]]
+                ext["xyz"[axis]] = [v, v] if e is None else [min(e[0], v), max(e[1], v)]
+    return ext
 
 
 def write_program(prog: Program, gcode_path) -> str:
@@ -462,7 +498,10 @@ def write_preview(prog: Program, path, board_mm, offset_mm=(0.0, 0.0)):
 def summarize(info: dict) -> str:
     """Human-readable summary of :attr:`Program.info`."""
     t = info["estimated_seconds"]
-    b = info["bounds_mm"]
+
+    def box(b):
+        return "  ".join(f"{a.upper()} [{b[a][0]:.3f}, {b[a][1]:.3f}]" if b.get(a) else f"{a.upper()} -" for a in "xyz")
+
     out = [
         f"scratches        {info['scratches']}" + (f" ({info['dropped_short']} too short, dropped)" if info.get("dropped_short") else ""),
         f"cut length       {info['cut_length_mm'] / 1000:.3f} m",
@@ -470,10 +509,11 @@ def summarize(info: dict) -> str:
         f"greedy {info['travel_greedy_mm'] / 1000:.3f} m; reduction {100 * info['travel_reduction']:.1f}%, "
         f"ordering {info['ordering_seconds']:.1f} s)",
         f"estimated time   {t / 3600:.2f} h ({t:.0f} s)",
-        f"bounds (mm)      X [{b['x'][0]:.3f}, {b['x'][1]:.3f}]  Y [{b['y'][0]:.3f}, {b['y'][1]:.3f}]  "
-        f"Z [{b['z'][0]:.3f}, {b['z'][1]:.3f}]",
+        f"bounds (mm)      {box(info['bounds_mm'])}  (the program's extents)",
         f"plunge           {info['plunge_mm'][0]:.4f}-{info['plunge_mm'][1]:.4f} mm (ball R {info['cutter_radius_mm']} mm)",
     ]
+    if info.get("limits_mm"):
+        out.insert(5, f"limits (mm)      {box(info['limits_mm'])}  (allowed: board + margin, -max plunge to safe Z)")
     f = info.get("fit")
     if f:
         out.append(
@@ -511,130 +551,189 @@ def _strip(text: str) -> str:
     return text.strip()
 
 
+def _program_setup(prog: Program, path) -> tuple:
+    """The program's safe Z (the highest `G0 Z`, mm) and the work system its preamble selects (or None)."""
+    zs, coord = [], None
+    for text, role in zip(prog.lines, prog.role):
+        words = _strip(text).split()
+        if words[:1] == ["G0"]:
+            zs += [float(w[1:]) for w in words if w[0] == "Z"]
+        if role == "pre":
+            coord = next((w for w in words if w in ("G54", "G55", "G56", "G57", "G58", "G59")), coord)
+    if not zs:
+        raise CarveError(f"G-code {clip(path, 60)!r} has no 'G0 Z' line (safe height): refusing to carve, "
+                         "an emergency retract would not know where to go")
+    return max(zs), coord
+
+
+def _xyz(v) -> str:
+    return " ".join(f"{a}{x:.3f}" for a, x in zip("XYZ", v))
+
+
 def carve(gcode_path, port: str, *, baud: int = 115200, resume: bool = False, counting: bool = False,
-          check: bool = False, home: bool = False, unlock: bool = False, safe_z_mm: float | None = None,
-          journal_path=None, quiet: bool = False, banner_timeout: float = 5.0, stall_timeout: float = 30.0,
-          poll_interval: float = 0.25, on_scratch=None) -> dict:
+          check: bool = False, home: bool = False, unlock: bool = False, rezeroed: bool = False,
+          safe_z_mm: float | None = None, journal_path=None, quiet: bool = False, banner_timeout: float = 5.0,
+          stall_timeout: float = 30.0, idle_timeout: float = 10.0, poll_interval: float = 0.25,
+          on_scratch=None) -> dict:
     """Stream a G-code file (with its line map) to GRBL, journalling carved scratches.
 
-    Before any motion: the G-code and map are read and checked, the journal opened (new, or on
-    `resume` matched to the G-code's SHA-256), the port opened and GRBL 1.1 recognised; an Alarm
-    state stops the run unless `home` (`$H`) or `unlock` (`$X`). With `check`, the lines first run
-    through GRBL's `$C` check mode. Then the preamble and the scratches from the first unconfirmed
-    one are sent; each scratch is journalled when its `G4 P0` is answered `ok`.
+    Before any motion: the G-code and map are read and checked, the journal checked (none, or on
+    `resume` matching the G-code's SHA-256), the port opened and GRBL 1.1 recognised (no reset
+    when it reports `Idle`); an Alarm state stops the run unless `home` (`$H`) or `unlock` (`$X`).
+    The work zero is checked (`$#`): no `G92` or tool length offset (GRBL clears both at reset), and
+    on `resume` the work system's offset equal to the one journalled (unless `rezeroed`). With
+    `check`, the lines first run through GRBL's `$C` check mode. Only then is the journal written
+    and the preamble and the scratches from the first unconfirmed one sent; each scratch is
+    journalled when its `G4 P0.000` is answered `ok`.
 
-    On `error:N`: feed hold, soft reset, retract. On `ALARM:N`: stop (the controller is locked). On a
-    lost device: stop. On Ctrl-C: feed hold, reset, retract. Each raises :class:`CarveError` (or
-    `KeyboardInterrupt` after the retract) naming the G-code line and scratch; run again with
-    `resume=True`.
+    On `error:N`, a lost `ok` (no answer for `idle_timeout` s while the controller reports `Idle`)
+    or Ctrl-C: feed hold, soft reset, retract to the program's safe Z. On `ALARM:N` or a lost
+    device: stop. Each raises :class:`CarveError` (one line; `KeyboardInterrupt` after Ctrl-C) naming
+    the G-code line and scratch and how to resume.
 
     **Arguments:** `gcode_path`; `port`; `baud`; `resume`; `counting` (character counting instead of
-    send-and-wait); `check`; `home`; `unlock`; `safe_z_mm` for the retract (default: read from the
-    G-code's first `G0 Z`); `journal_path` (default `gcode_path + '.journal'`); `quiet`; timeouts in
-    seconds; `on_scratch(k, scratch)` called after each journalled scratch.
+    send-and-wait); `check`; `home`; `unlock`; `rezeroed` (accept a changed work zero on resume);
+    `safe_z_mm` retract height, mm (default and lowest: the program's highest `G0 Z`);
+    `journal_path` (default `gcode_path + '.journal'`); `quiet`; timeouts in seconds;
+    `on_scratch(k, scratch)` called after each journalled scratch.
 
     **Returns:** dict with `done`, `total`, `sent_lines`.
     """
-    from .grbl import DeviceLost, Grbl, GrblError, JobFault, Journal, sha256_file
+    from .grbl import DeviceLost, Grbl, GrblError, JobFault, Journal, Stalled, sha256_file
 
     prog = read_program(gcode_path)
     digest = sha256_file(gcode_path)
     n = prog.info["scratches"]
     journal_path = os.fspath(journal_path or os.fspath(gcode_path) + ".journal")
-    if safe_z_mm is None:
-        z = [w for text, r in zip(prog.lines, prog.role) if r == "pre" for w in text.split() if w.startswith("Z")]
-        safe_z_mm = float(z[0][1:]) if z else 5.0
-    journal = Journal(journal_path, digest, n, resume=resume)
+    retract_z, coord = _program_setup(prog, gcode_path)
+    if safe_z_mm is not None:
+        retract_z = max(retract_z, float(safe_z_mm))  # never retract below the program's travel height
+    state = Journal.check(journal_path, digest, resume=resume)  # refuses before any port is opened
+    k0 = state["done"]
+    if k0 >= n:
+        return {"done": n, "total": n, "sent_lines": 0}
+    first = next((i for i, k in enumerate(prog.k.tolist()) if k >= 0), len(prog.lines))
+    sel = [i for i, (k, r) in enumerate(zip(prog.k.tolist(), prog.role))
+           if (r != "comment") and (i < first or k >= k0 or r == "post")]
+    sel = [i for i in sel if _strip(prog.lines[i])]
+    items = [_strip(prog.lines[i]) for i in sel]
+    roles = [prog.role[i] for i in sel]
+    barrier = [r == "plunge" or (j > 0 and roles[j - 1] == "sync") for j, r in enumerate(roles)]
+
+    def say(msg):
+        if not quiet:
+            print(msg, file=sys.stderr)
+
     try:
-        k0 = journal.done
-        if k0 >= n:
-            return {"done": n, "total": n, "sent_lines": 0}
-        first = next((i for i, k in enumerate(prog.k.tolist()) if k >= 0), len(prog.lines))
-        sel = [i for i, (k, r) in enumerate(zip(prog.k.tolist(), prog.role))
-               if (r != "comment") and (i < first or k >= k0 or r == "post")]
-        sel = [i for i in sel if _strip(prog.lines[i])]
-        items = [_strip(prog.lines[i]) for i in sel]
-        roles = [prog.role[i] for i in sel]
-        barrier = [r == "plunge" or (j > 0 and roles[j - 1] == "sync") for j, r in enumerate(roles)]
+        grbl = Grbl(port, baud, banner_timeout=banner_timeout, stall_timeout=stall_timeout,
+                    idle_timeout=idle_timeout, poll_interval=poll_interval, log=say)
+    except GrblError as exc:
+        raise CarveError(f"{exc} (no motion was sent)") from None
 
-        def say(msg):
-            if not quiet:
-                print(msg, file=sys.stderr)
+    def untouched():
+        return ("(the homing cycle $H ran; no G-code line was sent)" if grbl.homed else "(no motion was sent)")
 
+    journal = bar = None
+    try:
         try:
-            grbl = Grbl(port, baud, banner_timeout=banner_timeout, stall_timeout=stall_timeout,
-                        poll_interval=poll_interval, log=say)
+            grbl.connect(home=home, unlock=unlock)
         except GrblError as exc:
-            raise CarveError(str(exc)) from None
-        bar = None
-        try:
+            raise CarveError(f"{exc} {untouched()}") from None
+        coord = coord or next((w for w in grbl.modes if w in ("G54", "G55", "G56", "G57", "G58", "G59")), "G54")
+        zero = _check_work_zero(grbl, coord, state["work_zero"] if resume else None, rezeroed, untouched)
+        if check:
             try:
-                grbl.connect(home=home, unlock=unlock)
-            except GrblError as exc:
-                raise CarveError(f"{exc} (no motion was sent)") from None
-            if check:
-                try:
-                    grbl.check_mode(items, counting=counting)
-                except JobFault as exc:
-                    i = sel[exc.index] if exc.index >= 0 else -1
-                    raise CarveError(f"check mode ($C): {exc} at G-code line {i + 1}: {prog.lines[i]!r} "
-                                     "(no motion was sent)") from None
-            journal.event("start", k=k0, port=port, counting=counting)
-            from tqdm.auto import tqdm
-
-            bar = tqdm(total=n, initial=k0, unit="scratch", disable=quiet, desc="carving", dynamic_ncols=True)
-
-            def on_ok(j):
-                if roles[j] == "sync":
-                    i = sel[j]
-                    k, s = int(prog.k[i]), int(prog.scratch[i])
-                    journal.confirm(k, s)
-                    bar.update(1)
-                    if on_scratch is not None:
-                        on_scratch(k, s)
-
-            def where(j):
-                i = sel[j] if 0 <= j < len(sel) else -1
-                k = int(prog.k[i]) if i >= 0 else -1
-                what = f"scratch position {k} (design scratch {int(prog.scratch[i])})" if k >= 0 else "outside scratches"
-                return i, f"G-code line {i + 1} {prog.lines[i]!r}, {what}" if i >= 0 else "no line"
-
-            try:
-                grbl.stream(items, barrier=barrier, counting=counting, on_ok=on_ok)
+                grbl.check_mode(items, counting=counting)
             except JobFault as exc:
-                i, loc = where(exc.index)
-                journal.event("fault", reply=exc.reply, line=i + 1, done=journal.done)
-                action = ""
-                if exc.reply.startswith("error"):
-                    try:
-                        action = "; " + grbl.hold_and_retract(safe_z_mm)
-                    except GrblError as e2:
-                        action = f"; hold/retract failed: {e2}"
-                elif exc.reply.startswith("ALARM"):
-                    action = "; machine stopped by the controller (re-home with --home or --unlock)"
-                raise CarveError(f"{exc} at {loc}{action}. {journal.done} of {n} scratches are journalled; "
-                                 f"fix the cause and run again with --resume") from None
-            except DeviceLost as exc:
-                journal.event("lost", error=str(exc), done=journal.done)
-                raise CarveError(f"{exc}. {journal.done} of {n} scratches are journalled; reconnect and run "
-                                 "again with --resume (the scratch in progress will be cut again)") from None
-            except KeyboardInterrupt:
-                msg = "interrupted"
-                try:
-                    msg += ": " + grbl.hold_and_retract(safe_z_mm)
-                except GrblError as e2:
-                    msg += f": hold/retract failed: {e2}"
-                journal.event("interrupt", done=journal.done)
-                say(f"{msg}. {journal.done} of {n} scratches are journalled; run again with --resume")
-                raise
-            journal.event("finished", done=journal.done)
-            return {"done": journal.done, "total": n, "sent_lines": len(grbl.lines_sent)}
-        finally:
-            if bar is not None:
-                bar.close()
-            grbl.close()
+                i = sel[exc.index] if exc.index >= 0 else -1
+                raise CarveError(f"check mode ($C): {exc} at G-code line {i + 1}: {clip(prog.lines[i], 60)!r} "
+                                 f"{untouched()}") from None
+        # Motion is about to be sent: only now is the journal written.
+        journal = Journal(journal_path, digest, n, resume=resume, header={"work_zero": {coord: zero}})
+        journal.event("start", k=k0, port=port, counting=counting, work_zero={coord: zero})
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=n, initial=k0, unit="scratch", disable=quiet, desc="carving", dynamic_ncols=True)
+
+        def on_ok(j):
+            if roles[j] == "sync":
+                i = sel[j]
+                k, s = int(prog.k[i]), int(prog.scratch[i])
+                journal.confirm(k, s)
+                bar.update(1)
+                if on_scratch is not None:
+                    on_scratch(k, s)
+
+        def where(j):
+            i = sel[j] if 0 <= j < len(sel) else -1
+            k = int(prog.k[i]) if i >= 0 else -1
+            what = f"scratch position {k} (design scratch {int(prog.scratch[i])})" if k >= 0 else "outside scratches"
+            return i, f"G-code line {i + 1} {clip(prog.lines[i], 40)!r}, {what}" if i >= 0 else "no line"
+
+        def retract():
+            try:
+                return "; " + grbl.hold_and_retract(retract_z, coord=coord)
+            except GrblError as e2:
+                return f"; hold/retract failed: {clip(e2, 80)}"
+
+        try:
+            grbl.stream(items, barrier=barrier, counting=counting, on_ok=on_ok)
+        except JobFault as exc:
+            i, loc = where(exc.index)
+            journal.event("fault", reply=exc.reply, line=i + 1, done=journal.done)
+            if isinstance(exc, Stalled):
+                action, advice = retract(), "check the machine, then run again with --resume"
+            elif exc.reply.startswith("error"):
+                action, advice = retract(), "fix the cause and run again with --resume"
+            elif exc.reply.startswith("ALARM"):
+                action = "; machine stopped by the controller, position likely lost"
+                advice = "re-home (--home) or re-zero the board (G10 L20 P1, then --rezeroed), then run again with --resume"
+            else:
+                action = "; the controller reset itself, position may be lost"
+                advice = "re-home (--home) or re-zero the board (G10 L20 P1, then --rezeroed), then run again with --resume"
+            raise CarveError(f"{exc} at {loc}{action}. {journal.done} of {n} scratches are journalled; {advice}") from None
+        except DeviceLost as exc:
+            journal.event("lost", error=clip(exc, 200), done=journal.done)
+            raise CarveError(
+                f"{exc}. {journal.done} of {n} scratches are journalled; reconnect, and if the controller was reset or "
+                "power-cycled its position is lost: re-home it (--home) or re-zero the board (G10 L20 P1, then "
+                "--rezeroed); then run again with --resume (the scratch in progress will be cut again)") from None
+        except KeyboardInterrupt:
+            msg = "interrupted" + retract().replace(";", ":", 1)
+            journal.event("interrupt", done=journal.done)
+            say(f"{msg}. {journal.done} of {n} scratches are journalled; run again with --resume")
+            raise
+        journal.event("finished", done=journal.done)
+        return {"done": journal.done, "total": n, "sent_lines": len(grbl.lines_sent)}
     finally:
-        journal.close()
+        if bar is not None:
+            bar.close()
+        grbl.close()
+        if journal is not None:
+            journal.close()
+
+
+def _check_work_zero(grbl, coord: str, journalled: dict | None, rezeroed: bool, untouched) -> list:
+    """Refuse offsets a reset would clear and, on resume, a work zero that changed; returns it (mm)."""
+    g92, tlo = grbl.offsets["G92"], grbl.offsets.get("TLO", (0.0,))
+    if any(abs(v) > 5e-4 for v in g92):
+        raise CarveError(
+            f"a G92 offset ({_xyz(g92)}) is active, and GRBL clears G92 at every reset, so the job would shift after "
+            f"a fault or on resume; set the board zero with G10 L20 P1 X0 Y0 Z0 (kept in G54), clear G92 with G92.1, "
+            f"and run again {untouched()}")
+    if any(abs(v) > 5e-4 for v in tlo):
+        raise CarveError(f"a tool length offset (TLO {tlo[0]:.3f}) is active, and GRBL clears it at every reset; "
+                         f"cancel it with G49 and zero Z in G54 (G10 L20 P1 Z0), then run again {untouched()}")
+    if coord not in grbl.offsets:
+        raise CarveError(f"the controller did not report the {coord} offset ($#) {untouched()}")
+    zero = [float(v) for v in grbl.offsets[coord]]
+    old = (journalled or {}).get(coord)
+    if old is not None and not rezeroed and max(abs(a - b) for a, b in zip(zero, old)) > 2e-3:
+        raise CarveError(
+            f"the {coord} work zero is {_xyz(zero)} (machine mm) but was {_xyz(old)} when this job last ran; "
+            f"restore it with G10 L2 P{int(coord[1:]) - 53} {_xyz(old)}, or pass --rezeroed if you re-zeroed the same "
+            f"board at its corner {untouched()}")
+    return zero
 
 
 # ----------------------------------------------------------------------------------------------
@@ -669,6 +768,8 @@ def _parser():
     m.add_argument("--drop-short", dest="drop_short", action="store_const", const=True,
                    help="skip scratches shorter than --min-length instead of failing")
     m.add_argument("--spindle", dest="spindle_rpm", type=float, help="spindle rpm, 0 for none (default 0)")
+    m.add_argument("--spinup", dest="spinup_s", type=float,
+                   help="dwell after M3 for the spindle to reach speed, s (default 3; sent again on --resume)")
     m.add_argument("--no-improve", action="store_true", help="greedy ordering only (no 2-opt/Or-opt)")
     m.add_argument("--order-time", type=float, default=40.0, help="time limit for the ordering's local search, s (default 40)")
     s = p.add_argument_group("streaming")
@@ -679,9 +780,34 @@ def _parser():
     s.add_argument("--check", action="store_true", help="run the G-code through GRBL's $C check mode first")
     s.add_argument("--home", action="store_true", help="run the homing cycle ($H) if the controller is in Alarm")
     s.add_argument("--unlock", action="store_true", help="clear an Alarm with $X (position may be wrong!)")
+    s.add_argument("--rezeroed", action="store_true",
+                   help="with --resume: accept a G54 work zero different from the journalled one (board re-zeroed)")
     s.add_argument("--banner-timeout", type=float, default=5.0, help="seconds to wait for the GRBL banner (default 5)")
+    s.add_argument("--idle-timeout", type=float, default=10.0,
+                   help="stop when a line stays unanswered this long while the controller reports Idle "
+                        "(a lost 'ok'), s, plus any dwell in flight (default 10)")
     p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     return p
+
+
+def _refuse_overwrite(gcode: str):
+    """Refuse to write `gcode` while its journal exists: the program belongs to that job."""
+    from .grbl import Journal
+
+    jp = gcode + ".journal"
+    if not os.path.exists(jp):
+        return
+    try:
+        header, done = Journal.read(jp)
+        what = f"{done} of {header.get('n_scratches', '?')} scratches carved"
+        finished = done == header.get("n_scratches")
+    except RuntimeError as exc:
+        what, finished = f"unreadable: {clip(exc, 80)}", False
+    if finished:
+        raise CarveError(f"{gcode!r} is the program of a finished job (journal {jp!r}: {what}); choose another "
+                         "--out, or move the G-code and its journal away, to write a new program")
+    raise CarveError(f"{gcode!r} is the program of an unfinished job (journal {jp!r}: {what}); continue it with "
+                     "--resume, or move the G-code and its journal away to start a new one; nothing was written")
 
 
 def main(argv=None) -> int:
@@ -708,6 +834,7 @@ def main(argv=None) -> int:
                 if not os.path.exists(gcode):
                     raise FileNotFoundError(f"--resume: G-code {gcode!r} does not exist")
             else:
+                _refuse_overwrite(gcode)
                 prog = make_program(design, cfg, improve=not args.no_improve, time_limit=args.order_time)
                 write_program(prog, gcode)
                 write_preview(prog, prefix + ".preview.png", 1000.0 * design.board, cfg.board_offset_mm)
@@ -718,14 +845,14 @@ def main(argv=None) -> int:
                     print(f"wrote {gcode}, {gcode}.map.csv, {prefix}.preview.png, {prefix}.summary.json")
         if args.port:
             res = carve(gcode, args.port, baud=args.baud, resume=args.resume, counting=args.counting,
-                        check=args.check, home=args.home, unlock=args.unlock, safe_z_mm=cfg.safe_z_mm,
-                        quiet=args.quiet, banner_timeout=args.banner_timeout)
+                        check=args.check, home=args.home, unlock=args.unlock, rezeroed=args.rezeroed,
+                        quiet=args.quiet, banner_timeout=args.banner_timeout, idle_timeout=args.idle_timeout)
             if not args.quiet:
                 print(f"carved {res['done']} of {res['total']} scratches")
     except KeyboardInterrupt:
         return 130
     except (DesignError, CarveError, FileNotFoundError, ValueError, RuntimeError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"error: {clip(exc, 600)}", file=sys.stderr)
         return 1
     return 0
 

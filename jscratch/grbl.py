@@ -10,13 +10,20 @@ Protocol notes (GRBL 1.1 interface documentation):
 - the real-time bytes ``?`` (status), ``!`` (feed hold), ``~`` (cycle start) and ``0x18`` (soft
   reset) bypass the receive buffer and are never answered with ``ok``;
 - the receive buffer holds ``rx_size - 1`` bytes (``rx_size`` from ``$I``'s ``[OPT:...,blocks,rx]``);
-  character counting keeps the bytes of unanswered lines within it.
+  character counting keeps the bytes of unanswered lines within it;
+- a soft reset clears the ``G92`` offset and the tool length offset; the ``G54``..``G59`` work
+  offsets (``G10 L2``/``L20``) live in EEPROM and survive resets and power cycles. :meth:`Grbl.connect`
+  therefore does not reset a controller that reports ``Idle``, and reads ``$#`` so that the caller
+  can refuse a ``G92`` zero instead of losing it;
+- numbers are read as at most 8 significant digits without exponents: :func:`gword` writes every
+  word with fixed decimals inside :data:`WORD_FORMAT`'s ranges, :func:`check_words` checks a line.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import queue
 import re
@@ -27,10 +34,72 @@ from typing import Callable, NamedTuple, Sequence
 
 __all__ = [
     "Reply", "classify", "GrblError", "PortError", "NotGrblError", "AlarmLocked", "DeviceLost",
-    "JobFault", "Grbl", "Journal", "JournalError", "sha256_file",
+    "JobFault", "Stalled", "Grbl", "Journal", "JournalError", "sha256_file", "gword", "check_words",
+    "WORD_FORMAT", "clip",
 ]
 
 BANNER_RE = re.compile(r"^Grbl (\d+)\.(\d+)(\w*) \['\$' for help\]$")
+FEEDBACK_RE = re.compile(r"\[[A-Z][A-Z0-9]*:[\x20-\x7e]*\]")  # [MSG:..], [GC:..], [G54:..], [G92:..], [TLO:..]
+OFFSET_RE = re.compile(r"\[(G5[4-9]|G28|G30|G92|TLO):(-?\d+\.?\d*(?:,-?\d+\.?\d*)*)\]")
+
+
+def clip(text, limit: int = 120) -> str:
+    """`text` as one printable ASCII line of at most `limit` characters (escaped, cut with `...`)."""
+    s = "".join(c if " " <= c <= "~" else ascii(c)[1:-1] for c in str(text))
+    return s if len(s) <= limit else s[:max(limit - 3, 0)] + "..."
+
+
+# Fixed decimals and the range of each word jscratch writes. GRBL reads a number as at most 8
+# significant digits (more are dropped silently) and knows no exponent, so every range keeps
+# the fixed-decimal text within 8 digits; F must be > 0, S and P >= 0.
+WORD_FORMAT = {  # letter: (decimals, lowest, highest)
+    "X": (3, -99999.999, 99999.999),
+    "Y": (3, -99999.999, 99999.999),
+    "Z": (3, -99999.999, 99999.999),
+    "F": (1, 0.1, 9999999.9),
+    "S": (0, 0.0, 99999999.0),
+    "P": (3, 0.0, 99999.999),
+}
+_COMMANDS = {"G": {0, 1, 4, 17, 21, 49, 54, 55, 56, 57, 58, 59, 90, 94}, "M": {2, 3, 5}}
+
+
+def gword(letter: str, value: float) -> str:
+    """One G-code word, e.g. `gword("F", 900) == "F900.0"`: fixed decimals, no exponent, in range.
+
+    **Raises:** `ValueError` naming the word when `value` is not finite or outside :data:`WORD_FORMAT`.
+    """
+    dec, lo, hi = WORD_FORMAT[letter]
+    v = float(value)
+    if not math.isfinite(v):
+        raise ValueError(f"G-code word {letter}: {value!r} is not a finite number")
+    text = f"{v:.{dec}f}"
+    if float(text) == 0.0:
+        text = text.lstrip("-")
+    if not lo <= float(text) <= hi:
+        raise ValueError(f"G-code word {letter}{text} is outside GRBL's range [{lo:.{dec}f}, {hi:.{dec}f}]")
+    return letter + text
+
+
+def check_words(line: str) -> None:
+    """Check that every word of a G-code line (comments allowed) is as :func:`gword` writes it.
+
+    Commands `G`/`M` must be whole numbers jscratch uses; `X Y Z F S P` fixed decimals in range.
+    **Raises:** `ValueError` naming the first bad word.
+    """
+    body = re.sub(r"\([^()]*\)", " ", line).split(";")[0]
+    for tok in body.split():
+        letter = tok[:1]
+        if letter in _COMMANDS:
+            if not (re.fullmatch(r"[GM](0|[1-9]\d*)", tok) and int(tok[1:]) in _COMMANDS[letter]):
+                raise ValueError(f"G-code word {tok!r} is not a command jscratch writes")
+        elif letter in WORD_FORMAT:
+            dec = WORD_FORMAT[letter][0]
+            frac = rf"\.\d{{{dec}}}" if dec else ""
+            if not re.fullmatch(rf"{letter}-?\d{{1,8}}{frac}", tok):
+                raise ValueError(f"G-code word {tok!r}: not fixed-point with {dec} decimals (no exponent)")
+            gword(letter, float(tok[1:]))
+        else:
+            raise ValueError(f"G-code word {tok!r}: letter {letter!r} is not written by jscratch")
 
 
 class Reply(NamedTuple):
@@ -57,7 +126,7 @@ def classify(line: str) -> Reply:
         return Reply("alarm", int(m.group(1)), line)
     if re.fullmatch(r"<[A-Za-z]+(:\d)?(\|[A-Za-z]+:[^|<>]*)*>", line):
         return Reply("status", None, line)
-    if re.fullmatch(r"\[[A-Z]+:[\x20-\x7e]*\]", line):
+    if FEEDBACK_RE.fullmatch(line):
         return Reply("msg", None, line)
     if BANNER_RE.match(line):
         return Reply("banner", None, line)
@@ -107,6 +176,11 @@ class JobFault(GrblError):
         self.reply = reply
 
 
+class Stalled(JobFault):
+    """A line owed an answer for longer than the idle bound while every status report said `Idle`
+    (an `ok` lost on the wire); `reply` is `"stall"`."""
+
+
 ERROR_TEXT = {
     1: "expected command letter", 2: "bad number format", 3: "invalid $ statement",
     9: "G-code locked out during alarm or jog", 14: "line too long", 15: "travel exceeds max travel",
@@ -120,22 +194,25 @@ ALARM_TEXT = {
     6: "homing fail: reset during cycle", 7: "homing fail: door opened", 8: "homing fail: pull-off",
     9: "homing fail: limit switch not found",
 }
+_DWELL_RE = re.compile(r"\bG4\b.*\bP(\d+\.?\d*)")
 
 
 class Grbl:
     """A GRBL 1.1 controller on a serial port.
 
     Opening starts a reader thread that classifies every reply and a poller that sends `?` every
-    `poll_interval` s. Use :meth:`connect` (wake, reset, banner, `$I`, alarm check) before
-    :meth:`stream`.
+    `poll_interval` s. Use :meth:`connect` (status, reset unless `Idle`, `$I`, alarm check, `$#`)
+    before :meth:`stream`.
 
     **Arguments:** `port` device path; `baud` rate; `banner_timeout` s to wait for the banner;
-    `stall_timeout` s without any reply (status reports included) before the device counts as lost;
-    `poll_interval` s between status polls; `log` a callable taking a string (warnings, unknown lines).
+    `stall_timeout` s without any byte from the device before it counts as lost; `idle_timeout` s a
+    line may stay unanswered while every status report says `Idle` (plus the `P` of dwells in
+    flight) before :meth:`stream` raises :class:`Stalled`; `poll_interval` s between status polls;
+    `log` a callable taking a string (warnings, unknown lines).
     """
 
     def __init__(self, port: str, baud: int = 115200, *, banner_timeout: float = 5.0,
-                 stall_timeout: float = 30.0, poll_interval: float = 0.25,
+                 stall_timeout: float = 30.0, idle_timeout: float = 10.0, poll_interval: float = 0.25,
                  log: Callable[[str], None] | None = None):
         import serial  # only here: pyserial is not needed to import jscratch
 
@@ -143,14 +220,15 @@ class Grbl:
         self.port = port
         self.banner_timeout = banner_timeout
         self.stall_timeout = stall_timeout
+        self.idle_timeout = idle_timeout
         self.poll_interval = poll_interval
         self.log = log or (lambda s: None)
         if not os.path.exists(port) and "://" not in port:
-            raise PortError(f"serial port {port!r} does not exist")
+            raise PortError(f"serial port {clip(port)!r} does not exist")
         try:
             self.ser = serial.Serial(port, baud, timeout=0.02, write_timeout=2.0)
         except (serial.SerialException, OSError, ValueError) as exc:
-            raise PortError(f"cannot open serial port {port!r}: {exc}") from None
+            raise PortError(f"cannot open serial port {clip(port)!r}: {clip(exc)}") from None
         self.rx_size = 128
         self.version = None
         self.banner = None
@@ -158,10 +236,15 @@ class Grbl:
         self.messages: list[str] = []
         self.unknown: list[str] = []
         self.lines_sent: list[str] = []
+        self.offsets: dict = {}  # from `$#`: "G54".."G59", "G28", "G30", "G92" -> (x, y, z); "TLO" -> (z,)
+        self.modes: list[str] = []  # from `$G`: the parser state, e.g. ["G0", "G54", "G17", ...]
+        self.reset_sent = False  # connect sent a soft reset
+        self.homed = False  # connect ran the homing cycle `$H` (the machine moved)
         self._acks: queue.Queue = queue.Queue()
         self._banner_event = threading.Event()
         self._status_event = threading.Event()
         self._last_reply = time.monotonic()
+        self._idle_since: float | None = None  # first of the unbroken run of `Idle` reports
         self._lost: BaseException | None = None
         self._stop = threading.Event()
         self._wlock = threading.Lock()
@@ -190,15 +273,18 @@ class Grbl:
     def __exit__(self, *exc):
         self.close()
 
+    def _lost_error(self, how: str = "lost") -> DeviceLost:
+        return DeviceLost(f"device on {self.port} {how}: {clip(self._lost, 80)}")
+
     def _write(self, data: bytes):
         if self._lost is not None:
-            raise DeviceLost(f"device on {self.port} lost: {self._lost}")
+            raise self._lost_error()
         try:
             with self._wlock:
                 self.ser.write(data)
         except (self._serial_mod.SerialException, OSError) as exc:
             self._lost = exc
-            raise DeviceLost(f"device on {self.port} lost while writing: {exc}") from None
+            raise self._lost_error("lost while writing") from None
 
     def realtime(self, byte: bytes):
         """Send a real-time command byte (`b'?'`, `b'!'`, `b'~'`, `b'\\x18'`)."""
@@ -227,12 +313,16 @@ class Grbl:
     def _handle(self, line: str):
         if not line:
             return
-        self._last_reply = time.monotonic()
+        now = self._last_reply = time.monotonic()
         r = classify(line)
         if r.kind in ("ok", "error", "alarm"):
             self._acks.put(r)
         elif r.kind == "status":
             self.status = parse_status(line)
+            if self.status["state"] != "Idle":
+                self._idle_since = None
+            elif self._idle_since is None:
+                self._idle_since = now
             self._status_event.set()
         elif r.kind == "banner":
             self.banner = line
@@ -242,7 +332,7 @@ class Grbl:
             self.messages.append(line)
         else:
             self.unknown.append(line)
-            self.log(f"ignored unexpected line from controller: {line!r}")
+            self.log(f"ignored unexpected line from controller: {clip(line)!r}")
 
     def _poll_loop(self):
         while not self._stop.wait(self.poll_interval):
@@ -254,23 +344,31 @@ class Grbl:
 
     def _check_alive(self):
         if self._lost is not None:
-            raise DeviceLost(f"device on {self.port} lost: {self._lost}")
+            raise self._lost_error()
         if time.monotonic() - self._last_reply > self.stall_timeout:
             raise DeviceLost(f"device on {self.port} sent nothing for {self.stall_timeout:g} s")
 
-    def _next(self, timeout=None) -> Reply:
-        """Next ok/error/alarm/banner reply; raises DeviceLost when the device is gone or silent."""
+    def _next(self, timeout=None, *, idle_limit=None, since=0.0) -> Reply:
+        """Next ok/error/alarm/banner reply; raises DeviceLost when the device is gone or silent.
+
+        With `idle_limit`: a `Reply("stall", ...)` once every status report for `idle_limit` s (and
+        since `since`, a `time.monotonic()`) said `Idle` and nothing was answered.
+        """
         t_end = None if timeout is None else time.monotonic() + timeout
         while True:
             try:
                 r = self._acks.get(timeout=0.02)
             except queue.Empty:
                 self._check_alive()
-                if t_end is not None and time.monotonic() > t_end:
+                now = time.monotonic()
+                if t_end is not None and now > t_end:
                     raise DeviceLost(f"no reply from {self.port} within {timeout:g} s") from None
+                idle = self._idle_since
+                if idle_limit is not None and idle is not None and now - max(idle, since) > idle_limit:
+                    return Reply("stall", None, "stall")
                 continue
             if r.kind == "lost":
-                raise DeviceLost(f"device on {self.port} lost: {r.text}")
+                raise DeviceLost(f"device on {self.port} lost: {clip(r.text, 80)}")
             return r
 
     def query_status(self, timeout: float = 2.0) -> dict:
@@ -294,36 +392,63 @@ class Grbl:
                 raise JobFault(f"ALARM:{r.code} ({ALARM_TEXT.get(r.code, '?')}) after {line!r}", -1, r.text)
             return r
 
+    def _drain(self):
+        time.sleep(0.02)
+        while not self._acks.empty():
+            self._acks.get_nowait()
+
     # -- session -----------------------------------------------------------------------------
 
-    def connect(self, *, home: bool = False, unlock: bool = False):
-        """Wake and reset the controller, wait for the GRBL 1.1 banner, read `$I`, handle Alarm.
+    def _probe(self) -> str | None:
+        """The state of one status report (`?` only, no line sent), or None when none comes."""
+        try:
+            return self.query_status(timeout=min(0.5, self.banner_timeout))["state"]
+        except DeviceLost:
+            if self._lost is not None:
+                raise
+            return None
 
-        **Raises:** :class:`NotGrblError` without a banner (nothing but wake bytes and a reset was
-        sent), :class:`AlarmLocked` when in Alarm and neither `home` nor `unlock` is set.
-        """
+    def _reset(self):
+        """Wake bytes, soft reset, wait for the GRBL 1.1 banner."""
         self._banner_event.clear()
         self._write(b"\r\n\r\n")
         time.sleep(0.05)
         self._write(b"\x18")
+        self.reset_sent = True
         if not self._banner_event.wait(self.banner_timeout):
             if self._lost is not None:
-                raise DeviceLost(f"device on {self.port} lost: {self._lost}")
-            heard = (self.unknown[-3:] or ["nothing"])
+                raise self._lost_error()
+            heard = "; ".join(clip(u, 40) for u in self.unknown[-3:]) or "nothing"
             raise NotGrblError(
                 f"device on {self.port} did not answer like GRBL: no \"Grbl 1.1 ['$' for help]\" banner within "
                 f"{self.banner_timeout:g} s after a soft reset (heard: {heard})"
             )
         m = BANNER_RE.match(self.banner)
         if (int(m.group(1)), int(m.group(2))) != (1, 1):
-            raise NotGrblError(f"device on {self.port} is {self.banner!r}; this streamer speaks GRBL 1.1")
-        time.sleep(0.02)
-        while not self._acks.empty():  # oks to the wake newlines, the banner itself
-            self._acks.get_nowait()
+            raise NotGrblError(f"device on {self.port} is {clip(self.banner, 40)!r}; this streamer speaks GRBL 1.1")
+        self._drain()  # oks to the wake newlines, the banner itself
+
+    def connect(self, *, home: bool = False, unlock: bool = False):
+        """Recognise GRBL 1.1, handle Alarm, read the work offsets (`$#`) and parser state (`$G`).
+
+        A controller whose status report says `Idle` is not reset (a reset would clear its `G92`
+        offset, which the caller must see to refuse); any other state, or no report, gets a soft
+        reset and must answer with the GRBL 1.1 banner. `$I` must report version 1.1.
+
+        **Raises:** :class:`NotGrblError` (nothing but `?`, wake bytes and a reset was sent),
+        :class:`AlarmLocked` when in Alarm and neither `home` nor `unlock` is set.
+        """
+        time.sleep(0.05)
+        self._drain()  # stale replies to an earlier session
+        if self._probe() != "Idle":
+            self._reset()
         self.messages.clear()
         r = self.command("$I")
+        if r.kind == "error" and not self.reset_sent:  # a partial line left by an earlier host ate it
+            self.messages.clear()
+            r = self.command("$I")
         if r.kind != "ok":
-            raise NotGrblError(f"device on {self.port} answered $I with {r.text!r}")
+            raise NotGrblError(f"device on {self.port} answered $I with {clip(r.text, 40)!r}")
         for msg in self.messages:
             if msg.startswith("[VER:"):
                 self.version = msg[5:-1]
@@ -333,10 +458,13 @@ class Grbl:
                     self.rx_size = int(parts[2])
         if self.version is None:
             raise NotGrblError(f"device on {self.port} gave no [VER:...] to $I")
+        if not self.version.startswith("1.1"):
+            raise NotGrblError(f"device on {self.port} is GRBL {clip(self.version, 30)}; this streamer speaks GRBL 1.1")
         self._polling.set()
         st = self.query_status()
         if st["state"].startswith("Alarm"):
             if home:
+                self.homed = True
                 r = self.command("$H", timeout=120.0)
             elif unlock:
                 r = self.command("$X")
@@ -346,8 +474,28 @@ class Grbl:
                     "run the homing cycle ($H) or --unlock to clear the lock ($X), then run again"
                 )
             if r.kind != "ok":
-                raise GrblError(f"could not leave Alarm: {r.text}")
+                raise GrblError(f"could not leave Alarm: {clip(r.text, 40)}")
+        self.read_offsets()
         return self
+
+    def read_offsets(self) -> dict:
+        """Send `$#` and `$G`; fills :attr:`offsets` and :attr:`modes` and returns the offsets."""
+        self.messages.clear()
+        r = self.command("$#")
+        if r.kind != "ok":
+            raise NotGrblError(f"device on {self.port} answered $# with {clip(r.text, 40)!r}")
+        offsets = {}
+        for msg in self.messages:
+            m = OFFSET_RE.fullmatch(msg)
+            if m:
+                offsets[m.group(1)] = tuple(float(v) for v in m.group(2).split(","))
+        self.messages.clear()
+        r = self.command("$G")
+        modes = next((m[4:-1].split() for m in self.messages if m.startswith("[GC:")), [])
+        if r.kind != "ok" or not modes or "G92" not in offsets:
+            raise NotGrblError(f"device on {self.port} did not report its work offsets ($#) and parser state ($G)")
+        self.offsets, self.modes = offsets, modes
+        return offsets
 
     def stream(self, items: Sequence[str], *, barrier: Sequence[bool] | None = None,
                counting: bool = False, on_ok: Callable[[int], None] | None = None):
@@ -358,40 +506,52 @@ class Grbl:
         answered `ok` (the caller puts barriers before plunges and after sync points, so that an
         `error` can never let a later scratch run).
 
+        Watchdog: when lines are owed an answer and every status report for `idle_timeout` s (plus
+        the `P` seconds of owed `G4` dwells) has said `Idle`, the answer was lost: :class:`Stalled`.
+
         **Arguments:** `items` G-code lines (no comments, no line endings); `barrier` per item;
         `counting` character counting; `on_ok(i)` called for each `ok`, in order.
 
         **Raises:** :class:`JobFault` on `error:N`, `ALARM:N` or an unexpected reset;
-        :class:`DeviceLost`; `KeyboardInterrupt` passes through (the caller holds and retracts).
+        :class:`Stalled`; :class:`DeviceLost`; `KeyboardInterrupt` passes through (the caller
+        holds and retracts).
         """
         cap = self.rx_size - 1
-        pending: deque = deque()
+        pending: deque = deque()  # (index, bytes, dwell seconds)
         used = 0
         i = 0
         n = len(items)
+        progress = time.monotonic()  # last send or answer
         while i < n or pending:
             while i < n:
                 data = (items[i] + "\n").encode("ascii")
                 if len(data) > cap:
-                    raise GrblError(f"line {items[i]!r} is longer than the controller's buffer")
+                    raise GrblError(f"line {clip(items[i])!r} is longer than the controller's buffer")
                 if pending and (not counting or used + len(data) > cap or (barrier is not None and barrier[i])):
                     break
                 self._write(data)
                 self.lines_sent.append(items[i])
-                pending.append((i, len(data)))
+                m = _DWELL_RE.search(items[i])
+                pending.append((i, len(data), float(m.group(1)) if m else 0.0))
                 used += len(data)
                 i += 1
-            r = self._next()
+                progress = time.monotonic()
+            limit = self.idle_timeout + sum(p[2] for p in pending)
+            r = self._next(idle_limit=limit, since=progress)
             idx = pending[0][0]
             if r.kind == "ok":
-                pending.popleft()
-                used -= len((items[idx] + "\n").encode("ascii"))
+                _, size, _ = pending.popleft()
+                used -= size
+                progress = time.monotonic()
                 if on_ok is not None:
                     on_ok(idx)
             elif r.kind == "error":
                 raise JobFault(f"error:{r.code} ({ERROR_TEXT.get(r.code, 'see GRBL error codes')})", idx, r.text)
             elif r.kind == "alarm":
                 raise JobFault(f"ALARM:{r.code} ({ALARM_TEXT.get(r.code, 'see GRBL alarm codes')})", idx, r.text)
+            elif r.kind == "stall":
+                raise Stalled(f"controller on {self.port} reports Idle but has not answered {clip(items[idx], 40)!r} "
+                              f"for {limit:g} s (a lost 'ok')", idx, r.text)
             else:
                 raise JobFault("controller reset unexpectedly (banner mid-job)", idx, r.text)
 
@@ -406,8 +566,10 @@ class Grbl:
             time.sleep(0.01)
         return state
 
-    def hold_and_retract(self, safe_z_mm: float, *, timeout: float = 10.0) -> str:
+    def hold_and_retract(self, safe_z_mm: float, *, coord: str = "G54", timeout: float = 10.0) -> str:
         """Feed hold, wait until stopped, soft reset (flushes buffers; no alarm when stopped), retract.
+
+        The retract goes to `Z = safe_z_mm` in work system `coord` (the job's), in mm, absolute.
 
         **Returns:** a short description of what was done (for the report).
         """
@@ -419,16 +581,15 @@ class Grbl:
         self.realtime(b"\x18")
         if not self._banner_event.wait(timeout):
             raise DeviceLost(f"no banner from {self.port} after the soft reset")
-        time.sleep(0.02)
-        while not self._acks.empty():
-            self._acks.get_nowait()
+        self._drain()
         if self.query_status()["state"].startswith("Alarm"):
             return "controller in Alarm after reset: no retract sent"
-        for line in ("G21 G90", f"G0 Z{safe_z_mm:.3f}", "G4 P0"):
+        z = gword("Z", safe_z_mm)
+        for line in (f"G21 G90 {coord}", f"G0 {z}", "G4 P0.000"):
             r = self.command(line, timeout=60.0)
             if r.kind != "ok":
-                return f"retract refused: {line!r} -> {r.text}"
-        return f"held, reset and retracted to Z{safe_z_mm:.3f}"
+                return f"retract refused: {line!r} -> {clip(r.text, 40)}"
+        return f"held, reset and retracted to {z}"
 
     def check_mode(self, items: Sequence[str], *, counting: bool = False):
         """Run `items` through GRBL's `$C` check mode (parsed, not moved), then leave check mode.
@@ -437,7 +598,7 @@ class Grbl:
         """
         r = self.command("$C")
         if r.kind != "ok" or not any("Enabled" in m for m in self.messages[-3:]):
-            raise GrblError(f"could not enter check mode: {r.text}")
+            raise GrblError(f"could not enter check mode: {clip(r.text, 40)}")
         fault = None
         try:
             self.stream(items, counting=counting)
@@ -447,9 +608,7 @@ class Grbl:
         self.command("$C")
         if not self._banner_event.wait(self.banner_timeout):
             raise DeviceLost("no banner after leaving check mode")
-        time.sleep(0.02)
-        while not self._acks.empty():
-            self._acks.get_nowait()
+        self._drain()
         if fault is not None:
             raise fault
 
@@ -470,44 +629,57 @@ class JournalError(RuntimeError):
 class Journal:
     """Append-only record of scratches confirmed carved, keyed to the G-code's SHA-256.
 
-    One JSON object per line: a `header` (`gcode_sha256`, `n_scratches`), then `done` records
-    (`k` the position in the cutting order, `scratch` the design index) and `event` records. Each
-    record is flushed and fsynced before the call returns. A torn last line (power lost mid-write)
-    is ignored on reading.
+    One JSON object per line: a `header` (`gcode_sha256`, `n_scratches`, `work_zero`), then `done`
+    records (`k` the position in the cutting order, `scratch` the design index) and `event` records
+    (a `start` event per session, with its `work_zero`). Each record is flushed and fsynced before
+    the call returns. A torn last line (power lost mid-write) is ignored on reading. The carver
+    creates a journal only once motion is about to be sent.
 
     **Arguments:** `path`; `gcode_sha256`; `n_scratches`; `resume`: continue an existing journal
-    (it must exist and match); otherwise the journal must not hold any `done` record yet.
+    (it must exist and match); otherwise there must be no journal, or only a header (a leftover
+    of a session that never started: it is replaced); `header`: extra header fields.
     """
 
-    def __init__(self, path, gcode_sha256: str, n_scratches: int, *, resume: bool):
+    def __init__(self, path, gcode_sha256: str, n_scratches: int, *, resume: bool, header: dict | None = None):
         self.path = os.fspath(path)
-        self.done = 0
-        exists = os.path.exists(self.path) and os.path.getsize(self.path) > 0
-        if resume:
-            if not exists:
-                raise JournalError(f"--resume: journal {self.path!r} does not exist; nothing to resume")
-            header, done = self.read(self.path)
-            if header.get("gcode_sha256") != gcode_sha256:
-                raise JournalError(
-                    f"journal {self.path!r} belongs to G-code {header.get('gcode_sha256', '?')[:12]}..., not to "
-                    f"this G-code ({gcode_sha256[:12]}...); refusing to resume a different job"
-                )
-            self.done = done
-        else:
-            if exists:
-                _, done = self.read(self.path)
-                raise JournalError(
-                    f"journal {self.path!r} already exists ({done} scratches done); pass --resume to continue "
-                    "that job, or move the journal away to start again"
-                )
-        self._f = open(self.path, "a", encoding="utf-8")
+        self.done = self.check(self.path, gcode_sha256, resume=resume)["done"]
+        self._f = open(self.path, "a" if resume else "w", encoding="utf-8")
         if not resume:
             self._append({"type": "header", "gcode_sha256": gcode_sha256, "n_scratches": int(n_scratches),
-                          "time": time.time()})
+                          "time": time.time(), **(header or {})})
+
+    @classmethod
+    def check(cls, path, gcode_sha256: str, *, resume: bool) -> dict:
+        """Whether a session may start (before anything is sent); raises :class:`JournalError` if not.
+
+        **Returns:** dict with `done` (scratches journalled), `n_scratches` and `work_zero` (that of the
+        latest session, or None).
+        """
+        path = os.fspath(path)
+        exists = os.path.exists(path) and os.path.getsize(path) > 0
+        if not exists:
+            if resume:
+                raise JournalError(f"--resume: journal {path!r} does not exist; nothing to resume")
+            return {"done": 0, "n_scratches": None, "work_zero": None}
+        recs = cls.records(path)
+        header, done = recs[0], cls._count(path, recs)
+        starts = [r for r in recs if r.get("type") == "event" and r.get("event") == "start"]
+        if resume and header.get("gcode_sha256") != gcode_sha256:
+            raise JournalError(
+                f"journal {path!r} belongs to G-code {str(header.get('gcode_sha256', '?'))[:12]}..., not to "
+                f"this G-code ({gcode_sha256[:12]}...); refusing to resume a different job"
+            )
+        if not resume and (starts or done):
+            raise JournalError(
+                f"journal {path!r} already exists ({done} of {header.get('n_scratches', '?')} scratches done); "
+                "pass --resume to continue that job, or move the journal away to start again"
+            )
+        zero = next((r["work_zero"] for r in reversed(starts) if r.get("work_zero")), header.get("work_zero"))
+        return {"done": done if resume else 0, "n_scratches": header.get("n_scratches"), "work_zero": zero}
 
     @staticmethod
-    def read(path):
-        """Parse a journal: returns `(header dict, number of consecutive done records from k = 0)`."""
+    def records(path) -> list:
+        """All records of a journal (a torn final line dropped); the first is the header."""
         with open(path, encoding="utf-8") as f:
             lines = f.read().split("\n")
         recs = []
@@ -522,13 +694,23 @@ class Journal:
                 break  # torn final record
         if not recs or recs[0].get("type") != "header":
             raise JournalError(f"journal {path!r} has no header record")
+        return recs
+
+    @staticmethod
+    def _count(path, recs) -> int:
         done = 0
         for r in recs[1:]:
             if r.get("type") == "done":
                 if r.get("k") != done:
                     raise JournalError(f"journal {path!r}: done record k={r.get('k')} out of order (expected {done})")
                 done += 1
-        return recs[0], done
+        return done
+
+    @classmethod
+    def read(cls, path):
+        """Parse a journal: returns `(header dict, number of consecutive done records from k = 0)`."""
+        recs = cls.records(path)
+        return recs[0], cls._count(path, recs)
 
     def _append(self, rec):
         self._f.write(json.dumps(rec) + "\n")

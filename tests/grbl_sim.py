@@ -6,12 +6,19 @@ simulator models what a host can get wrong:
 - a 128-byte receive buffer (127 usable). A line's bytes occupy it until the line is answered (stricter
   than the real ISR, so a host that streams past the buffer always shows up): overflowing it is
   recorded in ``Workpiece.faults`` and the test fails;
-- a 15-block planner executed by a motion thread (tiny sleeps), ``G4`` waiting for the planner;
+- a 15-block planner executed by a motion thread (tiny sleeps), ``G4`` waiting for the planner and
+  then dwelling ``P`` seconds while reporting ``Idle`` (as GRBL 1.1 does), ``M3``/``M5`` waiting for
+  the planner too;
 - the reply grammar ``ok``/``error:N``/``ALARM:N``/``[MSG:...]``/``<status>``, the banner on reset,
-  ``$I`` with ``[OPT:V,15,128]``, ``$C`` check mode, ``$X``, ``$H``;
+  ``$I`` with ``[OPT:V,15,128]``, ``$C`` check mode, ``$X``, ``$H``, ``$#`` (``[G54:x,y,z]`` ..
+  ``[G92:..]``, ``[TLO:..]``) and ``$G`` (``[GC:...]``);
+- work offsets as the firmware keeps them: ``G54``-``G59`` set by ``G10 L2``/``L20`` live in the
+  :class:`Workpiece` (EEPROM: kept across resets and power cycles), the ``G92`` offset (``G92``,
+  ``G92.1``) is cleared by a soft reset; targets are work coordinates, positions machine ones;
 - real-time bytes ``?``, ``!``, ``~`` and ``0x18`` (reset in motion raises ALARM:3);
 - faults: ``error:N`` on the n-th G-code line, ``ALARM:N`` in the n-th block, the device vanishing
-  in the n-th block, garbage lines, a slow device, a non-GRBL device, start in Alarm.
+  in the n-th block, the n-th line's ``ok`` lost, garbage lines, a slow device, a non-GRBL device
+  (optionally spewing given bytes), start in Alarm, cutting before the spindle is up to speed.
 
 Every executed move is recorded in a :class:`Workpiece` (shared across simulator instances so a
 "power cycle" keeps the board). :func:`check_line` is a strict GRBL 1.1 grammar checker.
@@ -165,14 +172,16 @@ class Workpiece:
     """What happened to the board: executed moves and protocol faults, shared across power cycles.
 
     `moves`: list of `(kind, start, end, fraction)` with `kind` `G0`/`G1`, `start`/`end` `(x, y, z)`
-    mm and the executed fraction (1 for a complete move). `faults`: protocol violations by the
-    host (RX overflow, bad G-code from the host when `strict`). `received`: every line received.
+    machine mm and the executed fraction (1 for a complete move). `faults`: violations by the host
+    (RX overflow, cutting with the spindle not up to speed). `received`: every G-code line received.
+    `wcs`: the `G54`..`G59` work offsets (machine mm), kept like GRBL's EEPROM.
     """
 
     def __init__(self):
         self.moves = []
         self.faults = []
         self.received = []
+        self.wcs = {c: [0.0, 0.0, 0.0] for c in range(54, 60)}
         self.lock = threading.Lock()
 
     def cuts(self):
@@ -191,13 +200,21 @@ class GrblSim:
     seconds before each answer; `error_at` `(n, code)`: answer the n-th G-code line (1-based) with
     `error:code` instead of running it; `alarm_at` `(n, code)`: raise `ALARM:code` half-way through
     the n-th executed block; `vanish_at` n: close the device half-way through the n-th block;
-    `garbage_every` n: a garbage line before every n-th answer; `start_alarm`; `not_grbl`: answer
-    like some other firmware; `banner_on_open`.
+    `garbage_every` n: a garbage line before every n-th answer; `drop_ok_at` n: run the n-th G-code
+    line but never send its `ok`; `start_alarm`; `not_grbl`: answer like some other firmware, or
+    with these bytes; `spinup_s`: a cut below Z = 0 (work) sooner than this after `M3`, or with the
+    spindle off, is a fault; `banner_on_open`.
     """
 
     def __init__(self, workpiece=None, *, block_time=0.0004, reply_delay=0.0, error_at=None, alarm_at=None,
-                 vanish_at=None, garbage_every=None, start_alarm=False, not_grbl=False, banner_on_open=True):
+                 vanish_at=None, garbage_every=None, drop_ok_at=None, start_alarm=False, not_grbl=False,
+                 spinup_s=None, banner_on_open=True):
         self.wp = workpiece or Workpiece()
+        self.drop_ok_at = drop_ok_at
+        self.spinup_s = spinup_s
+        self.g92 = [0.0, 0.0, 0.0]
+        self.spindle_on = None  # time.monotonic() of the M3 that started the spindle
+        self._dwell_end = None
         self.block_time = block_time
         self.reply_delay = reply_delay
         self.error_at = error_at
@@ -251,7 +268,7 @@ class GrblSim:
 
     def _banner(self):
         if self.not_grbl:
-            self._send(b"start\r\nMarlin 2.1\r\necho: Unknown command\r\n")
+            self._send(self.not_grbl if isinstance(self.not_grbl, bytes) else b"start\r\nMarlin 2.1\r\necho: Unknown command\r\n")
             return
         self._send(BANNER)
         if self.state == "Alarm":
@@ -297,6 +314,9 @@ class GrblSim:
             self.critical = False
             self.check = False
             self.modal = {"distance": 90, "units": 21}
+            self.g92 = [0.0, 0.0, 0.0]  # the firmware's gc_init clears the G92 offset
+            self.spindle_on = None
+            self._dwell_end = None
             if moving:
                 self.state = "Alarm"
                 self._send(b"ALARM:3\r\n")
@@ -323,7 +343,7 @@ class GrblSim:
         c = bytes([b])
         if self.not_grbl:
             if c == b"\n":
-                self._send(b"echo: Unknown command\r\n")
+                self._send(self.not_grbl if isinstance(self.not_grbl, bytes) else b"echo: Unknown command\r\n")
             self.rx.clear()
             return
         if c == b"?":
@@ -383,32 +403,77 @@ class GrblSim:
             self.wp.received.append(line)
             self._answer(f"error:{exc.code}")
             return True
-        is_motion = any(a in words for a in "XYZ")
+        g, mc = words["G"], words["M"]
+        offset_cmd = set(g) & {10, 92}
+        is_motion = any(a in words for a in "XYZ") and not offset_cmd
         if is_motion and len(self.planner) >= PLANNER:
             return False
-        if 4 in words["G"] and not self.check and (self.planner or self.executing is not None):
-            return False
+        if (4 in g or set(mc) & {2, 3, 5}) and not self.check:
+            if self.planner or self.executing is not None:
+                return False  # G4 and spindle changes wait for the planner to drain
+            if 4 in g:
+                if self._dwell_end is None:
+                    self._dwell_end = time.monotonic() + words["P"]
+                if time.monotonic() < self._dwell_end:
+                    return False  # dwelling: status says Idle
+                self._dwell_end = None
         self.gcode_lines += 1
         self.wp.received.append(line)
         if self.error_at and self.gcode_lines == self.error_at[0]:
             self._answer(f"error:{self.error_at[1]}")
             return True
         check_line(line, self.modal)  # update modal state
+        for c in g:
+            if c in (54, 55, 56, 57, 58, 59):
+                self.modal["coord"] = int(c)
+        if not self.check:
+            self._offsets_and_spindle(words)
         if is_motion:
             target = list(self.pos_after_planner())
+            off = self.work_offset()
             for j, a in enumerate("XYZ"):
                 if a in words:
-                    target[j] = words[a] if self.modal.get("distance", 90) == 90 else target[j] + words[a]
+                    target[j] = words[a] + off[j] if self.modal.get("distance", 90) == 90 else target[j] + words[a]
             kind = "G0" if self.modal.get("motion") == 0 else "G1"
             if not self.check:
                 with self.lock:
-                    self.planner.append({"kind": kind, "target": target, "abort": False})
+                    self.planner.append({"kind": kind, "target": target, "abort": False,
+                                         "below": target[2] - off[2] < -1e-9})
                     if not self.hold:
                         self.state = "Run"
             else:
                 self._check_pos = target
+        if self.drop_ok_at and self.gcode_lines == self.drop_ok_at:
+            return True  # the ok is lost on the wire
         self._answer("ok")
         return True
+
+    def work_offset(self):
+        """Machine minus work coordinates: the active G54..G59 offset plus G92 (mm)."""
+        wcs = self.wp.wcs[self.modal.get("coord", 54)]
+        return [a + b for a, b in zip(wcs, self.g92)]
+
+    def _offsets_and_spindle(self, words):
+        g, mc = words["G"], words["M"]
+        pos = self.pos_after_planner()
+        if 10 in g:  # G10 L2 Pn: offset = value; G10 L20 Pn: offset such that here = value
+            coord = 53 + int(words.get("P", 1)) if words.get("P", 0) else self.modal.get("coord", 54)
+            for j, a in enumerate("XYZ"):
+                if a in words:
+                    v = words[a] if words.get("L") == 2 else pos[j] - self.g92[j] - words[a]
+                    with self.wp.lock:
+                        self.wp.wcs[coord][j] = v
+        if 92 in g:
+            wcs = self.wp.wcs[self.modal.get("coord", 54)]
+            for j, a in enumerate("XYZ"):
+                if a in words:
+                    self.g92[j] = pos[j] - wcs[j] - words[a]
+        if 92.1 in g:
+            self.g92 = [0.0, 0.0, 0.0]
+        if 3 in mc:
+            self.spindle_on = time.monotonic()
+        if 5 in mc or 2 in mc:
+            self.spindle_on = None
 
     def pos_after_planner(self):
         if self.check:
@@ -449,7 +514,19 @@ class GrblSim:
             self.pos = [0.0, 0.0, 5.0]
             self.state = "Idle"
             self._answer("ok")
-        elif line in ("$$", "$G", "$#"):
+        elif line == "$#":
+            rows = [f"G{c}:" + ",".join(f"{v:.3f}" for v in self.wp.wcs[c]) for c in range(54, 60)]
+            rows += ["G28:0.000,0.000,0.000", "G30:0.000,0.000,0.000",
+                     "G92:" + ",".join(f"{v:.3f}" for v in self.g92), "TLO:0.000", "PRB:0.000,0.000,0.000:0"]
+            self._send("".join(f"[{r}]\r\n" for r in rows).encode())
+            self._answer("ok")
+        elif line == "$G":
+            dist = self.modal.get("distance", 90)
+            units = self.modal.get("units", 21)
+            spindle = "M5" if self.spindle_on is None else "M3"
+            self._send(f"[GC:G0 G{self.modal.get('coord', 54)} G17 G{units} G{dist} G94 {spindle} M9 T0 F0 S0]\r\n".encode())
+            self._answer("ok")
+        elif line == "$$":
             self._answer("ok")
         else:
             self._answer("error:3")
@@ -471,6 +548,12 @@ class GrblSim:
             if blk is None:
                 time.sleep(self.block_time / steps)
                 continue
+            if self.spinup_s is not None and blk["below"]:
+                on = self.spindle_on
+                if on is None or time.monotonic() - on < self.spinup_s:
+                    with self.wp.lock:
+                        self.wp.faults.append(f"cut below the surface to {blk['target']} with the spindle "
+                                              + ("off" if on is None else f"on for only {time.monotonic() - on:.3f} s"))
             self.blocks_run += 1
             start = list(self.pos)
             frac = 0.0

@@ -4,7 +4,10 @@ controller on a real pty with fault injection, journal and resume, bad inputs, t
 import itertools
 import json
 import os
+import re
+import stat
 import sys
+import threading
 
 import numpy as np
 import pytest
@@ -15,9 +18,9 @@ from grbl_sim import GcodeError, GrblSim, Workpiece, check_line  # noqa: E402
 
 from jscratch.designfile import DesignError, demo_design, save_design  # noqa: E402
 from jscratch.fabricate import (  # noqa: E402
-    CarveError, MachineConfig, carve, fit_plunge, main, make_program, read_program, write_program,
+    CarveError, MachineConfig, carve, fit_plunge, main, make_program, read_program, summarize, write_program,
 )
-from jscratch.grbl import Journal, JournalError, classify, sha256_file  # noqa: E402
+from jscratch.grbl import Grbl, Journal, JournalError, check_words, classify, sha256_file  # noqa: E402
 from jscratch.toolpath import (  # noqa: E402
     best_directions, greedy_order, improve_order, knn_grid, order_scratches, path_travel,
 )
@@ -145,7 +148,7 @@ def _check_program(d, prog, cfg):
         if role == "plunge":
             assert words["Z"] < 0 and set(words) >= {"Z", "F"}
         if role == "sync":
-            assert text == "G4 P0"
+            assert text == "G4 P0.000"  # fixed decimals (jscratch.grbl.gword)
     assert sorted(seen) == list(range(n))
     assert state["units"] == 21 and state["distance"] == 90
 
@@ -244,20 +247,24 @@ def _program_cuts(prog):
     return out
 
 
-def _verify(prog, wp, in_progress=()):
+def _verify(prog, wp, in_progress=(), origin=(0.0, 0.0, 0.0)):
     """Every scratch carved completely exactly once, except the ones in progress at a fault (at most
-    twice); plunges and cuts in program order; everything in bounds; the host never overflowed RX."""
+    twice); plunges and cuts in program order; everything in bounds of the board whose corner is at
+    machine `origin`; the host never overflowed RX nor cut with the spindle not up to speed."""
     assert wp.faults == []
     cuts = _program_cuts(prog)
     by_entry = {tuple(np.round(v[0], 3)): k for k, v in cuts.items()}
     n = len(cuts)
-    xs = np.array([m[2] for m in wp.moves] + [m[1] for m in wp.moves])
+    o = np.asarray(origin, float)
+    moves = [(kind, tuple(np.round(np.subtract(s, o), 9)), tuple(np.round(np.subtract(e, o), 9)), f)
+             for kind, s, e, f in wp.moves]
+    xs = np.array([m[2] for m in moves] + [m[1] for m in moves])
     zmin = min(v[2] for v in cuts.values())
     assert np.all(xs[:, 0] >= -1e-9) and np.all(xs[:, 0] <= 300 + 1e-9)
     assert np.all(xs[:, 1] >= -1e-9) and np.all(xs[:, 1] <= 300 + 1e-9)
     assert np.all(xs[:, 2] >= zmin - 1e-9) and np.all(xs[:, 2] <= 5 + 1e-9)
     complete, touched = [], []
-    for kind, s, e, f in wp.moves:
+    for kind, s, e, f in moves:
         if s[2] < 0 and e[2] >= s[2] and s[:2] == e[:2]:
             continue  # a vertical retract, from wherever the tool stopped
         if e[2] < 0 or s[2] < 0:  # any other move with the tool below the surface
@@ -349,8 +356,9 @@ def test_device_vanishes_then_resume_after_power_cycle(job):
     path, prog = job
     wp = Workpiece()
     sim = GrblSim(wp, vanish_at=1 + 4 * 5 + 2)  # during the plunge of position 5
-    with pytest.raises(CarveError, match="lost"):
+    with pytest.raises(CarveError, match=r"lost.*position is lost: re-home it \(--home\) or re-zero the board") as e:
         carve(path, sim.port, **FAST)
+    assert "\n" not in str(e.value)
     assert Journal.read(path + ".journal")[1] == 5
     sim.close()
     sim2 = GrblSim(wp, start_alarm=True)  # powered up again: homing required
@@ -393,14 +401,21 @@ def test_bad_port_non_grbl_device_and_journal_rules(job, tmp_path):
     path, prog = job
     with pytest.raises(CarveError, match="does not exist"):
         carve(path, str(tmp_path / "ttyNOPE"), **FAST)
+    assert not os.path.exists(path + ".journal")  # no journal before motion is about to be sent
     sim = GrblSim(not_grbl=True)
     try:
         with pytest.raises(CarveError, match=r"did not answer like GRBL.*no motion was sent"):
-            carve(path, sim.port, resume=True, **FAST)
+            carve(path, sim.port, **FAST)
     finally:
         sim.close()
     assert sim.wp.received == [] and sim.wp.moves == []
-    # A journal from another G-code is refused; an existing journal needs --resume.
+    assert not os.path.exists(path + ".journal")
+    with pytest.raises(JournalError, match="does not exist; nothing to resume"):
+        carve(path, str(tmp_path / "ttyNOPE"), resume=True, **FAST)
+    # A journal from another G-code is refused; an existing (started) journal needs --resume.
+    j = Journal(path + ".journal", sha256_file(path), 24, resume=False)
+    j.event("start", k=0)
+    j.close()
     other = tmp_path / "other.gcode"
     other.write_text("G0 X1\n")
     with pytest.raises(JournalError, match="belongs to G-code"):
@@ -434,3 +449,242 @@ def test_character_counting_respects_rx_buffer_and_overflow_is_caught():
             sim.close()
         assert bool(sim.wp.faults) == overflow, sim.wp.faults[:1]
         assert sim.wp.received == lines + ["G4 P0"] or overflow
+
+
+# ----------------------------------------------------------------------------------------------
+# Issue 16: what the real GRBL 1.1h firmware showed.
+
+
+def _operator(sim, *lines):
+    """What an operator does at the machine before a job: `lines` sent on a session of their own."""
+    with Grbl(sim.port, banner_timeout=1.0, poll_interval=0.05, stall_timeout=5.0) as g:
+        g.connect()
+        for line in lines:
+            assert g.command(line).kind == "ok", line
+
+
+def test_work_zero_g92_refused_g54_kept_across_reset_and_resume(job):
+    path, prog = job
+    wp = Workpiece()
+    sim = GrblSim(wp)
+    corner = (5.0, 4.0, 2.0)  # machine position of the board corner, on its surface
+    _operator(sim, "G0 X5.000 Y4.000 Z2.000", "G92 X0 Y0 Z0", "G4 P0.000")
+    wp.moves.clear()
+    n_recv = len(wp.received)
+    # A G92 zero would be cleared by any reset (connect, fault, check mode): refused, untouched.
+    with pytest.raises(CarveError, match=r"G92 offset \(X5\.000 Y4\.000 Z2\.000\).*G10 L20 P1.*no motion was sent"):
+        carve(path, sim.port, **FAST)
+    assert wp.moves == [] and len(wp.received) == n_recv and sim.g92 == list(corner)
+    assert not os.path.exists(path + ".journal")
+    # The documented way: G10 L20 P1 (G54, kept in EEPROM). A fault resets the controller; the
+    # retract and the resume still land on the board.
+    _operator(sim, "G92.1", "G10 L20 P1 X0 Y0 Z0")
+    assert wp.wcs[54] == list(corner)
+    sim.error_at = (sim.gcode_lines + 2 + 5 * 9 + 3, 33)  # the cut of position 9
+    with pytest.raises(CarveError, match="error:33"):
+        carve(path, sim.port, **FAST)
+    assert sim.pos[2] == pytest.approx(3.0)  # work Z1 in G54 (machine 2 + 1) after the reset
+    sim.error_at = None
+    # Resume re-checks the work zero: a changed G54 is refused, naming how to restore it.
+    wp.wcs[54][0] += 1.0
+    n_moves = len(wp.moves)
+    with pytest.raises(CarveError, match=r"G54 work zero is X6\.000 .* was X5\.000 Y4\.000 Z2\.000.*"
+                                         r"G10 L2 P1 X5\.000 Y4\.000 Z2\.000.*--rezeroed"):
+        _resume(path, sim)
+    assert len(wp.moves) == n_moves
+    wp.wcs[54][0] -= 1.0
+    assert _resume(path, sim)["done"] == 24
+    sim.close()
+    _verify(prog, wp, in_progress={9}, origin=corner)
+
+
+def _design_file(tmp_path, n=24, seed=2):
+    d = demo_design(n, seed=seed)
+    f = tmp_path / "d.npz"
+    save_design(f, d.p0, d.p1, d.width, d.depth, d.alpha, d.board)
+    return str(f)
+
+
+def test_plain_rerun_keeps_the_program_of_an_unfinished_job(tmp_path, capsys):
+    design = _design_file(tmp_path)
+    gcode = tmp_path / "d.gcode"
+    wp = Workpiece()
+    sim = GrblSim(wp, error_at=(2 + 5 * 4 + 3, 33))
+    base = [design, "--plunge", "0.1", "--order-time", "1", "--quiet", "--banner-timeout", "1"]
+    assert main(base + ["--port", sim.port]) == 1
+    before = gcode.read_bytes()
+    capsys.readouterr()
+    # A plain re-run (here with another feed) or a dry run must not replace the job's program.
+    for extra in (["--feed", "600", "--port", sim.port], ["--feed", "600", "--dry-run"]):
+        assert main(base + extra) == 1
+        err = capsys.readouterr().err
+        assert re.fullmatch(r"error: .*unfinished job .*4 of 24 scratches carved.*--resume.*\n", err), err
+        assert gcode.read_bytes() == before
+    sim.error_at = None
+    assert main(base + ["--port", sim.port, "--resume"]) == 0
+    sim.close()
+    _verify(read_program(gcode), wp, in_progress={4})
+    assert main(base + ["--dry-run"]) == 1
+    assert "finished job" in capsys.readouterr().err and gcode.read_bytes() == before
+
+
+def test_lost_ok_while_idle_stops_with_resume_advice(job):
+    path, prog = job
+    wp = Workpiece()
+    sim = GrblSim(wp, drop_ok_at=2 + 5 * 4 + 2)  # the plunge of position 4: executed, never answered
+    out = {}
+
+    def run():
+        try:
+            carve(path, sim.port, idle_timeout=0.5, **FAST)
+        except BaseException as exc:  # noqa: BLE001 (reported below)
+            out["exc"] = exc
+
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    t.join(20.0)
+    hung = t.is_alive()
+    if hung:
+        sim.vanish()
+        t.join(5.0)
+    assert not hung, "the streamer still waits for the lost ok after 20 s"
+    msg = str(out.get("exc"))
+    assert isinstance(out.get("exc"), CarveError), msg
+    assert re.fullmatch(r"controller on \S+ reports Idle but has not answered 'G1 Z-0\.100 F300\.0' for 0\.5 s "
+                        r"\(a lost 'ok'\) at G-code line 26 .*scratch position 4 .*retracted to Z1\.000\. "
+                        r"4 of 24 scratches are journalled; .*--resume", msg), msg
+    assert sim.pos[2] == 1.0 and Journal.read(path + ".journal")[1] == 4
+    sim.drop_ok_at = None
+    assert _resume(path, sim)["done"] == 24
+    sim.close()
+    _verify(prog, wp, in_progress={4})
+
+
+def test_failed_connection_leaves_no_journal_and_the_next_run_starts(job, tmp_path):
+    path, prog = job
+    for port in (str(tmp_path / "ttyNOPE"), None):
+        sim = None if port else GrblSim(start_alarm=True)  # Alarm and no --home: refused
+        with pytest.raises(CarveError) as e:
+            carve(path, port or sim.port, **FAST)
+        if sim:
+            sim.close()
+        assert not os.path.exists(path + ".journal")
+        assert "no motion was sent" in str(e.value)
+    # A header-only journal (left by an earlier version that journalled before connecting) does not block.
+    with open(path + ".journal", "w") as f:
+        f.write(json.dumps({"type": "header", "gcode_sha256": "0" * 64, "n_scratches": 24}) + "\n")
+    sim = GrblSim()
+    try:
+        assert carve(path, sim.port, **FAST)["done"] == 24
+    finally:
+        sim.close()
+    _verify(prog, sim.wp)
+
+
+def test_emergency_retract_goes_to_the_programs_safe_z(tmp_path, small):
+    d, _ = small
+    prog = make_program(d, MachineConfig(plunge_mm=0.1, safe_z_mm=3.0), time_limit=2)
+    path = tmp_path / "z3.gcode"
+    write_program(prog, path)
+    sim = GrblSim(error_at=(2 + 5 * 3 + 3, 33))  # mid-cut of position 3
+    try:
+        # Streamed with the CLI, whose --safe-z default (1 mm) is below the program's 3 mm.
+        assert main(["--gcode", str(path), "--port", sim.port, "--quiet", "--banner-timeout", "1"]) == 1
+        assert sim.pos[2] == 3.0
+        # An explicit lower safe_z_mm never retracts below the program's travel height.
+        sim.error_at = (sim.gcode_lines + 2 + 3, 33)
+        with pytest.raises(CarveError, match=r"retracted to Z3\.000"):
+            carve(path, sim.port, resume=True, safe_z_mm=0.5, **FAST)
+    finally:
+        sim.close()
+
+
+def test_failure_after_homing_does_not_say_no_motion_was_sent(job):
+    path, _ = job
+    for alarm in (True, False):
+        sim = GrblSim(start_alarm=alarm, error_at=(2 + 5 * 2 + 3, 20))  # found by check mode
+        try:
+            with pytest.raises(CarveError, match=r"check mode \(\$C\): error:20") as e:
+                carve(path, sim.port, home=True, check=True, **FAST)
+        finally:
+            sim.close()
+        msg = str(e.value)
+        assert ("no motion was sent" in msg) != alarm, msg
+        assert ("homing cycle $H ran" in msg) == alarm, msg
+        assert sim.wp.moves == []
+
+
+def test_words_are_fixed_point_without_exponent_and_the_dry_run_checks_them(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main(["--dry-run", "--quiet", "--demo-n", "12", "--order-time", "1", "--plunge", "0.1",
+                 "--spindle", "1000000", "--feed", "1250000.04", "--plunge-feed", "0.25"]) == 0
+    lines = (tmp_path / "jscratch_demo.gcode").read_text().splitlines()
+    state = {}
+    for text in lines:
+        check_line(text, state)  # the strict grammar reads 'S1e+06' as a bad number
+    for text in lines:
+        check_words(text)
+    code = [t for t in lines if not t.startswith("(")]
+    assert "M3 S1000000" in code and not any(re.search(r"\d[eE]", t) for t in code)
+    assert {w for t in code for w in t.split() if w[0] == "F"} == {"F1250000.0", "F0.2"}
+    for bad in ("M3 S1e+06", "G1 X1.5 Y2.000 F900.0", "G1 Z-0.1000 F300.0", "G0 X1e2 Y0.000",
+                "G0 Z123456.000", "G4 P-1.000", "G1 X0.000 Y0.000 F0.0", "G1 X0.000 Y0.000 F900", "G0 X+1.000"):
+        with pytest.raises(ValueError, match="G-code word"):
+            check_words(bad)
+    for name, value in (("spindle_rpm", 1e9), ("feed_mm_min", 1e-3), ("spinup_s", 1e6)):
+        with pytest.raises(ValueError, match=f"machine setting {name} .* does not fit GRBL"):
+            MachineConfig(**{name: value})
+
+
+def test_not_grbl_error_is_one_short_line(job):
+    path, _ = job
+    sim = GrblSim(not_grbl=(bytes(range(128, 256)) * 4 + b"\r\n") * 3 + b"x" * 2000 + b"\r\n")
+    try:
+        with pytest.raises(CarveError, match="did not answer like GRBL") as e:
+            carve(path, sim.port, **FAST)
+    finally:
+        sim.close()
+    msg = str(e.value)
+    assert len(msg) <= 400 and msg.isprintable() and msg.isascii(), (len(msg), msg[:200])
+
+
+def test_save_design_respects_the_umask(tmp_path):
+    d = demo_design(5, seed=0)
+    old = os.umask(0o022)
+    try:
+        for mask, mode in ((0o022, 0o644), (0o077, 0o600), (0o002, 0o664)):
+            os.umask(mask)
+            f = tmp_path / f"d{mask:o}.npz"
+            save_design(f, d.p0, d.p1, d.width, d.depth, d.alpha, d.board)
+            assert stat.S_IMODE(os.stat(f).st_mode) == mode, (oct(mask), oct(os.stat(f).st_mode))
+    finally:
+        os.umask(old)
+
+
+def test_summary_bounds_are_the_programs_extents(small):
+    d, prog = small
+    words = [(w[0], float(w[1:])) for t in prog.lines if not t.startswith("(") for w in t.split() if w[0] in "XYZ"]
+    ext = {a.lower(): [min(v for c, v in words if c == a), max(v for c, v in words if c == a)] for a in "XYZ"}
+    assert prog.info["bounds_mm"] == ext
+    assert prog.info["limits_mm"]["x"] == [0.0, 1000 * d.board[0]] and ext["x"][1] < 1000 * d.board[0]
+    text = summarize(prog.info).splitlines()
+    bounds = next(t for t in text if t.startswith("bounds (mm)"))
+    assert f"X [{ext['x'][0]:.3f}, {ext['x'][1]:.3f}]" in bounds and "extents" in bounds
+    assert any(t.startswith("limits (mm)") and "allowed" in t for t in text)
+
+
+def test_spinup_dwell_after_m3_also_on_resume(tmp_path, small):
+    d, _ = small
+    prog = make_program(d, MachineConfig(plunge_mm=0.1, spindle_rpm=12000, spinup_s=0.6), time_limit=2)
+    i = prog.lines.index("M3 S12000")
+    assert prog.lines[i + 1] == "G4 P0.600" and prog.role[i + 1] == "pre"
+    path = tmp_path / "spin.gcode"
+    write_program(prog, path)
+    wp = Workpiece()
+    sim = GrblSim(wp, spinup_s=0.5, error_at=(4 + 5 * 6 + 3, 33))  # the cut of position 6
+    with pytest.raises(CarveError, match="error:33"):
+        carve(str(path), sim.port, **FAST)  # the retract's reset stops the spindle
+    sim.error_at = None
+    assert _resume(str(path), sim)["done"] == 24
+    sim.close()
+    _verify(prog, wp, in_progress={6})  # no cut with the spindle off or still spinning up
