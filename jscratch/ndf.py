@@ -63,9 +63,9 @@ since ``∂Y/∂y`` is the indicator of ``0 <= y <= L``. The slab ``[u_lo, u_hi]
    vmaps the kernel over views (with the scratch and footprint unbatched) computes it, and its
    reverse pass, once per pair.
    The pieces are then cut to the groove ``[-x_max, x_max] / w`` (`_cut`; a piece outside
-   becomes a point): ``A`` is their sum with ``D = 1``, and the pieces that are not points,
-   moved to the front (`_compact`, `PairGeometry.count`; typically two: the footprint edges the
-   groove crosses), are what every view integrates.
+   becomes a point): ``A`` is their sum with ``D = 1``, and the pieces that are not points
+   (`PairGeometry.count` of them, typically two: the footprint edges the groove crosses; the
+   first `N_COMPACT` also kept apart by `_compact`) are what every view integrates.
 2. *Per view* (`lit_integral`, `_lit_sum`): the pieces clamped to the lit slab, which lies
    inside the groove, and integrated; a renderer integrates only the first pieces, as many as
    the largest `count` of a chunk of pairs (`jscratch.render`, which sorts pairs by `count`).
@@ -122,6 +122,7 @@ __all__ = [
     "lit_integral",
     "PairGeometry",
     "N_PIECES",
+    "N_COMPACT",
 ]
 
 
@@ -768,15 +769,18 @@ def _strip_frame(footprint, p0, p1):
 
 #: Boundary pieces per pair: the four footprint edges and the two chains (`_strip_pieces`).
 N_PIECES = 6
+#: How many of them `pair_geometry` also keeps compacted (non-points first): most pairs have 2
+#: or 3 (`lit_integral`'s budgets up to this integrate those; larger budgets all six).
+N_COMPACT = 3
 
 
-def _compact(pieces):
-    """The pieces that are not points first, in order, then points at the origin; and how many
-    are not points. `pieces`: `(ua, ub, Ya, Yb)`, each `(6,)`."""
+def _compact(pieces, k: int):
+    """The first `k` pieces that are not points, in order, then points at the origin; and how
+    many pieces are not points. `pieces`: `(ua, ub, Ya, Yb)`, each `(N_PIECES,)`."""
     ua, ub, Ya, Yb = pieces
     keep = ~((ua == ub) & (Ya == Yb))
     pos = jnp.cumsum(keep) - 1
-    sel = keep[None, :] & (pos[None, :] == jnp.arange(ua.shape[0])[:, None])  # slot <- piece
+    sel = keep[None, :] & (pos[None, :] == jnp.arange(k)[:, None])  # (k, 6): slot <- piece
     return (tuple(jnp.sum(jnp.where(sel, x[None, :], 0), axis=1) for x in pieces),
             jnp.sum(keep, dtype=jnp.int32))
 
@@ -815,7 +819,8 @@ class PairGeometry(NamedTuple):
     `lit_integral` reads. Arrays in the inputs' dtype (`count`: int32); under `jax.vmap` each
     field gains a leading pair axis."""
 
-    pieces: tuple  # (ua, ub, Ya, Yb), each (6,): the boundary of F ∩ groove, non-points first
+    pieces: tuple  # (ua, ub, Ya, Yb), each (N_PIECES,): the boundary of F ∩ groove
+    first: tuple  # (ua, ub, Ya, Yb), each (N_COMPACT,): the first pieces that are not points
     count: Array  # how many pieces are not points (0 where the footprint misses the groove)
     area: Array  # A = area(F ∩ groove), m^2
     scale: Array  # -w * (footprint orientation sign), m
@@ -831,8 +836,8 @@ def _pair_geometry(footprint, p0, p1, width, depth, hand_vjp: bool = True) -> Pa
     ua, ub, Ya, Yb = (_cut_pieces if hand_vjp else _cut_values)(*G.pieces, -G.X, G.X)
     scale = -width * G.sign
     area = scale * jnp.sum((Ya + Yb) / 2 * (ub - ua))
-    pieces, count = _compact((ua, ub, Ya, Yb))
-    return PairGeometry(pieces, count, area, scale, G.t, G.b, G.X)
+    first, count = _compact((ua, ub, Ya, Yb), N_COMPACT)
+    return PairGeometry((ua, ub, Ya, Yb), first, count, area, scale, G.t, G.b, G.X)
 
 
 def pair_geometry(footprint: Float[ArrayLike, "4 2"], p0: Float[ArrayLike, "2"],
@@ -848,7 +853,10 @@ def pair_geometry(footprint: Float[ArrayLike, "4 2"], p0: Float[ArrayLike, "2"],
 def _lit_integral(geometry: PairGeometry, h, alpha, pieces: int, hand_vjp: bool = True):
     hx, hy, hz, u_lo, u_hi = _view(geometry, h)
     lobe = _Lobe(hx, hy, hz, alpha)
-    first = tuple(x[:pieces] for x in geometry.pieces)
+    # Points contribute exactly nothing, value or gradient (`_piece_values`, `_cut_transpose`),
+    # so the first non-points are exact where they are all.
+    first = (tuple(x[:pieces] for x in geometry.first) if pieces <= N_COMPACT
+             else geometry.pieces)
     lit = (_lit_sum if hand_vjp else _lit_sum_values)(
         _nodes(h.dtype), *first, u_lo, u_hi, lobe.params())
     return geometry.scale * lobe.pref * lit
@@ -859,10 +867,10 @@ def lit_integral(geometry: PairGeometry, h: Float[ArrayLike, "3"], alpha: Float[
     """Stage 2 of `pair_integral`, per view: `D_hat` from `geometry` (`pair_geometry`) under the
     half vector `h` with roughness `alpha`, in the geometry's dtype.
 
-    `pieces` (static, 0..`N_PIECES`) integrates only the geometry's first `pieces` pieces:
-    exact, in value and gradient, wherever `geometry.count <= pieces` (the others are points,
-    which contribute exactly nothing), and wrong elsewhere; the cost is about proportional to
-    `pieces`. A renderer picks it per chunk of pairs from their counts (`jscratch.render`)."""
+    `pieces` (static, 0..`N_PIECES`) integrates only the geometry's first `pieces` pieces that
+    are not points (up to `N_COMPACT`; more integrates all `N_PIECES`): exact, in value and
+    gradient, wherever `geometry.count <= pieces` (points contribute exactly nothing), and
+    wrong elsewhere; the cost is about proportional to `pieces`. A renderer picks it per chunk of pairs from their counts (`jscratch.render`)."""
     dt = geometry.area.dtype
     return _lit_integral(geometry, jnp.asarray(h, dt), jnp.asarray(alpha, dt), int(pieces))
 

@@ -646,7 +646,7 @@ def _gather(params, h_loc, scr, local):
 
 #: Piece budgets (`ndf.lit_integral`'s `pieces`): a chunk of pairs is integrated with the
 #: smallest budget that holds the largest `ndf.PairGeometry.count` among its valid pairs.
-PIECE_BUDGETS = (2, 3, ndf.N_PIECES)
+PIECE_BUDGETS = (2, ndf.N_COMPACT, ndf.N_PIECES)
 
 
 def _chunk_geometry(cfg: _Cfg, xe, ye, pix, valid, p0, p1, w, d):

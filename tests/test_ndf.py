@@ -450,7 +450,8 @@ def test_values_and_gradients_finite_over_extreme_ranges(alpha, hz, phi, wexp, d
 def test_fewer_pieces_equal_the_full_kernel_where_the_count_allows(dtype, rtol):
     """`lit_integral(pair_geometry(...), ..., pieces=k)` gives `pair_integral`'s `D_hat`, values
     and gradients, wherever the geometry's `count <= k`, and differs where it is larger (a wrong
-    count would show); every family has pairs of both kinds. Gradients differ only by rounding,
+    count would show); every family has pairs of both kinds. Past `N_COMPACT` it is the full
+    kernel. Gradients differ only by rounding,
     which the ill-conditioned hy = 0 peaks amplify in float32 (as in
     `test_hand_written_vjp_float32_accuracy`), hence percentiles there."""
     C, names = _population()
@@ -472,9 +473,12 @@ def test_fewer_pieces_equal_the_full_kernel_where_the_count_allows(dtype, rtol):
     D, g = jax.jit(jax.vmap(lambda *a: (full(*a), jax.grad(full, argnums=tuple(range(7)))(*a))))(
         *Cd.args())
     D, g = np.asarray(D), [np.asarray(x, np.float64).reshape(len(D), -1) for x in g]
-    for k in (1, 2, 3, 4):
+    for k in (1, 2, ndf.N_COMPACT, ndf.N_COMPACT + 1):
         D2, g2 = kernel(k)(*Cd.args())
         D2 = np.asarray(D2)
+        if k > ndf.N_COMPACT:  # beyond the compacted pieces: all of them, the full kernel
+            np.testing.assert_allclose(D2, D, rtol=rtol, atol=0)
+            continue
         ok = count <= k
         assert ok.sum() >= 50 and (~ok).sum() >= 2
         np.testing.assert_allclose(D2[ok], D[ok], rtol=rtol, atol=0)
