@@ -1,19 +1,18 @@
-"""Where a pair-view's forward + backward goes in the current kernel: its parts timed and costed
-apart (XLA cost analysis), M views sharing each pair's geometry as in the renderer.
+"""Where a pair-view's forward + backward goes in the kernel: its two public stages timed and
+costed apart (XLA cost analysis), M views sharing each pair's geometry as in the renderer.
 
     python benchmarks/bench_kernel_parts.py [--views 3] [--repeats 7]
 
-This script measures the kernel's internals on purpose and so calls private functions of
-`jscratch.ndf`; its rows (ns, flops and bytes per pair-view, medians after a warm-up, compile
-time apart, gradients compiled with `render.grad_compiler_options`):
+Rows (ns, flops and bytes per pair-view, medians after a warm-up, compile time apart, gradients
+compiled with `render.grad_compiler_options`):
 
 - ``whole kernel``: `ndf.pair_integral`, ``D + A``, gradient with respect to the half vectors,
   endpoints, width, depth and alpha;
-- ``strip clip``: the view-independent part alone (`_groove`: frame, footprint cut to the
-  scratch's length), once per pair;
-- ``area``: ``A`` alone (strip clip + cut to the groove + its reverse pass), once per pair;
-- ``lit integral``: `_lit_sum` alone, from precomputed pieces, slabs and lobe parameters (cut
-  to the lit slab, closed form + Gauss-Legendre with partials, reverse pass), per view.
+- ``geometry``: `ndf.pair_geometry` alone (strip clip, cut to the groove, area, compaction),
+  once per pair, its outputs summed;
+- ``lit, k pieces``: `ndf.lit_integral(..., pieces=k)` from a precomputed geometry (gradient
+  with respect to the geometry, half vectors and alpha), per view: ``k = 2`` is what most chunks
+  of a scene integrate (`render.PIECE_BUDGETS`).
 """
 
 from __future__ import annotations
@@ -58,7 +57,6 @@ def main(argv=None):
     H[..., 2] = np.abs(H[..., 2]) + 0.5
     H = jnp.asarray(H / np.linalg.norm(H, axis=-1, keepdims=True), jnp.float32)
     per = n * m
-    n_gl = ndf._nodes(jnp.float32)
     print(f"jax {jax.__version__}, {n} random float32 pairs x {m} views; per pair-view:\n")
     print("| part | fwd ns | fwd+bwd ns | fwd+bwd flop | fwd+bwd bytes |")
     print("|---|---|---|---|---|")
@@ -71,35 +69,21 @@ def main(argv=None):
 
     _row("whole kernel", whole, (H, p0, p1, w, d, al), tuple(range(6)), per, a.repeats)
 
-    def strip(p0, p1, w, d):
-        G = jax.vmap(ndf._groove)(fp, p0, p1, w, d)
-        ua, ub, Ya, Yb = G.pieces
-        return jnp.sum(ua * Ya + ub * Yb) + jnp.sum(G.X)
+    def geometry(p0, p1, w, d):
+        g = jax.vmap(ndf.pair_geometry)(fp, p0, p1, w, d)
+        return sum(jnp.sum(x) for x in jax.tree_util.tree_leaves(g)
+                   if jnp.issubdtype(x.dtype, jnp.floating))
 
-    _row("strip clip (per pair, / M)", strip, (p0, p1, w, d), (0, 1, 2, 3), per, a.repeats)
+    _row("geometry (per pair, / M)", geometry, (p0, p1, w, d), (0, 1, 2, 3), per, a.repeats)
 
-    def area(p0, p1, w, d):
-        def one(fp, p0, p1, w, d):
-            G = ndf._groove(fp, p0, p1, w, d)
-            return ndf._area_sum(*G.pieces, -G.X, G.X)
+    g = jax.jit(jax.vmap(ndf.pair_geometry))(fp, p0, p1, w, d)._replace(count=None)
+    for k in sorted({*render.PIECE_BUDGETS}):
+        def lit(g, H, al, k=k):
+            f = jax.vmap(jax.vmap(lambda g, h, a: ndf.lit_integral(g, h, a, pieces=k)),
+                         in_axes=(None, 0, None))
+            return jnp.sum(f(g, H, al))
 
-        return jnp.sum(jax.vmap(one)(fp, p0, p1, w, d))
-
-    _row("area (per pair, / M)", area, (p0, p1, w, d), (0, 1, 2, 3), per, a.repeats)
-
-    def inputs(h, fp, p0, p1, w, d, al):
-        G = ndf._groove(fp, p0, p1, w, d)
-        hx, hy, hz, lo, hi = ndf._view(G, h)
-        return G.pieces, lo, hi, ndf._Lobe(hx, hy, hz, al).params()
-
-    per_view = jax.vmap(jax.vmap(inputs), in_axes=(0, None, None, None, None, None, None))
-    pieces, lo, hi, params = jax.jit(per_view)(H, fp, p0, p1, w, d, al)
-
-    def lit(pieces, lo, hi, params):
-        f = lambda pc, lo, hi, p: ndf._lit_sum(n_gl, *pc, lo, hi, p)
-        return jnp.sum(jax.vmap(jax.vmap(f))(pieces, lo, hi, params))
-
-    _row("lit integral (per view)", lit, (pieces, lo, hi, params), (0, 1, 2, 3), per, a.repeats)
+        _row(f"lit, {k} pieces (per view)", lit, (g, H, al), (0, 1, 2), per, a.repeats)
 
 
 if __name__ == "__main__":

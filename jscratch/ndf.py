@@ -44,7 +44,8 @@ would cancel, ``T1`` is integrated by Gauss-Legendre instead: there the integran
 ``s = ±i`` are far outside the piece (Bernstein ellipse parameter at least 3.7), so the rule is
 exact to rounding. ``T2 <= T1`` is smooth and bounded by 1 on the lit range (its poles lie on the
 unlit side, about half a groove width away), and is integrated by the same fixed Gauss-Legendre
-rule on every piece (4 nodes in float32, 16 in float64; `_nodes`).
+rule on every piece (4 nodes in float32, 16 in float64; `lobe.nodes`). The lobe's arithmetic
+lives in `jscratch.lobe`.
 
 **One clipping path for every intersection type.** By Green's theorem with
 ``P = -Y(y) D(u)``, ``Y(y) = clamp(y, 0, L) - y_ref``,
@@ -100,13 +101,13 @@ meet zero goes through a guarded (double-``where``) form.
 from __future__ import annotations
 
 import functools
-import math
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, ArrayLike, Float
+
+from jscratch import lobe
 
 __all__ = [
     "pair_integral",
@@ -180,20 +181,6 @@ def _cross_accurate(o, p0, p1):
     b, b_lo = _two_prod(ey, dx)
     small = (a_lo - b_lo) + (ex * dy_lo + ex_lo * dy) - (ey * dx_lo + ey_lo * dx)
     return (a - b) + small
-
-
-def _nodes(dtype) -> int:
-    """Gauss-Legendre nodes per piece for the smooth lobe and the sharp lobe's short pieces: 4 in
-    float32 (the integrands' poles lie outside a Bernstein ellipse of parameter ~3.7 around
-    each piece, so the rule's error is ~3.7^-8 = 3e-5 relative, under float32's 1e-3 tolerance;
-    measured: the same worst error against the independent reference as 8 nodes), 16 in float64."""
-    return 4 if dtype == jnp.float32 else 16
-
-
-@functools.lru_cache(maxsize=None)
-def _gauss_legendre(n: int):
-    x, w = np.polynomial.legendre.leggauss(n)
-    return x, w
 
 
 # ---------------------------------------------------------------------------------------------
@@ -277,211 +264,6 @@ def lit_interval(hx: ArrayLike, hz: ArrayLike):
 
 
 # ---------------------------------------------------------------------------------------------
-# The lobes.
-
-
-class _Lobe:
-    """Per-pair constants of the GGX factorisation (see module docstring)."""
-
-    def __init__(self, hx, hy, hz, alpha):
-        a2 = alpha * alpha
-        k = _safe_sqrt(1 - a2)  # finite gradient at alpha = 1
-        self.k, self.hx, self.hz = k, hx, hz
-        self.g = 1 / (1 + k * hz)
-        self.beta2 = a2 + k * k * hy * hy
-        self.beta = jnp.sqrt(self.beta2)
-        self.u1 = -self.g * k * hx / 2
-        self.q1 = self.g * self.beta / 2
-        self.pref = a2 / (4 * jnp.pi)
-
-    def terms(self, u):
-        """`(T1, T2)` at `u`; `T1 = g B / (g^2 beta^2 + 4 (u - u1)^2)`, `T2 = B / (B + kN)`."""
-        B = 1 + 4 * u * u
-        N = self.hz * (1 - 4 * u * u) - 4 * self.hx * u
-        du = u - self.u1
-        T1 = self.g * B / (self.g * self.g * self.beta2 + 4 * du * du)
-        T2 = B / (B + self.k * N)
-        return T1, T2
-
-    def params(self):
-        """The 11 scalar parameters `_piece_values` takes, as a tuple (layout below)."""
-        g, k, hx, hz = self.g, self.k, self.hx, self.hz
-        a = -2 * g * k * hx / self.beta
-        m = 2 * k * (hz + g * k * hx * hx) / self.beta2
-        c = (g * g + g, (2 * g + 1) * m + a * a, (2 * g + 1) * a, m * m - a * a, 2 * a * m)
-        return (*c, self.u1, self.q1, g, k, hx, hz)
-
-
-# `_Lobe.params()` is `(c0, c10, c11, c20, c21, u1, q1, g, k, hx, hz)`. With `s = (u - u1) / q1`
-# and `e = 1 / (1 + s^2)` the sharp lobe is
-# `F1 = T1^2 + T1 = c0 + c10 e + c11 s e + c20 e^2 + c21 s e^2` (module docstring); `g` is only
-# used to evaluate `T1` in its cancellation-free form and carries no partial derivative of its own
-# (along consistent parameters the two forms are the same function). The smooth lobe is
-# `F2 = T2^2 + T2`, `T2 = B / (B + k N)`, `N = hz (1 - 4u^2) - 4 hx u`.
-
-
-def _t1_closed(p, sa, ds, ea, eb, Ym, dY):
-    """Closed form of the sharp lobe over `s in [sa, sa + ds]` (needs `|ds| >= 1`; callers pass a
-    safe value where the branch is not used), `Y = Ym + dY (s - s_m) / ds`; `ea, eb` are
-    `1 / (1 + s^2)` at the two ends.
-
-    Returns `(E0, E1, B0, B1)`: `E0 = ∫ F1 ds`, `E1 = ∫ (s - s_m) F1 ds`, and the same integrals
-    of the basis `(1, e, s e, e^2, s e^2)` as 5-tuples (`E = B . c`), so that
-    `∫ Y F1 ds = Ym E0 + (dY / ds) E1`."""
-    sb = sa + ds
-    sm = sa + ds / 2
-    I0 = jnp.arctan2(ds, 1 + sa * sb)
-    # log((1 + sb^2) / (1 + sa^2)) as +-log1p of a non-negative argument, the ratio or its
-    # inverse minus one, written without cancellation: one transcendental, accurate for ratios
-    # near 1 and far from it.
-    ps = ds * (sa + sb)  # sb^2 - sa^2
-    up = ps >= 0
-    I1 = 0.5 * jnp.where(up, 1, -1) * jnp.log1p(jnp.where(up, ps * ea, -ps * eb))
-    K1 = 0.5 * (ds * ea) * ((sa + sb) * eb)
-    K0 = 0.5 * I0 + 0.5 * (ds * ea) * ((1 - sa * sb) * eb)
-    B0 = (ds, I0, I1, K0, K1)
-    B1 = (0, I1 - sm * I0, ds - I0 - sm * I1, K1 - sm * K0, (I0 - K0) - sm * K1)
-    E0 = sum(c * b for c, b in zip(p[:5], B0))
-    E1 = sum(c * b for c, b in zip(p[1:5], B1[1:]))
-    return E0, E1, B0, B1
-
-
-class _Lobes(NamedTuple):
-    """The integrand at abscissae `u` (any shape): `F1 = T1^2 + T1`, `T2`, `1 / (B + k N)`, `B`,
-    `N` and the sharp lobe's basis `(e, s e, e^2, s e^2)`, `e = 1 / (1 + s^2)`."""
-
-    F1: Array
-    T2: Array
-    inv2: Array
-    B: Array
-    N: Array
-    basis: tuple
-
-
-def _lobes(u, p) -> _Lobes:
-    """Both lobes at `u` with two reciprocals: `T1 = g B / (4 (q1^2 + d^2))` (`g^2 beta^2 =
-    4 q1^2`, `d = u - u1`) shares one with `e = q1^2 / (q1^2 + d^2)` and `s e`; `T2 = B / (B + k N)`
-    has the other."""
-    c0, c10, c11, c20, c21, u1, q1, g, k, hx, hz = p
-    u2 = u * u
-    B = 1 + 4 * u2
-    N = hz * (1 - 4 * u2) - 4 * hx * u
-    d = u - u1
-    inv1 = 1 / (q1 * q1 + d * d)
-    T1 = g * B * inv1 / 4
-    inv2 = 1 / (B + k * N)
-    e = q1 * q1 * inv1
-    se = q1 * d * inv1
-    return _Lobes(T1 * T1 + T1, B * inv2, inv2, B, N, (e, se, e * e, se * e))
-
-
-def _piece_values(n_gl: int, ua, ub, Ya, Yb, p, with_partials: bool):
-    """`∫_{ua}^{ub} Y(u) (F1 + F2) du` for each piece (`(6,)` arrays), `Y` linear from `Ya` to
-    `Yb`, lobe parameters `p` (`_Lobe.params`). Pieces must lie in the lit range.
-
-    With `with_partials`, also the partial derivatives of each piece's value with respect to
-    `ua, ub, Ya, Yb` (`(6,)` each) and each of the 11 entries of `p` (`(6,)` each), from the
-    moments the forward pass already has (Leibniz rule at the piece ends; integration by parts
-    for the peak's position `u1` and half-width `q1`; linearity in the lobe coefficients).
-
-    Values alone unroll the Gauss-Legendre nodes (every operation elementwise on the pieces'
-    shape: measured faster on the CPU); with partials the nodes are a trailing axis, whose sums
-    keep XLA from recomputing the node values in each partial's fusion (measured fewer flops)."""
-    c0, c10, c11, c20, c21, u1, q1, g, k, hx, hz = p
-    ct = (c10, c11, c20, c21)
-    xs, ws = _gauss_legendre(n_gl)
-    du = ub - ua
-    half = du / 2
-    um = ua + half
-    Ym = (Ya + Yb) / 2
-    dY = Yb - Ya
-    # Closed form of the sharp lobe on long pieces.
-    ds = du / q1
-    sa = (ua - u1) / q1
-    sm = sa + ds / 2
-    use_cf = jnp.abs(ds) >= jnp.maximum(1, 0.5 * jnp.abs(sm))
-    ds_safe = jnp.where(use_cf, ds, 1)
-    sa_safe = jnp.where(use_cf, sa, 0)
-    sb_safe = sa_safe + ds_safe
-    ea = 1 / (1 + sa_safe * sa_safe)
-    eb = 1 / (1 + sb_safe * sb_safe)
-    E0, E1, B0, B1 = _t1_closed(p, sa_safe, ds_safe, ea, eb, Ym, dY)
-    cf = q1 * (Ym * E0 + (dY / ds_safe) * E1)
-    if not with_partials:
-        gl_t1 = gl_t2 = 0
-        for x, w in zip(xs.tolist(), ws.tolist()):
-            at = _lobes(um + half * x, p)
-            wy = w * (Ym + (dY / 2) * x)
-            gl_t1 = gl_t1 + wy * at.F1
-            gl_t2 = gl_t2 + wy * (at.T2 * at.T2 + at.T2)
-        return jnp.where(use_cf, cf, half * gl_t1) + half * gl_t2
-
-    x = jnp.asarray(xs, ua.dtype)
-    w = jnp.asarray(ws, ua.dtype)
-    uu = um[..., None] + half[..., None] * x
-    at = _lobes(uu, p)
-    F2 = at.T2 * at.T2 + at.T2
-    wy = w * (Ym[..., None] + (dY / 2)[..., None] * x)
-    gl_t2 = half * jnp.sum(wy * F2, axis=-1)
-    gl_t1 = half * jnp.sum(wy * at.F1, axis=-1)
-    value = jnp.where(use_cf, cf, gl_t1) + gl_t2
-
-    # Mean and centred first moment of D = F1 + F2 over the piece in its own parameter
-    # tau in [0, 1]: m0 = ∫ D dtau, mc = ∫ (tau - 1/2) D dtau (no division by du: exact for
-    # zero-length pieces and edges parallel to the scratch).
-    m0_2 = jnp.sum(w * F2, axis=-1) / 2
-    mc_2 = jnp.sum(w * x * F2, axis=-1) / 4
-    Ft = sum(c * b for c, b in zip(ct, at.basis))  # F1 - c0
-    m0t_gl = jnp.sum(w * Ft, axis=-1) / 2
-    mc_gl = jnp.sum(w * x * at.F1, axis=-1) / 4
-    Et0 = sum(c * b for c, b in zip(ct, B0[1:]))
-    m0t_1 = jnp.where(use_cf, Et0 / ds_safe, m0t_gl)
-    mc_1 = jnp.where(use_cf, E1 / (ds_safe * ds_safe), mc_gl)
-    m0 = m0t_1 + c0 + m0_2
-    mc = mc_1 + mc_2
-    ma, mb = m0 / 2 - mc, m0 / 2 + mc
-
-    # Integrand at the ends.
-    end_a, end_b = _lobes(ua, p), _lobes(ub, p)
-    Da = end_a.F1 + end_a.T2 * end_a.T2 + end_a.T2
-    Db = end_b.F1 + end_b.T2 * end_b.T2 + end_b.T2
-    # A point piece (both ends equal in u and Y: empty after clipping) stays empty under small
-    # changes; its end partials cancel in exact arithmetic but can be huge near a sharp peak.
-    point = (ua == ub) & (Ya == Yb)
-    d_ua = jnp.where(point, 0, -Ya * Da - dY * ma)
-    d_ub = jnp.where(point, 0, Yb * Db - dY * mb)
-    d_Ya = du * ma
-    d_Yb = du * mb
-
-    # Sharp lobe: linear in the coefficients.
-    d_c0 = Ym * du
-    d_c = [
-        jnp.where(use_cf, q1 * (Ym * b0 + (dY / ds_safe) * b1), half * jnp.sum(wy * b, axis=-1))
-        for b0, b1, b in zip(B0[1:], B1[1:], at.basis)
-    ]
-    # Peak position and half-width, by parts (with F1 - c0, which decays away from the peak).
-    sb = sa + ds
-    Fta = sum(c * b for c, b in zip(ct, end_a.basis))
-    Ftb = sum(c * b for c, b in zip(ct, end_b.basis))
-    d_u1 = -(Yb * Ftb - Ya * Fta) + dY * m0t_1
-    It_over_q1 = jnp.where(
-        use_cf, Ym * Et0 + (dY / ds_safe) * E1, (ds / 2) * jnp.sum(wy * Ft, axis=-1)
-    )
-    d_q1 = -(Yb * sb * Ftb - Ya * sa * Fta) + dY * (mc_1 * ds + sm * m0t_1) + It_over_q1
-    # Smooth lobe: dF2 = -(2 T2 + 1) T2^2 (N dk + k dN) / B, and T2^2 / B = T2 / (B + k N).
-    f = half[..., None] * wy * (-(2 * at.T2 + 1) * at.T2 * at.inv2)
-    d_k = jnp.sum(f * at.N, axis=-1)
-    d_hx = jnp.sum(f * (-4 * k * uu), axis=-1)
-    d_hz = jnp.sum(f * (k * (1 - 4 * uu * uu)), axis=-1)
-    zero = jnp.zeros_like(d_c0)
-    d_p = tuple(
-        jnp.where(point, 0, d)
-        for d in (d_c0, *d_c, d_u1, d_q1, zero, d_k, d_hx, d_hz)
-    )
-    return value, (d_ua, d_ub, d_Ya, d_Yb, d_p)
-
-
-# ---------------------------------------------------------------------------------------------
 # Boundary pieces.
 
 
@@ -562,7 +344,7 @@ def _strip_pieces(u, y, y_lo, y_hi):
     t1 = jnp.where(vert1, t1, _implicit(t1, y + t1 * dy - bound1, dy0))
     e_ua = _lerp(u, ub_, du, t0)
     e_ya = jnp.where(vert0, y, bound0)  # an end set by a bound lies on it exactly
-    # An empty piece is one point, bit for bit (`_piece_values` recognises points by equality).
+    # An empty piece is one point, bit for bit (`lobe.piece_values` recognises points by equality).
     e_ub = jnp.where(empty, e_ua, _lerp(u, ub_, du, t1))
     e_yb = jnp.where(empty, e_ya, jnp.where(vert1, yb_, bound1))
 
@@ -623,7 +405,6 @@ def _cut(ua, ub, Ya, Yb, lo, hi) -> _Cut:
     shift: the pieces form a closed boundary), so a slab that only nicks `Q` keeps `Y` of its
     own size. Written with `where`, not `clip`, so that autodiff and `_cut_transpose` agree at
     ties: an end exactly on a bound keeps its own derivative."""
-    sg = jax.lax.stop_gradient
     du = ub - ua
     dY = Yb - Ya
     lo_a, hi_a = ua < lo, ua > hi
@@ -646,7 +427,7 @@ def _cut(ua, ub, Ya, Yb, lo, hi) -> _Cut:
     Ya2 = _lerp(Ya, Yb, dY, ta)
     Yb2 = _lerp(Ya, Yb, dY, tb)
     # A piece with nothing in the slab (across the scratch but cut to zero length, or along it
-    # and outside) is one point, bit for bit and in its derivative, as `_piece_values` expects.
+    # and outside) is one point, bit for bit and in its derivative, as `lobe.piece_values` expects.
     point = jnp.where(nz, ca == cb, moved_a)
     cb = jnp.where(point, ca, cb)
     Yb2 = jnp.where(point, Ya2, Yb2)
@@ -685,14 +466,14 @@ def _cut_transpose(c: _Cut, g_ca, g_cb, g_Ya, g_Yb):
 
 def _lit_sum_values(n_gl, ua, ub, Ya, Yb, lo, hi, p):
     c = _cut(ua, ub, Ya, Yb, lo, hi)
-    return jnp.sum(_piece_values(n_gl, c.ua, c.ub, c.Ya, c.Yb, p, False))
+    return jnp.sum(lobe.piece_values(n_gl, c.ua, c.ub, c.Ya, c.Yb, p, False))
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
 def _lit_sum(n_gl, ua, ub, Ya, Yb, lo, hi, p):
     """`∑ ∫ Y (F1 + F2) du` over boundary pieces cut to the lit slab `[lo, hi]`, lobe
-    parameters `p` (`_Lobe.params`), with a hand-written reverse pass: the piece partials of
-    `_piece_values` chained through `_cut_transpose` in the forward pass, so the backward pass
+    parameters `p` (`lobe.lobe_params`), with a hand-written reverse pass: the piece partials of
+    `lobe.piece_values` chained through `_cut_transpose` in the forward pass, so the backward pass
     is a few products (the autodiff graph of the cut and of the closed form's branches was
     several times the forward's cost on the CPU)."""
     return _lit_sum_values(n_gl, ua, ub, Ya, Yb, lo, hi, p)
@@ -700,7 +481,7 @@ def _lit_sum(n_gl, ua, ub, Ya, Yb, lo, hi, p):
 
 def _lit_sum_fwd(n_gl, ua, ub, Ya, Yb, lo, hi, p):
     c = _cut(ua, ub, Ya, Yb, lo, hi)
-    value, (d_ua, d_ub, d_Ya, d_Yb, d_p) = _piece_values(n_gl, c.ua, c.ub, c.Ya, c.Yb, p, True)
+    value, (d_ua, d_ub, d_Ya, d_Yb, d_p) = lobe.piece_values(n_gl, c.ua, c.ub, c.Ya, c.Yb, p, True)
     partials = _cut_transpose(c, d_ua, d_ub, d_Ya, d_Yb)
     return jnp.sum(value), (partials, tuple(jnp.sum(d) for d in d_p))
 
@@ -852,14 +633,14 @@ def pair_geometry(footprint: Float[ArrayLike, "4 2"], p0: Float[ArrayLike, "2"],
 
 def _lit_integral(geometry: PairGeometry, h, alpha, pieces: int, hand_vjp: bool = True):
     hx, hy, hz, u_lo, u_hi = _view(geometry, h)
-    lobe = _Lobe(hx, hy, hz, alpha)
-    # Points contribute exactly nothing, value or gradient (`_piece_values`, `_cut_transpose`),
+    L = lobe.lobe(hx, hy, hz, alpha)
+    # Points contribute exactly nothing, value or gradient (`lobe.piece_values`, `_cut_transpose`),
     # so the first non-points are exact where they are all.
     first = (tuple(x[:pieces] for x in geometry.first) if pieces <= N_COMPACT
              else geometry.pieces)
     lit = (_lit_sum if hand_vjp else _lit_sum_values)(
-        _nodes(h.dtype), *first, u_lo, u_hi, lobe.params())
-    return geometry.scale * lobe.pref * lit
+        lobe.nodes(h.dtype), *first, u_lo, u_hi, lobe.lobe_params(L))
+    return geometry.scale * L.pref * lit
 
 
 def lit_integral(geometry: PairGeometry, h: Float[ArrayLike, "3"], alpha: Float[ArrayLike, ""],
@@ -934,8 +715,8 @@ def pair_integral_quadrature(h, footprint, p0, p1, width, depth, alpha, n: int):
     h, footprint, p0, p1, width, depth, alpha = _as_inputs(h, footprint, p0, p1, width, depth, alpha)
     G = _groove(footprint, p0, p1, width, depth)
     hx, hy, hz, u_lo, u_hi = _view(G, h)
-    lobe = _Lobe(hx, hy, hz, alpha)
-    x, w = _gauss_legendre(int(n))
+    L = lobe.lobe(hx, hy, hz, alpha)
+    x, w = lobe.gauss_legendre(int(n))
     x = jnp.asarray(x, h.dtype)
     w = jnp.asarray(w, h.dtype)
 
@@ -945,8 +726,8 @@ def pair_integral_quadrature(h, footprint, p0, p1, width, depth, alpha, n: int):
         return half * jnp.sum(w * f(uq))
 
     def fd(uq):
-        T1, T2 = lobe.terms(uq)
-        return _chord(G.u, G.y, G.y_lo, G.y_hi, uq) * lobe.pref * (T1 * T1 + T1 + T2 * T2 + T2)
+        T1, T2 = lobe.lobe_terms(L, uq)
+        return _chord(G.u, G.y, G.y_lo, G.y_hi, uq) * L.pref * (T1 * T1 + T1 + T2 * T2 + T2)
 
     D_hat = width * rule(u_lo, u_hi, fd)
     A = width * rule(-G.X, G.X, lambda uq: _chord(G.u, G.y, G.y_lo, G.y_hi, uq))
