@@ -78,6 +78,13 @@ error by the same `eps A_i / (pi alpha_i^2 S_P)` as view culling (the two errors
 signs and each stays within its bound). Away from the board's mirror direction `D_S` is tiny and
 most pairs drop out: for the default 3-view design 70% of the pixels need no coverage pairs at
 `eps = 1e-3`.
+
+**Host layout for the renderer.** [`bin_pairs`][] (the compacted list of a `scene.Scratches` on a
+`scene.Board`) and [`cull_pairs`][] (per-view culled lists) pack the valid pairs into ``shards``
+equal segments by pixel block ([`pixels_per_shard`][]), the layout `render.render_pairs` needs
+with a mesh, each segment's length rounded so that similar scenes share a compilation.
+
+Imports: `jscratch.ndf`, `jscratch.scene`, `jscratch.shading` (half vectors for `cull_pairs`).
 """
 
 from __future__ import annotations
@@ -92,23 +99,35 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from jscratch.ndf import groove_half_width, local_frame
+from jscratch.scene import Board, Scratches, Views
+from jscratch.shading import half_vectors
 
 __all__ = [
+    "DEFAULT_CHUNK",
     "DEFAULT_EPS",
     "DEFAULT_MARGIN",
     "GridSpec",
     "Pairs",
+    "VIEW_CAP_ROUND",
+    "ViewPairs",
     "allocate",
+    "allocate_views",
+    "bin_pairs",
     "build_pairs",
     "compact",
     "cull",
     "cull_coverage",
+    "cull_pairs",
     "cull_ratio",
+    "cull_views",
+    "grow_caps",
     "groove_half_width",
     "maybe_update",
     "needs_rebin",
     "pair_tolerance",
+    "pixels_per_shard",
     "update",
+    "update_views",
 ]
 
 DEFAULT_MARGIN = 1.25
@@ -832,3 +851,191 @@ def compact(pairs: Pairs, capacity: int) -> Pairs:
         pairs,
         (pixel, scratch, valid, pairs.overflow | (count > capacity)),
     )
+
+
+# --------------------------------------------------------------------------------------------
+# Per-view lists at fixed capacities (jax-md's pattern again: host `allocate_views`, jitted
+# `update_views`, overflow reported in the counts)
+
+
+class ViewPairs(eqx.Module):
+    """The pair lists of one multi-view render, culled per view and compacted to fixed capacities.
+
+    **Fields:**
+
+    - `views`: ``M`` [`Pairs`][] lists, view ``j`` culled by [`cull`][] and compacted to
+      ``caps[j]`` slots (their `overflow` flags are cleared: overflow is read from `counts`).
+    - `coverage`: the coverage list: culled by [`cull_coverage`][] and compacted to ``caps[M]``
+      when ``coverage_eps > 0``, else the shared list itself.
+    - `counts`: ``(M + 1,)`` int, pairs kept per list before compaction (views, then coverage).
+    - `caps`: the ``M + 1`` capacities (static).
+
+    [`overflow`][ViewPairs.overflow] is true when a list held more pairs than its capacity: the
+    lists are then incomplete; the host re-allocates (`grow_caps`) and recomputes.
+    """
+
+    views: list
+    coverage: Pairs
+    counts: Int[Array, " k"]
+    caps: tuple = eqx.field(static=True)
+
+    @property
+    def overflow(self) -> Bool[Array, ""]:
+        return jnp.any(self.counts > jnp.asarray(self.caps))
+
+
+def cull_views(pairs: Pairs, p0, p1, width, depth, alpha, h_views, eps: float,
+               board_ndf=None, coverage_eps: float = 0.0) -> list[Pairs]:
+    """The ``M`` per-view culled lists ([`cull`][] with ``h_views[j]``, same capacity as
+    `pairs`) and the coverage list ([`cull_coverage`][] with `board_ndf` when
+    ``coverage_eps > 0``, else `pairs` itself): ``M + 1`` lists (jittable)."""
+    culled = [cull(pairs, p0, p1, width, depth, alpha, h_views[j], eps)
+              for j in range(h_views.shape[0])]
+    if coverage_eps > 0:
+        return culled + [cull_coverage(pairs, alpha, board_ndf, coverage_eps)]
+    return culled + [pairs]
+
+
+def update_views(pairs: Pairs, p0, p1, width, depth, alpha, h_views, eps: float, caps,
+                 board_ndf=None, coverage_eps: float = 0.0) -> ViewPairs:
+    """[`cull_views`][] compacted to the capacities `caps` (``M + 1`` static ints, from
+    [`allocate_views`][]): a [`ViewPairs`][] (jittable). An overflowing list is incomplete: the
+    caller checks `ViewPairs.overflow` (or ``counts > caps``) and retries with larger capacities;
+    the lists' own flags are cleared so that a renderer's overflow check does not fire first."""
+    culled = cull_views(pairs, p0, p1, width, depth, alpha, h_views, eps, board_ndf, coverage_eps)
+    m = h_views.shape[0]
+    counts = jnp.stack([jnp.sum(c.valid) for c in culled])
+    compacted = lambda c, cap: eqx.tree_at(lambda q: q.overflow, compact(c, cap),
+                                           jnp.zeros((), bool))
+    views = [compacted(c, cap) for c, cap in zip(culled[:m], caps)]
+    cov = compacted(culled[m], caps[m]) if coverage_eps > 0 else pairs
+    return ViewPairs(views, cov, counts, tuple(int(c) for c in caps))
+
+
+#: Per-view capacities are rounded up to a multiple of this.
+VIEW_CAP_ROUND = 1024
+
+
+def grow_caps(caps, counts, margin: float = DEFAULT_MARGIN) -> tuple[int, ...]:
+    """Capacities that hold `counts` times `margin` (rounded up to `VIEW_CAP_ROUND`), never
+    smaller than `caps` (host code)."""
+    return tuple(max(int(c), max(VIEW_CAP_ROUND, int(math.ceil(margin * int(n) / VIEW_CAP_ROUND))
+                                 * VIEW_CAP_ROUND))
+                 for c, n in zip(caps, np.asarray(counts)))
+
+
+@eqx.filter_jit
+def _view_counts(pairs, p0, p1, width, depth, alpha, h_views, eps, board_ndf, coverage_eps):
+    culled = cull_views(pairs, p0, p1, width, depth, alpha, h_views, eps, board_ndf, coverage_eps)
+    return jnp.stack([jnp.sum(c.valid) for c in culled])
+
+
+def allocate_views(pairs: Pairs, p0, p1, width, depth, alpha, h_views, eps: float,
+                   board_ndf=None, coverage_eps: float = 0.0,
+                   margin: float = DEFAULT_MARGIN) -> tuple[int, ...]:
+    """The ``M + 1`` capacities of [`update_views`][]: the culled pair counts times `margin`,
+    rounded up to `VIEW_CAP_ROUND` (host code; one jitted count)."""
+    counts = _view_counts(pairs, p0, p1, width, depth, alpha, h_views, float(eps), board_ndf,
+                          float(coverage_eps))
+    return grow_caps((0,) * int(counts.shape[0]), counts, margin)
+
+
+# --------------------------------------------------------------------------------------------
+# Host layout for the renderer: compacted pair lists, split into pixel shards
+
+
+#: Pairs per chunk in `render.render_pairs` (per device); pair lists are rounded to it.
+#: Peak memory of the renderer's per-pair work scales with it.
+DEFAULT_CHUNK = 16384
+
+
+def _round_to(x: int, m: int) -> int:
+    return -(-x // m) * m
+
+
+def pixels_per_shard(board: Board, shards: int) -> int:
+    """Pixels per shard: whole rows, ``ceil(H / shards) * W`` (the pixel axis is padded to
+    ``shards`` times this)."""
+    return -(-board.H // shards) * board.W
+
+
+def _bucket(n: int, chunk: int) -> int:
+    """Pair-list length for ``n`` pairs: a multiple of 1024 (small) or of ``chunk``, and within
+    ~12% of ``n`` by rounding to 8 steps per octave, so repeated renders of similar scenes reuse
+    compilations."""
+    n = max(n, 1)
+    step = 2 ** max(0, n.bit_length() - 4)
+    return _round_to(_round_to(n, step), min(chunk, 1024))
+
+
+def _layout(pix: np.ndarray, scr: np.ndarray, keeps, n: int, board: Board, shards: int,
+            chunk: int):
+    """Pack the kept pairs of each mask in ``keeps`` into ``shards`` equal segments, segment ``s``
+    holding the pairs of pixels ``[s Pb, (s+1) Pb)`` (``Pb = ceil(H / shards) W``) in their input
+    order, each segment ``_bucket``-ed to the largest count over segments and masks. Padding slots
+    hold the segment's first pixel and the sentinel scratch ``n``. Returns numpy ``(pixel,
+    scratch, valid)``, each ``(len(keeps), shards * Ls)``."""
+    Pb = pixels_per_shard(board, shards)
+    idx = [np.flatnonzero(k) for k in keeps]
+    blocks = [pix[i] // Pb for i in idx]
+    counts = [np.bincount(b, minlength=shards) for b in blocks]
+    Ls = _bucket(int(max(c.max() for c in counts)), chunk)
+    shape = (len(keeps), shards * Ls)
+    out_pix = np.broadcast_to(np.repeat(np.arange(shards) * Pb, Ls), shape).astype(np.int32)
+    out_scr = np.full(shape, n, np.int32)
+    out_val = np.zeros(shape, bool)
+    for j, (i, b, c) in enumerate(zip(idx, blocks, counts)):
+        order = np.argsort(b, kind="stable")  # by block, input order kept within a block
+        starts = np.concatenate([[0], np.cumsum(c)[:-1]])
+        dest = b[order] * Ls + np.arange(i.size) - np.repeat(starts, c)
+        out_pix[j, dest] = pix[i[order]]
+        out_scr[j, dest] = scr[i[order]]
+        out_val[j, dest] = True
+    return out_pix, out_scr, out_val
+
+
+def _pairs_of(pix, scr, val):
+    return Pairs(pixel=jnp.asarray(pix), scratch=jnp.asarray(scr), valid=jnp.asarray(val),
+                     overflow=jnp.asarray(False))
+
+
+def bin_pairs(scratches: Scratches, board: Board, *, chunk: int = DEFAULT_CHUNK,
+              shards: int = 1):
+    """The complete (pixel, scratch) pair list of a scene, compacted (host code).
+
+    Bins with `build_pairs` and packs the valid pairs into ``shards`` equal segments by
+    pixel block (the layout `render_pairs` needs with a mesh of ``shards`` devices; one segment
+    without), each segment's length rounded up (`_bucket`: within ~12%, a multiple of 1024 or of
+    ``chunk``) so that similar scenes share a compilation of `render_pairs`; padding slots hold
+    the sentinel scratch ``N``.
+
+    **Returns:** `bvh.Pairs` ``(L,)`` for `render_pairs`.
+    """
+    full, _ = build_pairs(scratches.p0, scratches.p1, scratches.width, scratches.depth,
+                          board=(board.Sx, board.Sy), shape=board.shape)
+    pix, scr, val = _layout(np.asarray(full.pixel).reshape(-1),
+                            np.asarray(full.scratch).reshape(-1),
+                            [np.asarray(full.valid).reshape(-1)], scratches.n, board, shards,
+                            chunk)
+    return _pairs_of(pix[0], scr[0], val[0])
+
+
+def cull_pairs(pairs, scratches: Scratches, views: Views, board: Board, eps: float, *,
+               chunk: int = DEFAULT_CHUNK, shards: int = 1):
+    """Per-view culled pair lists from a shared list (host code).
+
+    Culls ``pairs`` (a shared ``(L,)`` list, e.g. from `bin_pairs`) for every view with
+    ``bvh.cull`` (pairs whose rigorous ``D_hat`` bound is below ``eps A / (pi alpha^2)``) and packs
+    each view's survivors into one ``(M, Lv)`` list laid out for ``shards`` pixel shards as in
+    `bin_pairs`. Render it with ``coverage_pairs=pairs``: a culled pair still covers the board.
+
+    **Returns:** `bvh.Pairs` ``(M, Lv)`` for `render_pairs`.
+    """
+    if eps <= 0 or not math.isfinite(eps):
+        raise ValueError(f"cull_pairs: `eps` must be finite and > 0; got {eps}")
+    hs = half_vectors(views, board, scratches.dtype)
+    keep = [np.asarray(cull(pairs, scratches.p0, scratches.p1, scratches.width,
+                                scratches.depth, scratches.alpha, hs[j], eps).valid)
+            for j in range(views.m)]
+    return _pairs_of(*_layout(np.asarray(pairs.pixel), np.asarray(pairs.scratch), keep,
+                              scratches.n, board, shards, chunk))
