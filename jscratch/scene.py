@@ -151,7 +151,8 @@ def scene_checks(scratches: "Scratches", views: "Views | None" = None, *,
     for name, (ok, text) in SCRATCH_RULES.items():
         v = getattr(s, name)
         checks.append((~jnp.all(jnp.isfinite(v) & ok(v)),
-                       f"{source}: a scratch {name} is not finite or breaks the rule: {name} {text}"))
+                       f"{source}: a scratch {name} is not finite or breaks the rule:"
+                       f" {name} {text}"))
     if views is not None:
         checks += [
             (~(jnp.all(jnp.isfinite(views.camera)) & jnp.all(jnp.isfinite(views.light))
@@ -255,7 +256,8 @@ class Scratches(eqx.Module):
 
     All five arrays share one floating dtype (that of ``p0, p1``; integers become the default float).
     Shapes are checked always; values (`check_scratches`: finite, ``width, depth > 0``,
-    ``0 < alpha < 1``) when the arrays are concrete. Inside jit, `render_pairs` checks values with `eqx.error_if`.
+    ``0 < alpha < 1``) when the arrays are concrete. Inside jit, `render_pairs` checks values
+    with `eqx.error_if` (`scene_checks`).
     """
 
     p0: Float[Array, "n 2"]

@@ -94,14 +94,14 @@ def _geometry(views: Views, board: Board, dtype) -> _Geometry:
 
 def half_vectors(views: Views, board: Board, dtype=None) -> Float[Array, "m p 3"]:
     """Board-frame unit half vectors at every footprint centre, ``(M, H*W, 3)`` (SPEC section 4),
-    as `bvh.cull` wants them (``h_pixel = half_vectors(...)[j]``)."""
+    as `cull.cull` wants them (``h_pixel = half_vectors(...)[j]``)."""
     dtype = views.camera.dtype if dtype is None else dtype
     return _geometry(views, board, dtype).h
 
 
 def board_ndf(views: Views, board: Board, dtype=None) -> Float[Array, "m p"]:
     """The flat board's GGX ``D(h; a_S)`` at every footprint centre, ``(M, H*W)`` (1/sr): the
-    board term of `shade` per unit uncovered area, as `bvh.cull_coverage` wants it (largest over
+    board term of `shade` per unit uncovered area, as `cull.cull_coverage` wants it (largest over
     the views)."""
     return _ggx_unit(half_vectors(views, board, dtype), board.a_S)
 

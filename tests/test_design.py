@@ -182,7 +182,7 @@ def test_cli_input_errors(tmp_path, capsys):
 def test_view_lists_report_overflow_without_aborting():
     # Per-view lists too small for the culled pairs: counts exceed the capacities (the host then
     # retries with larger ones) and the lists carry no overflow flag that would abort the render.
-    from jscratch import bvh, loss
+    from jscratch import bvh, cull, loss
     from jscratch.design.params import group_tree
     from jscratch.design.solver import Context, view_lists
 
@@ -201,15 +201,15 @@ def test_view_lists_report_overflow_without_aborting():
     ctx = Context(views.camera, views.light, hs, board_ndf, bound, lrs, 1e-3, 1e-3, board, 1024)
     lists, cov, counts = jax.jit(lambda p, q: view_lists(p, q, ctx, (4, 4, 4)))(p, pairs)
     counts = np.asarray(counts)
-    expected = [int(bvh.cull(pairs, s.p0, s.p1, s.width, s.depth, s.alpha, hs[j], 1e-3).valid.sum())
+    expected = [int(cull.cull(pairs, s.p0, s.p1, s.width, s.depth, s.alpha, hs[j], 1e-3).valid.sum())
                 for j in range(2)] + [int(pairs.valid.sum())]
     assert counts.tolist() == expected and min(expected) > 4
     assert all(not bool(q.overflow) and q.pixel.shape == (4,) for q in lists + [cov])
 
 
 def test_culled_path_matches_unculled_at_tiny_eps():
-    """The culled step (per-view `bvh.cull` lists compacted to measured capacities, the
-    coverage pass through `bvh.cull_coverage`) against the unculled shared list: at eps = 1e-12
+    """The culled step (per-view `cull.cull` lists compacted to measured capacities, the
+    coverage pass through `cull.cull_coverage`) against the unculled shared list: at eps = 1e-12
     nothing that matters is dropped, so the losses agree to float32 rounding. (This scene's board
     term is too dim for the coverage list to move the loss; what `cull_coverage` keeps is checked
     by `test_view_lists_report_overflow_without_aborting` and its error bound in test_bvh.)"""

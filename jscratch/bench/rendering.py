@@ -118,7 +118,7 @@ def render_case(n: int, res: int, views: int = DEFAULT_VIEWS, repeats: int = 3,
 
 
 def culling_rows(case: _Case, eps_list, repeats: int = 3) -> list[dict]:
-    """Per-view culling (`render.cull_pairs`, i.e. `bvh.cull`) of `case`'s scene against its
+    """Per-view culling (`render.cull_pairs`, i.e. `cull.cull`) of `case`'s scene against its
     unculled render: pairs kept, culling time, forward time of the culled lists and the radiance
     error, max over pixels and views, over the peak radiance. `eps_list[0]` must be 0 (the
     reference: `case`'s own forward, already timed)."""

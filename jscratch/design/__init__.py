@@ -16,17 +16,18 @@ option; with no targets it uses three images bundled with scikit-image).
 
 Each group (``"endpoints"``, ``"width"``, ``"depth"``, ``"alpha"``, ``"intensity"``) has its own
 learning rate and can be frozen (the paper freezes ``alpha = 0.04`` for fabrication; so does our
-default). The optimiser is optax's Adam (``optax.scale_by_adam``) followed by a per-group scale
-``-lr_g``; a frozen group gets a zero gradient and a zero step.
+default). The optimiser (`solver.make_optimizer`) is an ``optax.multi_transform`` over the
+groups: Adam (``optax.scale_by_adam``) then a scale ``-lr_g``, and ``optax.set_to_zero()`` for a
+frozen group.
 
 **Light intensities** start in closed form: with ``R_j`` the view-``j`` radiance at ``I_j = 1``,
 ``I_j = (mean(T_j) / mean(display(R_j)))^2.2``, which makes the mean display value equal the
 target's mean wherever the render is above the display knee (``display`` is a pure power there).
 
 **Each iteration** (one jitted step): the shared pair list (`bvh.build_pairs`) is rendered for
-every view; with ``cull_eps > 0`` each view's list is first culled with `bvh.cull` (pairs whose NDF
+every view; with ``cull_eps > 0`` each view's list is first culled with `cull.cull` (pairs whose NDF
 bound is below ``cull_eps`` of their possible maximum) and compacted to a per-view capacity, and
-with ``coverage_eps > 0`` the coverage pass keeps only the pairs `bvh.cull_coverage` keeps. Both
+with ``coverage_eps > 0`` the coverage pass keeps only the pairs `cull.cull_coverage` keeps. Both
 are off by default: culling bounds the forward error but removes the small gradients that turn
 unlit grooves towards a view, and Adam's per-parameter scaling makes those matter (measured on the
 default run: loss 0.0136 unculled vs 0.0323 at ``cull_eps = 1e-3``, 1.9x slower; see

@@ -44,10 +44,10 @@ class DesignConfig:
       `lr_alpha` [logit], `lr_intensity` [log W/sr]: 1e-2 each.
     - `freeze`: groups not optimised (subset of `GROUPS`). Default ``("alpha",)``.
     - `loss`: a `loss.LossConfig` (default ``E_p + LAMBDA_G E_g``, filter bank).
-    - `cull_eps`: per-view culling tolerance of `bvh.cull` (0 keeps every pair). Default 0:
+    - `cull_eps`: per-view culling tolerance of `cull.cull` (0 keeps every pair). Default 0:
       measured on the default run, 1e-3 is 1.9x faster (295 s vs 546 s) but ends at 2.4x the loss
       (0.0323 vs 0.0136; SSIM 0.46/0.76/0.74 vs 0.69/0.75/0.82), 1e-2 far worse (module docstring).
-    - `coverage_eps`: culling tolerance of the coverage pass (`bvh.cull_coverage`, same error
+    - `coverage_eps`: culling tolerance of the coverage pass (`cull.cull_coverage`, same error
       bound; only with ``cull_eps > 0``). Default 0 (every pair): measured with
       ``cull_eps = 1e-3``, 1e-3 saved 22% of the time (229 s vs 295 s) but lowered SSIM
       (0.463/0.738/0.707 vs 0.463/0.758/0.736): in dark regions the board term ``(1 - c) D_S``

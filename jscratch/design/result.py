@@ -30,7 +30,7 @@ class DesignResult:
     - `metrics`: SPEC section 7 metrics (`metrics.image_metrics`) plus ``loss``,
       ``loss_before_discard``, ``metrics_before_discard`` (SPEC 7 metrics with every scratch),
       ``discarded``, ``kept``, ``pairs_total``, ``pairs_per_view``, ``coverage_pairs`` (pairs in
-      the coverage pass after `bvh.cull_coverage`), ``rebins``,
+      the coverage pass after `cull.cull_coverage`), ``rebins``,
       timing (s): ``time_total``, ``time_first_step`` (includes compilation),
       ``time_step_median``, ``time_discard``.
     - `config`: the `DesignConfig`.

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float
 
-from jscratch import bvh
+from jscratch import bvh, cull
 from jscratch import loss as loss_mod
 from jscratch.designfile import DesignError
 from jscratch.metrics import image_metrics
@@ -27,7 +27,7 @@ from jscratch.design.result import DesignResult
 from jscratch.design.solver import (
     Context,
     evaluate,
-    make_adam,
+    make_optimizer,
     measure_caps,
     physical,
     step,
@@ -72,14 +72,14 @@ def design(
     tnp, board = _check_inputs(targets, views, board, config, checkpoint, resume)
     checkpoint = None if checkpoint is None else os.fspath(checkpoint)
     thash = targets_hash(tnp)
-    params, adam, ctx = _setup(tnp, views, board, config)
+    params, optimizer, ctx = _setup(tnp, views, board, config)
     if resume:
-        like = State(0, params, adam.init(params), None, None, (1,) * views.m, {}, 0)
+        like = State(0, params, optimizer.init(params), None, None, (1,) * views.m, {}, 0)
         state = load_checkpoint(checkpoint, like, config, thash)
     else:
-        state = _initial_state(params, adam, ctx, tnp, config)
+        state = _initial_state(params, optimizer, ctx, tnp, config)
     n_iter = config.iterations if stop_after is None else min(config.iterations, stop_after)
-    state, step_times = _iterate(state, adam, ctx, config, n_iter, checkpoint, thash, progress)
+    state, step_times = _iterate(state, optimizer, ctx, config, n_iter, checkpoint, thash, progress)
     result = _finish(state, ctx, tnp, config, discard_now=config.discard and stop_after is None)
     result.metrics.update({
         "time_total": time.perf_counter() - t_start,
@@ -117,7 +117,8 @@ def _setup(tnp, views, board, config):
         width=config.init_width, depth=config.init_depth, alpha=config.init_alpha, dtype=dt)
     params = DesignParams.from_physical(scratches, np.asarray(views.intensity), board,
                                         config.parameterisation)
-    adam = make_adam(config.adam_b1, config.adam_b2, config.adam_eps)
+    optimizer = make_optimizer(config.adam_b1, config.adam_b2, config.adam_eps,
+                          tuple(sorted(config.learning_rates().items())))
     lrs = group_tree(params, {g: jnp.asarray(v, dt) for g, v in config.learning_rates().items()})
     cam = jnp.asarray(views.camera, dt)
     lig = jnp.asarray(views.light, dt)
@@ -126,7 +127,7 @@ def _setup(tnp, views, board, config):
     ndf_max = jnp.max(board_ndf(Views(cam, lig), board, dt), axis=0)  # (P,)
     ctx = Context(cam, lig, hs, ndf_max, bound, lrs, float(config.cull_eps),
                   float(config.coverage_eps), board, int(config.chunk))
-    return params, adam, ctx
+    return params, optimizer, ctx
 
 
 def _bin(params, spec, board, config):
@@ -136,7 +137,7 @@ def _bin(params, spec, board, config):
                            spec=spec, skin=config.skin)
 
 
-def _initial_state(params, adam, ctx, tnp, config):
+def _initial_state(params, optimizer, ctx, tnp, config):
     """Iteration 0: the pair list, the per-view capacities and (``init_intensity ==
     "match_mean"``) the closed-form light intensities."""
     m, dt = tnp.shape[0], params.geom.dtype
@@ -153,7 +154,8 @@ def _initial_state(params, adam, ctx, tnp, config):
             raise DesignError(f"view {j} renders black at intensity 1: cannot set its light")
         log_i = DISPLAY_GAMMA * (np.log(np.maximum(tmean, 1e-6)) - np.log(mean_disp))
         params = eqx.tree_at(lambda p: p.log_intensity, params, jnp.asarray(log_i, dt))
-    return State(0, params, adam.init(params), pairs, spec, caps, {"total": [], "terms": {}}, 0)
+    history = {"total": [], "terms": {}}
+    return State(0, params, optimizer.init(params), pairs, spec, caps, history, 0)
 
 
 def _check_health(health, state, config, checkpoint, thash):
@@ -171,7 +173,7 @@ def _check_health(health, state, config, checkpoint, thash):
                 "or freeze it.")
 
 
-def _iterate(state, adam, ctx, config, n_iter, checkpoint, thash, progress):
+def _iterate(state, optimizer, ctx, config, n_iter, checkpoint, thash, progress):
     """Run `step` until ``n_iter``: capacity retries, health checks, history, rebinning,
     progress bar and checkpoints. Returns the final state and the per-step wall times."""
     step_times: list[float] = []
@@ -185,10 +187,10 @@ def _iterate(state, adam, ctx, config, n_iter, checkpoint, thash, progress):
         while state.iteration < n_iter:
             t0 = time.perf_counter()
             new, opt_state, terms, rebin, counts, health = step(
-                state.params, state.opt_state, state.pairs, ctx, state.caps, adam)
+                state.params, state.opt_state, state.pairs, ctx, state.caps, optimizer)
             counts = np.asarray(counts)
             if ctx.cull_eps > 0 and np.any(counts > np.asarray(state.caps)):
-                caps = bvh.grow_caps(state.caps, counts)
+                caps = cull.grow_caps(state.caps, counts)
                 state = dataclasses.replace(state, caps=caps)
                 continue  # retry the same iteration with larger per-view lists
             _check_health(health, state, config, checkpoint, thash)

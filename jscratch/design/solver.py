@@ -13,13 +13,13 @@ import jax.numpy as jnp
 import optax
 from jaxtyping import Array
 
-from jscratch import bvh
+from jscratch import bvh, cull
 from jscratch import loss as loss_mod
 from jscratch.render import grad_compiler_options, render_pairs, scratch_contributions
 from jscratch.scene import SCRATCH_RULES, Board, Views
 from jscratch.shading import display
 from jscratch.design.config import GROUPS
-from jscratch.design.params import DesignParams
+from jscratch.design.params import DesignParams, group_tree
 
 
 class Context(eqx.Module):
@@ -30,23 +30,34 @@ class Context(eqx.Module):
     hs: Array  # (M, P, 3) half vectors
     board_ndf: Array  # (P,) flat board's GGX at each pixel, largest over the views (1/sr)
     loss: loss_mod.BoundLoss
-    lrs: DesignParams  # per-group learning rate (0 = frozen), scalar leaves
+    lrs: DesignParams  # per-group learning rate (0 = frozen), scalar leaves: the frozen mask
     cull_eps: float = eqx.field(static=True)
     coverage_eps: float = eqx.field(static=True)
     board: Board = eqx.field(static=True)
     chunk: int = eqx.field(static=True)
 
 
+def _group_labels(params: DesignParams) -> DesignParams:
+    return group_tree(params, {g: g for g in GROUPS})
+
+
 @functools.lru_cache(maxsize=None)
-def make_adam(b1: float, b2: float, eps: float) -> optax.GradientTransformation:
-    # Cached: the same object for the same constants, so jit caches hit across designs.
-    return optax.scale_by_adam(b1=b1, b2=b2, eps=eps)
+def make_optimizer(b1: float, b2: float, eps: float,
+                   learning_rates: tuple[tuple[str, float], ...]) -> optax.GradientTransformation:
+    """Per parameter group (`optax.multi_transform`): Adam (``optax.scale_by_adam``) then a step
+    of ``-lr``; a frozen group (``lr == 0``) gets ``optax.set_to_zero()``. `learning_rates` is
+    ``DesignConfig.learning_rates()`` as sorted items. Cached: the same object for the same
+    constants, so jit caches hit across designs."""
+    groups = {g: (optax.set_to_zero() if lr == 0 else
+                  optax.chain(optax.scale_by_adam(b1=b1, b2=b2, eps=eps), optax.scale(-lr)))
+              for g, lr in learning_rates}
+    return optax.multi_transform(groups, _group_labels)
 
 
 def view_lists(params: DesignParams, pairs: bvh.Pairs, ctx: Context, caps: tuple[int, ...]):
     """``(lists, coverage list, counts)``: the per-view culled lists compacted to ``caps``, the
     coverage list and the ``M + 1`` counts of kept pairs (views, then coverage), from
-    `bvh.update_views` (``counts > caps`` means overflow: the caller retries with larger
+    `cull.update_views` (``counts > caps`` means overflow: the caller retries with larger
     capacities). Unculled (``cull_eps == 0``): the shared list, ``None`` (coverage from the same
     list) and ``M`` counts."""
     m = ctx.hs.shape[0]
@@ -54,7 +65,7 @@ def view_lists(params: DesignParams, pairs: bvh.Pairs, ctx: Context, caps: tuple
         n = jnp.sum(pairs.valid)
         return pairs, None, jnp.stack([n] * m)
     s = jax.lax.stop_gradient(params).scratches()
-    v = bvh.update_views(pairs, s.p0, s.p1, s.width, s.depth, s.alpha, ctx.hs, ctx.cull_eps, caps,
+    v = cull.update_views(pairs, s.p0, s.p1, s.width, s.depth, s.alpha, ctx.hs, ctx.cull_eps, caps,
                          ctx.board_ndf, ctx.coverage_eps)
     return v.views, v.coverage, v.counts
 
@@ -104,9 +115,9 @@ def _health(loss, grads: DesignParams, new: DesignParams) -> dict[str, Array]:
     return out
 
 
-def step(params: DesignParams, opt_state, pairs: bvh.Pairs, ctx: Context, caps, adam):
+def step(params: DesignParams, opt_state, pairs: bvh.Pairs, ctx: Context, caps, optimizer):
     """`_step_impl`, jitted with `render.grad_compiler_options` (faster compile and step)."""
-    return _jitted_step()(params, opt_state, pairs, ctx, caps, adam)
+    return _jitted_step()(params, opt_state, pairs, ctx, caps, optimizer)
 
 
 @functools.lru_cache(maxsize=None)
@@ -114,10 +125,11 @@ def _jitted_step():
     return eqx.filter_jit(_step_impl, compiler_options=grad_compiler_options())
 
 
-def _step_impl(params: DesignParams, opt_state, pairs: bvh.Pairs, ctx: Context, caps, adam):
-    """One Adam iteration. Returns the new state, the loss terms at ``params``, whether the pair
-    list must be rebuilt for the new parameters, per-view counts (to detect capacity overflow) and
-    the health report."""
+def _step_impl(params: DesignParams, opt_state, pairs: bvh.Pairs, ctx: Context, caps,
+               optimizer):
+    """One Adam iteration (`make_optimizer`). Returns the new state, the loss terms at
+    ``params``, whether the pair list must be rebuilt for the new parameters, per-view counts (to
+    detect capacity overflow) and the health report."""
     lists, cov, counts = view_lists(params, pairs, ctx, caps)
 
     def f(p):
@@ -125,10 +137,10 @@ def _step_impl(params: DesignParams, opt_state, pairs: bvh.Pairs, ctx: Context, 
         return terms["total"], terms
 
     (value, terms), grads = eqx.filter_value_and_grad(f, has_aux=True)(params)
+    # A frozen group's gradient is reported as zero (the health check); its step is zero.
     frozen = jax.tree_util.tree_map(lambda lr: lr == 0, ctx.lrs)
     grads = jax.tree_util.tree_map(lambda g, fr: jnp.where(fr, 0, g), grads, frozen)
-    updates, opt_state = adam.update(grads, opt_state, params)
-    updates = jax.tree_util.tree_map(lambda u, lr: (-lr * u).astype(u.dtype), updates, ctx.lrs)
+    updates, opt_state = optimizer.update(grads, opt_state, params)
     new = eqx.apply_updates(params, updates)
     s = new.scratches()
     # Non-finite or out-of-range values are reported by the health check (and the host stops);
@@ -156,10 +168,10 @@ def contributions(params: DesignParams, lists, ctx: Context) -> Array:
 
 
 def measure_caps(params, pairs, ctx, m) -> tuple[int, ...]:
-    """Capacities of the ``M`` view lists and the coverage list (`bvh.allocate_views`: the culled
+    """Capacities of the ``M`` view lists and the coverage list (`cull.allocate_views`: the culled
     pair counts times a margin; ``M`` ones when not culling)."""
     if ctx.cull_eps == 0:
         return (1,) * m
     s = jax.lax.stop_gradient(params).scratches()
-    return bvh.allocate_views(pairs, s.p0, s.p1, s.width, s.depth, s.alpha, ctx.hs, ctx.cull_eps,
+    return cull.allocate_views(pairs, s.p0, s.p1, s.width, s.depth, s.alpha, ctx.hs, ctx.cull_eps,
                               ctx.board_ndf, ctx.coverage_eps)
