@@ -42,7 +42,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jscratch import bvh, ndf, render
+from jscratch import bvh, cull, ndf, render
 
 BOARD = (0.3, 0.3)
 DATE = "2026-11-21"
@@ -170,7 +170,7 @@ def cull_table(n, size, eps_list, n_views, repeats, batch):
     fps = render.pixel_footprints(board, jnp.float32)
     full, _ = bvh.build_pairs(p0, p1, width, depth, board=BOARD, shape=shape)
     shader = make_shader(shape, batch)
-    cull = jax.jit(bvh.cull)
+    cull_fn = jax.jit(cull.cull)
     s_p = BOARD[0] * BOARD[1] / (size * size)
     n_full = int(np.asarray(full.valid).sum())
 
@@ -193,11 +193,11 @@ def cull_table(n, size, eps_list, n_views, repeats, batch):
     rows = []
     t_shade0 = None
     compiled = {}  # one compiled shader per slot count (buckets of `batch` pairs)
-    jax.block_until_ready(cull(full, p0, p1, width, depth, alpha, hs[0], 0.0).valid)  # compile
+    jax.block_until_ready(cull_fn(full, p0, p1, width, depth, alpha, hs[0], 0.0).valid)  # compile
     for eps in eps_list:
-        culled = [cull(full, p0, p1, width, depth, alpha, hs[j], eps) for j in range(n_views)]
+        culled = [cull_fn(full, p0, p1, width, depth, alpha, hs[j], eps) for j in range(n_views)]
         t_cull = median_time(
-            lambda: [cull(full, p0, p1, width, depth, alpha, hs[j], eps).valid  # noqa: B023
+            lambda: [cull_fn(full, p0, p1, width, depth, alpha, hs[j], eps).valid  # noqa: B023
                      for j in range(n_views)], repeats)
         kept = [int(np.asarray(c.valid).sum()) for c in culled]
         # each view's list compacted to its own bucketed capacity (culling saves per view)

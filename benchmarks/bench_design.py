@@ -34,23 +34,22 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from jscratch import loss as L  # noqa: E402
-from jscratch import render as R  # noqa: E402
-from jscratch.design import DesignConfig, default_targets, design  # noqa: E402
+from jscratch import loss
+from jscratch import render
+from jscratch.design import DesignConfig, default_targets, design
 
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "design.md")
 
 
 def _run(m, size, config, theta_deg=50.0):
     targets, _ = default_targets(m, (size, size))
-    board = R.Board(shape=(size, size))
-    views = R.views_on_circle(m, math.radians(theta_deg), board=board)
+    board = render.Board(shape=(size, size))
+    views = render.views_on_circle(m, math.radians(theta_deg), board=board)
     t0 = time.perf_counter()
     res = design(targets, views, board, config)
     wall = time.perf_counter() - t0
-    ep = float(L.perceptual_loss(jnp.asarray(res.display), jnp.asarray(targets)))
+    ep = float(loss.perceptual_loss(jnp.asarray(res.display), jnp.asarray(targets)))
     return res, wall, ep
 
 
@@ -96,8 +95,8 @@ def bench_ablations(args, out):
     out.append(HEADER)
     base = dict(n_scratches=n, iterations=it)
     runs = [
-        ("loss: squared L2", DesignConfig(**base, loss=L.LossConfig(kind="l2"))),
-        ("loss: E_p", DesignConfig(**base, loss=L.LossConfig(kind="perceptual"))),
+        ("loss: squared L2", DesignConfig(**base, loss=loss.LossConfig(kind="l2"))),
+        ("loss: E_p", DesignConfig(**base, loss=loss.LossConfig(kind="perceptual"))),
         ("loss: E_p + E_g (default)", DesignConfig(**base)),
         ("midpoint + direction + length", DesignConfig(**base, parameterisation="midpoint")),
         ("alpha = 4e-4 (frozen)", DesignConfig(**base, init_alpha=4e-4)),

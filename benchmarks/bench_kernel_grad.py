@@ -13,17 +13,15 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
-import sys
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from jscratch import ndf  # noqa: E402
-from jscratch.ndf_cases import random_cases  # noqa: E402
+from jscratch import ndf
+from jscratch.bench.ndf_cases import random_cases
 
 
 def ns_per_pair(f, args, n, repeats):

@@ -26,7 +26,7 @@ import numpy as np
 from jscratch import ndf
 from jscratch import render
 from jscratch.bench import median_time
-from jscratch.ndf_cases import random_cases
+from jscratch.bench.ndf_cases import random_cases
 
 
 def _ns(fn, args, per, repeats):

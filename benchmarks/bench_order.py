@@ -12,12 +12,11 @@ import platform
 import sys
 import time
 
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from jscratch.designfile import demo_design  # noqa: E402
-from jscratch.toolpath import best_directions, greedy_order, improve_order, path_travel  # noqa: E402
+from jscratch.designfile import demo_design
+from jscratch.toolpath import best_directions, greedy_order, improve_order, path_travel
 
 
 def main():

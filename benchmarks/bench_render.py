@@ -13,9 +13,8 @@ import argparse
 import os
 import sys
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from jscratch.bench import run_bench  # noqa: E402
+from jscratch.bench import run_bench
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 

@@ -13,14 +13,13 @@ import sys
 
 os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
                            + " --xla_force_host_platform_device_count=4")
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
+import jax
+import jax.numpy as jnp
+import numpy as np
 
-from jscratch import render as R  # noqa: E402
-from jscratch.bench_render import _compiled_mib, scene  # noqa: E402
+from jscratch import render
+from jscratch.bench.rendering import compiled_mib, scene
 
 n, res = (int(a) for a in sys.argv[1:3]) if len(sys.argv) > 2 else (60000, 512)
 views = 4
@@ -31,14 +30,14 @@ print("| shards | pair slots | valid pairs | fill (valid / slots) | value+grad M
 print("|---|---|---|---|---|")
 for k in (1, 2, 4):
     mesh = None if k == 1 else jax.sharding.Mesh(np.asarray(jax.devices()[:k]), ("p",))
-    pairs = R.bin_pairs(s, board, shards=k)
+    pairs = render.bin_pairs(s, board, shards=k)
 
     def loss(s, v, pairs, mesh=mesh):
-        return jnp.mean((R.display(R.render_pairs(s, v, board, pairs, mesh=mesh)) - target) ** 2)
+        return jnp.mean((render.display(render.render_pairs(s, v, board, pairs, mesh=mesh)) - target) ** 2)
 
     c = jax.jit(jax.value_and_grad(loss, (0, 1))).lower(s, v, pairs).compile(
-        R.grad_compiler_options())
+        render.grad_compiler_options())
     slots = int(pairs.valid.shape[0])
     valid = int(np.asarray(pairs.valid).sum())
-    print(f"| {k} | {slots:,} | {valid:,} | {valid / slots:.2f} | {_compiled_mib(c):.0f} |",
+    print(f"| {k} | {slots:,} | {valid:,} | {valid / slots:.2f} | {compiled_mib(c):.0f} |",
           flush=True)

@@ -92,19 +92,19 @@ def worker_render(repeats: int) -> dict:
     import jax
     import jax.numpy as jnp
 
-    from jscratch import render as R
+    from jscratch import render
 
-    board = R.Board(shape=(256, 256))
-    s = R.Scratches.random(jax.random.PRNGKey(0), 20000, board, length=(0.005, 0.025),
+    board = render.Board(shape=(256, 256))
+    s = render.Scratches.random(jax.random.PRNGKey(0), 20000, board, length=(0.005, 0.025),
                            width=2.5e-4, depth=1.28e-4, alpha=0.04, dtype=jnp.float32)
-    pairs = R.bin_pairs(s, board)
+    pairs = render.bin_pairs(s, board)
     n_pairs = int(pairs.valid.sum())
     rows = {}
     for m in VIEWS:
-        v = R.views_on_circle(m, math.radians(50), 1.0, None, board)
+        v = render.views_on_circle(m, math.radians(50), 1.0, None, board)
 
         def rend(s, v, pairs):
-            return R.render_pairs(s, v, board, pairs)
+            return render.render_pairs(s, v, board, pairs)
 
         def vjp(s, v, pairs):
             out, back = jax.vjp(lambda s, v: rend(s, v, pairs), s, v)
@@ -113,7 +113,7 @@ def worker_render(repeats: int) -> dict:
         args = (s, v, pairs)
         per = n_pairs * m
         fwd = jax.jit(rend).lower(*args).compile()
-        grad = jax.jit(vjp, compiler_options=R.grad_compiler_options()).lower(*args).compile()
+        grad = jax.jit(vjp, compiler_options=render.grad_compiler_options()).lower(*args).compile()
         rows[m] = {"pairs": n_pairs, "fwd_ns": _median_ns(fwd, args, per, repeats),
                    "value_vjp_ns": _median_ns(grad, args, per, repeats)}
     return rows
@@ -137,7 +137,7 @@ def _inputs(path: Path) -> None:
     """The kernel's pairs and per-view half vectors, float32, drawn once for both codes."""
     import numpy as np
 
-    from jscratch.ndf_cases import random_cases
+    from jscratch.bench.ndf_cases import random_cases
 
     C = random_cases(N_PAIRS).astype(np.float32)
     rng = np.random.default_rng(1)

@@ -20,15 +20,13 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import sys
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from jscratch import render as R  # noqa: E402
+from jscratch import render
 
 
 def brushed(key, n, board, angle, *, spread=math.radians(4), length=(0.02, 0.06), **kw):
@@ -46,12 +44,12 @@ def brushed(key, n, board, angle, *, spread=math.radians(4), length=(0.02, 0.06)
                             -1)
     s = np.minimum(half, np.minimum(reach, reach_back))[:, None]
     p0, p1 = np.clip(mid - s * t, 0, size), np.clip(mid + s * t, 0, size)
-    return R.Scratches(jnp.asarray(p0, jnp.float32), jnp.asarray(p1, jnp.float32), **kw)
+    return render.Scratches(jnp.asarray(p0, jnp.float32), jnp.asarray(p1, jnp.float32), **kw)
 
 
 def _random(key, n, board, **kw):
-    s = R.Scratches.random(key, n, board, dtype=jnp.float32)
-    return R.Scratches(s.p0, s.p1, **kw)
+    s = render.Scratches.random(key, n, board, dtype=jnp.float32)
+    return render.Scratches(s.p0, s.p1, **kw)
 
 
 def _save(path, panels, row_titles, col_titles, title):
@@ -62,7 +60,7 @@ def _save(path, panels, row_titles, col_titles, title):
 
     rad = np.asarray(panels, np.float64)  # (rows, cols, H, W)
     scale = np.percentile(rad, 99.5)
-    img = np.clip(np.asarray(R.display(jnp.asarray(rad / scale))), 0, 1)
+    img = np.clip(np.asarray(render.display(jnp.asarray(rad / scale))), 0, 1)
     rows, cols = img.shape[:2]
     fig, axes = plt.subplots(rows, cols, figsize=(1.6 * cols + 0.6, 1.6 * rows + 0.4),
                              squeeze=False)
@@ -92,9 +90,9 @@ def main(argv=None):
                                                    "..", "docs", "gallery"))
     args = ap.parse_args(argv)
     os.makedirs(args.out, exist_ok=True)
-    board = R.Board(shape=(args.res, args.res))
+    board = render.Board(shape=(args.res, args.res))
     key = jax.random.PRNGKey(12)
-    views = R.views_on_circle(args.views, math.radians(40), board=board, dtype=jnp.float32)
+    views = render.views_on_circle(args.views, math.radians(40), board=board, dtype=jnp.float32)
     az = [math.degrees(math.atan2(c[1] - 0.15, c[0] - 0.15)) % 360 for c in
           np.asarray(views.camera)]
     base = dict(width=1e-4, depth=1e-4, alpha=0.04)
@@ -104,12 +102,12 @@ def main(argv=None):
         "horizontal": brushed(key, args.count, board, 0.0, **base),
         "vertical": brushed(key, args.count, board, math.pi / 2, **base),
     }
-    panels = [np.asarray(R.render(s, views, board)) for s in patterns.values()]
+    panels = [np.asarray(render.render(s, views, board)) for s in patterns.values()]
     _save(os.path.join(args.out, "patterns.png"), panels, list(patterns),
           [f"camera az {a:.0f} deg" for a in az],
           f"{args.count} scratches, w = d = 0.1 mm, alpha = 0.04; light az 0, polar 40 deg")
 
-    one = R.Views(views.camera[1:2], views.light[1:2], views.intensity[1:2])
+    one = render.Views(views.camera[1:2], views.light[1:2], views.intensity[1:2])
     sweeps = {
         "alpha": ("alpha", [0.01, 0.04, 0.12, 0.3], lambda v: dict(base, alpha=v)),
         "width": ("w (mm)", [5e-5, 1e-4, 2e-4, 4e-4], lambda v: dict(base, width=v)),
@@ -121,7 +119,7 @@ def main(argv=None):
             for val in values:
                 s = (_random(key, args.count, board, **kw(val)) if pat == "random"
                      else brushed(key, args.count, board, 0.0, **kw(val)))
-                row.append(np.asarray(R.render(s, one, board))[0])
+                row.append(np.asarray(render.render(s, one, board))[0])
             rows.append(row)
         fmt = (lambda v: f"{label} = {1e3 * v:g}") if name == "width" else (
             lambda v: f"{label} = {v:g}")
@@ -129,7 +127,7 @@ def main(argv=None):
               [fmt(v) for v in values], f"sweep of {label}; camera az {az[1]:.0f} deg")
 
     counts = [300, 1000, 3000, 10000]
-    rows = [[np.asarray(R.render(f(key, c, board, **base), one, board))[0] for c in counts]
+    rows = [[np.asarray(render.render(f(key, c, board, **base), one, board))[0] for c in counts]
             for f in (_random, lambda k, c, b, **kw: brushed(k, c, b, 0.0, **kw))]
     _save(os.path.join(args.out, "sweep_count.png"), rows, ["random", "horizontal"],
           [f"{c} scratches" for c in counts], f"sweep of scratch count; camera az {az[1]:.0f} deg")

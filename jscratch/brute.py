@@ -37,6 +37,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from jscratch.shading import pixel_centres, pixel_edges
+
 __all__ = [
     "brute_render",
     "brute_shade",
@@ -100,8 +102,6 @@ def _pair_samples(key, n, xe, ye, W, P, pixel, p0, p1, width, depth, alpha, h_vi
 
 
 def _half_vectors(views, board, dtype):
-    from jscratch.render import pixel_centres
-
     ctr = pixel_centres(board, dtype)
     p = jnp.concatenate([ctr, jnp.zeros_like(ctr[:, :1])], -1)
     wo = views.camera.astype(dtype)[:, None] - p[None]
@@ -119,7 +119,7 @@ def brute_sums(scratches, views, board, *, n: int = 16, key=None, pairs=None,
 
     **Arguments:**
 
-    - `scratches`, `views`, `board`: the scene (`jscratch.render` modules); computation in the
+    - `scratches`, `views`, `board`: the scene (`jscratch.scene` modules); computation in the
       scratches' dtype.
     - `n`: strata per footprint side (``n^2`` samples per pixel).
     - `key`: PRNG key (default ``PRNGKey(0)``); pixel ``p`` uses ``fold_in(key, p)``, so every
@@ -130,9 +130,7 @@ def brute_sums(scratches, views, board, *, n: int = 16, key=None, pairs=None,
     """
     dt = scratches.dtype
     key = jax.random.PRNGKey(0) if key is None else key
-    from jscratch.render import _edges
-
-    xe, ye = (jnp.asarray(e, dt) for e in _edges(board))
+    xe, ye = (jnp.asarray(e, dt) for e in pixel_edges(board))
     P, N = board.n_pixels, scratches.n
     if pairs is None:
         pix = jnp.repeat(jnp.arange(P, dtype=jnp.int32), N)

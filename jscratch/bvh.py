@@ -32,52 +32,16 @@ corners); while it does, the old list still holds every pair (the extra pairs co
 [`maybe_update`][] skips the rebin. A pure translation by less than `skin` along and across never
 needs a rebin.
 
-**View culling: the bound.** For one view, pixel `P` with half vector `h` and scratch `i`, SPEC
-section 3 gives `D_hat = ∫∫_{F ∩ groove} D_x(h, n(x)) dx dy <= A * max_x D_x(h, n(x))`. In the
-scratch-local frame the groove normals are `n(psi) = (-sin psi, 0, cos psi)` for `|psi| <= psi_max`
-(Eq. 5 with `tan(psi/2) = 2u`, `u = x/w`), and the wall is steepest at the groove edge:
-`tan(psi_max/2) = 2 x_max / w = sqrt(s)`, `s = 1 - exp(-2d/w)`, so `cos psi_max = (1-s)/(1+s)` and
-`sin psi_max = 2 sqrt(s)/(1+s)`. With `h = (hx, hy, hz)` in that frame, `n.h = hz cos psi - hx sin psi`,
-whose maximum over the arc is
+**Culling** (the rigorous per-pair bound, per-view culled lists at fixed capacities) lives in
+`jscratch.cull`, built on these lists and [`compact`][].
 
-    c_max = sqrt(hx^2 + hz^2)                       if atan2(|hx|, hz) <= psi_max (peak on the arc)
-          = hz cos psi_max + |hx| sin psi_max       otherwise,
+**Host layout for the renderer.** [`bin_pairs`][] (the compacted list of a `scene.Scratches` on a
+`scene.Board`) packs the valid pairs into ``shards`` equal segments by pixel block
+([`pixels_per_shard`][], [`layout`][]), the layout `render.render_pairs` needs with a mesh, each
+segment's length rounded so that similar scenes share a compilation (`cull.cull_pairs` does the
+same per view).
 
-and `c_max <= sqrt(1 - hy^2)` always: this is the "scratch direction far from perpendicular to `h`"
-case (large `|hy|`), the second branch the "every groove normal far from `h`" case. For `alpha < 1`
-the GGX `D(c) = chi+(c) alpha^2 / (pi (c^2 (alpha^2 - 1) + 1)^2)` increases on `[0, 1]` from
-`alpha^2/pi` to its peak `1/(pi alpha^2)`, so
-
-    D_hat <= A D(c_max) = rho A / (pi alpha^2),    rho = alpha^4 / (c_max^2 (alpha^2 - 1) + 1)^2
-
-(`rho = 0` when `c_max <= 0`: chi+ zeroes every wall; for `alpha >= 1` GGX peaks at `c -> 0+` and
-`rho = alpha^4` bounds it). `rho` is in `[0, 1]`: the fraction of the most the pair could ever
-contribute. `c_max` gets 4 ulps added so that the bound survives rounding. [`cull_ratio`][] computes
-`rho` per pair in O(1) (no integral); [`cull`][] drops the pair when `rho < eps`. `eps = 0` keeps all.
-
-**View culling: the rendered error.** Per pixel the dropped pairs lower `D_P = sum_i D_hat_i / S_P`
-(never raise it) by
-
-    0 <= D_P - D_P_culled < eps * sum_dropped A_i / (pi alpha_i^2 S_P) <= eps * c / (pi alpha_min^2),
-
-with `c = sum_i A_i / S_P` the pixel's coverage. The coverage must come from the *unculled* list
-(a culled pair still covers the board; `render.render` does this), so the board term of SPEC 4 is
-unchanged and the radiance error is the same bound times the shading factor:
-`0 <= radiance - radiance_culled < eps * (I wi_z / r^2) G F / (4 wi_z wo_z) * sum_dropped A_i /
-(pi alpha_i^2 S_P)`, i.e. at most `eps` times the radiance the pixel would have if every groove in
-it were a mirror at its GGX peak. `tests/test_bvh.py` checks the per-pixel bound by independent
-quadrature on random scenes. [`compact`][] re-packs a culled list into fewer slots so that the
-culling saves shading time. The default [`DEFAULT_EPS`][] comes from the time-against-error table
-in `benchmarks/results/bvh.md`.
-
-**Coverage culling.** The coverage enters shading only through the board term
-`max(0, 1 - c) D_S(h)` (SPEC 4, `D_S` the flat board's GGX at the pixel's half vector), so a pair
-left out of the coverage sum raises `D` by at most `D_S(h) A_i / S_P`. [`cull_coverage`][] keeps a
-pair for the coverage pass only where `D_S(h) > eps / (pi alpha_i^2)` in some view, which bounds that
-error by the same `eps A_i / (pi alpha_i^2 S_P)` as view culling (the two errors have opposite
-signs and each stays within its bound). Away from the board's mirror direction `D_S` is tiny and
-most pairs drop out: for the default 3-view design 70% of the pixels need no coverage pairs at
-`eps = 1e-3`.
+Imports: `jscratch.ndf`, `jscratch.scene`.
 """
 
 from __future__ import annotations
@@ -92,33 +56,31 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from jscratch.ndf import groove_half_width, local_frame
+from jscratch.scene import Board, Scratches
 
 __all__ = [
-    "DEFAULT_EPS",
+    "DEFAULT_CHUNK",
     "DEFAULT_MARGIN",
     "GridSpec",
     "Pairs",
     "allocate",
+    "bin_pairs",
     "build_pairs",
+    "checked_scratches",
     "compact",
-    "cull",
-    "cull_coverage",
-    "cull_ratio",
     "groove_half_width",
+    "layout",
     "maybe_update",
     "needs_rebin",
     "pair_tolerance",
+    "pairs_of",
+    "pixels_per_shard",
     "update",
 ]
 
 DEFAULT_MARGIN = 1.25
 """Default capacity multiplier applied to the measured strip and pair counts."""
 
-DEFAULT_EPS = 1e-3
-"""Default culling threshold (fraction of a pair's largest possible contribution), from the
-time-against-error table in `benchmarks/results/bvh.md` (20k SPEC-default scratches, 256x256, 4
-views at 30 deg): `eps = 1e-3` keeps ~55% of the pairs and cuts shading time ~40% for a radiance
-error of ~3e-4 of the image's peak (`1e-2`: ~31% kept, error ~2e-3 of the peak)."""
 
 _ROUND = 64  # capacities are rounded up to a multiple of this (fewer distinct shapes to compile)
 
@@ -211,7 +173,7 @@ def _check_board_shape(board, shape):
         raise ValueError(f"shape {shape!r} has too many pixels for int32 indices")
 
 
-def _check_scratches(p0, p1, width, depth):
+def checked_scratches(p0, p1, width, depth):
     """Static shape/dtype checks and in-jit finiteness checks; returns broadcast float arrays."""
     p0 = jnp.asarray(p0)
     p1 = jnp.asarray(p1)
@@ -445,7 +407,7 @@ def update(
     the list is incomplete: re-allocate (or use [`build_pairs`][]). Floats follow the inputs'
     dtype; gradients are stopped (binning is piecewise constant).
     """
-    p0, p1, width, depth = _check_scratches(p0, p1, width, depth)
+    p0, p1, width, depth = checked_scratches(p0, p1, width, depth)
     p0, p1, width, depth = jax.lax.stop_gradient((p0, p1, width, depth))
     pairs, _ = _bin(
         p0, p1, width, depth,
@@ -461,14 +423,14 @@ _update_jit = update  # already jitted; the name marks host-driver calls
 
 @eqx.filter_jit
 def _setup_counts(p0, p1, width, depth, board, shape, skin):
-    p0, p1, width, depth = _check_scratches(p0, p1, width, depth)
+    p0, p1, width, depth = checked_scratches(p0, p1, width, depth)
     g = _strip_setup(p0, p1, width, depth, board, shape, skin)
     return jnp.sum(g["n_strips"]), jnp.max(g["rows_bound"], initial=1)
 
 
 @eqx.filter_jit
 def _measure(p0, p1, width, depth, board, shape, skin, strip_capacity, rows, pair_capacity):
-    p0, p1, width, depth = _check_scratches(p0, p1, width, depth)
+    p0, p1, width, depth = checked_scratches(p0, p1, width, depth)
     _, stats = _bin(
         p0, p1, width, depth, board=board, shape=shape, skin=skin,
         strip_capacity=strip_capacity, rows=rows, pair_capacity=pair_capacity,
@@ -612,7 +574,7 @@ def needs_rebin(
         for f in (pairs.bin_p0, pairs.bin_p1, pairs.bin_half_width, pairs.bin_extend, pairs.bin_tol)
     ):
         raise ValueError("pairs has no bin_* fields (was it built by update/build_pairs?)")
-    p0, p1, width, depth = _check_scratches(p0, p1, width, depth)
+    p0, p1, width, depth = checked_scratches(p0, p1, width, depth)
     if p0.shape != pairs.bin_p0.shape:
         raise ValueError(f"p0 has shape {p0.shape} but pairs was binned for {pairs.bin_p0.shape}")
     p0, p1, width, depth = jax.lax.stop_gradient((p0, p1, width, depth))
@@ -652,7 +614,7 @@ def maybe_update(
 ) -> Pairs:
     """`update(spec, ...)` if [`needs_rebin`][] says so, else `pairs` unchanged (jittable,
     `lax.cond`). Check `overflow` of the result outside jit, as for [`update`][]."""
-    p0, p1, width, depth = _check_scratches(p0, p1, width, depth)
+    p0, p1, width, depth = checked_scratches(p0, p1, width, depth)
     return jax.lax.cond(
         needs_rebin(pairs, p0, p1, width, depth),
         lambda: update(spec, p0, p1, width, depth),
@@ -661,144 +623,7 @@ def maybe_update(
 
 
 # --------------------------------------------------------------------------------------------
-# View culling
-
-
-@jax.jit
-def cull_ratio(
-    pairs: Pairs,
-    p0: Float[ArrayLike, "N 2"],
-    p1: Float[ArrayLike, "N 2"],
-    width: Float[ArrayLike, "N"],
-    depth: Float[ArrayLike, "N"],
-    alpha: Float[ArrayLike, "N"],
-    h_pixel: Float[ArrayLike, "P 3"],
-) -> Float[Array, " L"]:
-    """Rigorous bound `rho` per pair with `D_hat <= rho * A / (pi alpha^2)` (jittable).
-
-    In the scratch-local frame the groove normals are `n = (-sin psi, 0, cos psi)` for `psi` in
-    `[-psi_max, psi_max]`, `tan psi_max = |h'(x_max)|`, so with `h_local = (hx, hy, hz)`,
-    `n.h <= c_max`, the maximum of `hz cos psi + |hx| sin psi` over that arc (at most
-    `sqrt(1 - hy^2)`). For `alpha < 1` GGX is increasing in `n.h` on `[0, 1]`, so
-    `D_hat <= A D_ggx(c_max) = rho A / (pi alpha^2)` with
-    `rho = alpha^4 / (c_max^2 (alpha^2 - 1) + 1)^2` (and `rho = 0` when `c_max <= 0`: the groove
-    faces away and chi+ zeroes it). For `alpha >= 1` GGX peaks at `n.h -> 0+` and `rho = alpha^4`.
-    `c_max` gets 4 ulps added so that the bound survives rounding. Derivation: module docstring.
-
-    **Arguments:** `pairs`; current `p0`, `p1` `(N, 2)`, `width`, `depth`, `alpha` (`(N,)` or
-    scalar); `h_pixel` `(P, 3)` unit board-frame half vector per pixel (`P = H * W`).
-
-    **Returns:** `(L,)` bound ratio, in `[0, 1]` for `alpha < 1`; padding slots get 0.
-    """
-    p0, p1, width, depth = _check_scratches(p0, p1, width, depth)
-    n = p0.shape[0]
-    dtype = p0.dtype
-    alpha = jnp.asarray(alpha, dtype)
-    if alpha.shape not in ((), (n,)):
-        raise ValueError(f"alpha must be a scalar or have shape ({n},), got {alpha.shape}")
-    alpha = jnp.broadcast_to(alpha, (n,))
-    alpha = eqx.error_if(
-        alpha, ~jnp.all(jnp.isfinite(alpha) & (alpha > 0)), "alpha must be finite and > 0"
-    )
-    h_pixel = jnp.asarray(h_pixel, dtype)
-    if h_pixel.ndim != 2 or h_pixel.shape[-1] != 3:
-        raise ValueError(f"h_pixel must have shape (H*W, 3), got {h_pixel.shape}")
-    h_pixel = eqx.error_if(h_pixel, ~jnp.all(jnp.isfinite(h_pixel)), "h_pixel has non-finite entries")
-    t, b, length = _frame(p0, p1)
-    # cos/sin of psi_max from 2 u_max = sqrt(1 - exp(-2d/w)) =: sqrt(s): tan(psi_max/2) = 2 u_max.
-    s = -jnp.expm1(-2.0 * depth / width)
-    cos_m = (1 - s) / (1 + s)
-    sin_m = 2 * jnp.sqrt(s) / (1 + s)
-    i = jnp.clip(pairs.scratch, 0, n - 1)
-    h = h_pixel[jnp.clip(pairs.pixel, 0, h_pixel.shape[0] - 1)]
-    ti, bi = t[i], b[i]
-    hx = h[:, 0] * bi[:, 0] + h[:, 1] * bi[:, 1]
-    hz = h[:, 2]
-    cm, sm = cos_m[i], sin_m[i]
-    # The maximiser psi* = atan2(|hx|, hz) lies on the arc iff hz > 0 and |hx| cos <= hz sin.
-    on_arc = (hz > 0) & (jnp.abs(hx) * cm <= hz * sm)
-    c_max = jnp.where(on_arc, jnp.sqrt(hx * hx + hz * hz), hz * cm + jnp.abs(hx) * sm)
-    c_max = jnp.minimum(c_max + 4 * jnp.finfo(dtype).eps, 1.0)
-    a = alpha[i]
-    a2 = a * a
-    denom = jnp.where(a < 1, c_max * c_max * (a2 - 1) + 1, 1.0)
-    rho = jnp.where(c_max > 0, a2 * a2 / (denom * denom), 0.0)
-    rho = jnp.where((length[i] > 0) | (a >= 1), rho, 0.0)  # zero-length: D_hat = A = 0
-    return jnp.where(pairs.valid, rho, 0.0)
-
-
-def _checked_eps(eps, dtype) -> Array:
-    """The culling tolerance as a scalar of `dtype`; `eqx.error_if` unless finite and >= 0."""
-    eps = jnp.asarray(eps, dtype)
-    if eps.shape != ():
-        raise ValueError(f"eps must be a scalar, got shape {eps.shape}")
-    return eqx.error_if(eps, ~(jnp.isfinite(eps) & (eps >= 0)), "eps must be finite and >= 0")
-
-
-@jax.jit
-def cull(
-    pairs: Pairs,
-    p0: Float[ArrayLike, "N 2"],
-    p1: Float[ArrayLike, "N 2"],
-    width: Float[ArrayLike, "N"],
-    depth: Float[ArrayLike, "N"],
-    alpha: Float[ArrayLike, "N"],
-    h_pixel: Float[ArrayLike, "P 3"],
-    eps: float | Float[ArrayLike, ""] = DEFAULT_EPS,
-) -> Pairs:
-    """Clear `valid` of pairs whose `D_hat` bound is below `eps * A / (pi alpha^2)` (jittable).
-
-    A pair is dropped when `rho < eps` ([`cull_ratio`][]); `eps = 0` keeps every pair. Per pixel
-    the dropped pairs change `D_P` by at most `(1/S_P) sum_dropped rho_i A_i / (pi alpha_i^2)
-    < eps (1/S_P) sum_dropped A_i / (pi alpha_i^2)` (and never increase it). The coverage `c` of
-    SPEC 4 must still come from the unculled list, else the board term adds its own error (module
-    docstring). Use [`compact`][] to turn the dropped slots into saved time.
-
-    **Arguments:** as [`cull_ratio`][], plus `eps >= 0` (scalar; may be traced).
-
-    **Returns:** [`Pairs`][] of the same capacity with fewer valid slots.
-    """
-    rho = cull_ratio(pairs, p0, p1, width, depth, alpha, h_pixel)
-    eps = _checked_eps(eps, rho.dtype)
-    valid = pairs.valid & ~(rho < eps)
-    return eqx.tree_at(lambda p: p.valid, pairs, valid)
-
-
-@jax.jit
-def cull_coverage(
-    pairs: Pairs,
-    alpha: Float[ArrayLike, "N"],
-    board_ndf: Float[ArrayLike, "P"],
-    eps: float | Float[ArrayLike, ""] = DEFAULT_EPS,
-) -> Pairs:
-    """Clear `valid` of pairs whose coverage cannot matter at tolerance `eps` (jittable).
-
-    A pair is kept when `board_ndf[pixel] * pi * alpha^2 > eps`, with `board_ndf` the flat
-    board's GGX `D_S(h)` at each pixel's half vector, largest over the views (1/sr). Leaving a pair
-    out of the coverage sum changes `D` by at most `D_S A / S_P <= eps A / (pi alpha^2 S_P)`, the
-    bound of [`cull`][] (module docstring). `eps = 0` keeps every pair.
-
-    **Arguments:** `pairs` (the unculled list); `alpha` `(N,)` or scalar; `board_ndf` `(P,)`
-    (e.g. ``render.board_ndf(views, board).max(0)``); `eps >= 0`.
-
-    **Returns:** [`Pairs`][] of the same capacity with fewer valid slots.
-    """
-    board_ndf = jnp.asarray(board_ndf)
-    if board_ndf.ndim != 1:
-        raise ValueError(f"board_ndf must have shape (H*W,), got {board_ndf.shape}")
-    dtype = board_ndf.dtype
-    n = pairs.bin_p0.shape[0] if pairs.bin_p0 is not None else None
-    alpha = jnp.asarray(alpha, dtype)
-    if alpha.ndim == 0:
-        a = jnp.broadcast_to(alpha, pairs.scratch.shape)
-    else:
-        if n is not None and alpha.shape != (n,):
-            raise ValueError(f"alpha must be a scalar or have shape ({n},), got {alpha.shape}")
-        a = alpha.at[pairs.scratch].get(mode="clip")
-    eps = _checked_eps(eps, dtype)
-    d = board_ndf.at[pairs.pixel].get(mode="clip")
-    valid = pairs.valid & ((d * jnp.pi * a * a > eps) | (eps == 0))
-    return eqx.tree_at(lambda p: p.valid, pairs, valid)
+# Compaction
 
 
 @functools.partial(jax.jit, static_argnames="capacity")
@@ -832,3 +657,86 @@ def compact(pairs: Pairs, capacity: int) -> Pairs:
         pairs,
         (pixel, scratch, valid, pairs.overflow | (count > capacity)),
     )
+
+
+# --------------------------------------------------------------------------------------------
+# Host layout for the renderer: compacted pair lists, split into pixel shards
+
+
+#: Pairs per chunk in `render.render_pairs` (per device); pair lists are rounded to it.
+#: Peak memory of the renderer's per-pair work scales with it.
+DEFAULT_CHUNK = 16384
+
+
+def _round_to(x: int, m: int) -> int:
+    return -(-x // m) * m
+
+
+def pixels_per_shard(board: Board, shards: int) -> int:
+    """Pixels per shard: whole rows, ``ceil(H / shards) * W`` (the pixel axis is padded to
+    ``shards`` times this)."""
+    return -(-board.H // shards) * board.W
+
+
+def _bucket(n: int, chunk: int) -> int:
+    """Pair-list length for ``n`` pairs: a multiple of 1024 (small) or of ``chunk``, and within
+    ~12% of ``n`` by rounding to 8 steps per octave, so repeated renders of similar scenes reuse
+    compilations."""
+    n = max(n, 1)
+    step = 2 ** max(0, n.bit_length() - 4)
+    return _round_to(_round_to(n, step), min(chunk, 1024))
+
+
+def layout(pix: np.ndarray, scr: np.ndarray, keeps, n: int, board: Board, shards: int,
+            chunk: int):
+    """Pack the kept pairs of each mask in ``keeps`` into ``shards`` equal segments, segment ``s``
+    holding the pairs of pixels ``[s Pb, (s+1) Pb)`` (``Pb = ceil(H / shards) W``) in their input
+    order, each segment ``_bucket``-ed to the largest count over segments and masks. Padding slots
+    hold the segment's first pixel and the sentinel scratch ``n``. Returns numpy ``(pixel,
+    scratch, valid)``, each ``(len(keeps), shards * Ls)``."""
+    Pb = pixels_per_shard(board, shards)
+    idx = [np.flatnonzero(k) for k in keeps]
+    blocks = [pix[i] // Pb for i in idx]
+    counts = [np.bincount(b, minlength=shards) for b in blocks]
+    Ls = _bucket(int(max(c.max() for c in counts)), chunk)
+    shape = (len(keeps), shards * Ls)
+    out_pix = np.broadcast_to(np.repeat(np.arange(shards) * Pb, Ls), shape).astype(np.int32)
+    out_scr = np.full(shape, n, np.int32)
+    out_val = np.zeros(shape, bool)
+    for j, (i, b, c) in enumerate(zip(idx, blocks, counts)):
+        order = np.argsort(b, kind="stable")  # by block, input order kept within a block
+        starts = np.concatenate([[0], np.cumsum(c)[:-1]])
+        dest = b[order] * Ls + np.arange(i.size) - np.repeat(starts, c)
+        out_pix[j, dest] = pix[i[order]]
+        out_scr[j, dest] = scr[i[order]]
+        out_val[j, dest] = True
+    return out_pix, out_scr, out_val
+
+
+def pairs_of(pix, scr, val):
+    """A [`Pairs`][] from host arrays (pixel, scratch, valid), no overflow, no bin record."""
+    return Pairs(pixel=jnp.asarray(pix), scratch=jnp.asarray(scr), valid=jnp.asarray(val),
+                     overflow=jnp.asarray(False))
+
+
+def bin_pairs(scratches: Scratches, board: Board, *, chunk: int = DEFAULT_CHUNK,
+              shards: int = 1):
+    """The complete (pixel, scratch) pair list of a scene, compacted (host code).
+
+    Bins with `build_pairs` and packs the valid pairs into ``shards`` equal segments by
+    pixel block (the layout `render_pairs` needs with a mesh of ``shards`` devices; one segment
+    without), each segment's length rounded up (`_bucket`: within ~12%, a multiple of 1024 or of
+    ``chunk``) so that similar scenes share a compilation of `render_pairs`; padding slots hold
+    the sentinel scratch ``N``.
+
+    **Returns:** `bvh.Pairs` ``(L,)`` for `render_pairs`.
+    """
+    full, _ = build_pairs(scratches.p0, scratches.p1, scratches.width, scratches.depth,
+                          board=(board.Sx, board.Sy), shape=board.shape)
+    pix, scr, val = layout(np.asarray(full.pixel).reshape(-1),
+                            np.asarray(full.scratch).reshape(-1),
+                            [np.asarray(full.valid).reshape(-1)], scratches.n, board, shards,
+                            chunk)
+    return pairs_of(pix[0], scr[0], val[0])
+
+

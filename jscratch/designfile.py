@@ -22,6 +22,9 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from jscratch.errors import error_line
+from jscratch.scene import check_scratches, check_views
+
 __all__ = [
     "Design",
     "DesignError",
@@ -33,16 +36,13 @@ __all__ = [
     "groove_half_width",
 ]
 
-# Endpoints may exceed the board by this fraction of its size (float32 rounding of values the
-# optimiser keeps on [0, S]: one float32 ulp at 0.3 m is 3e-8 m = 1e-7 of the board).
-ON_BOARD_RTOL = 1e-6
-
 _REQUIRED = ("p0", "p1", "width", "depth", "alpha", "board")
 _VIEWS = ("camera", "light", "intensity")
 
 
 class DesignError(ValueError):
-    """A design that breaks SPEC section 9 (the message names the array and the scratch)."""
+    """A design, or a design run's input, that breaks the rules (SPEC section 9; `jscratch.scene`):
+    the message names the array and the scratch, view or file. Shared by `jscratch.design`."""
 
 
 class Design(NamedTuple):
@@ -90,18 +90,13 @@ def _as_float_array(name, value, source):
     try:
         arr = np.asarray(value)
     except Exception as exc:  # jax arrays, lists, ... all go through np.asarray
-        raise DesignError(f"{source}: {name} cannot be read as an array ({exc})") from None
+        raise DesignError(f"{source}: {name} cannot be read as an array ({error_line(exc)})") from None
     if arr.dtype == object or not (
         np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)
     ):
         raise DesignError(f"{source}: {name} must hold real numbers, got dtype {arr.dtype}")
     return np.array(arr, dtype=np.float64)
 
-
-def _first_bad(mask):
-    """Index of the first True along axis 0 of a boolean array (rows reduced with any)."""
-    rows = mask.reshape(mask.shape[0], -1).any(axis=1) if mask.ndim > 1 else mask
-    return int(np.flatnonzero(rows)[0])
 
 
 def validate_design(p0, p1, width, depth, alpha, board, camera=None, light=None, intensity=None,
@@ -115,7 +110,8 @@ def validate_design(p0, p1, width, depth, alpha, board, camera=None, light=None,
 
     **Raises:** :class:`DesignError` naming the array and the first bad scratch (or view) when a
     shape is wrong, a value is not finite, `width`, `depth` or `alpha` is out of range
-    (`w > 0`, `d > 0`, `0 < alpha <= 1`), or an endpoint lies off the board.
+    (`w > 0`, `d > 0`, `0 < alpha < 1`: the rules of `jscratch.scene.check_scratches`, the same
+    the renderer applies), or an endpoint lies off the board.
     """
     arrays = {
         "p0": _as_float_array("p0", p0, source),
@@ -140,33 +136,8 @@ def validate_design(p0, p1, width, depth, alpha, board, camera=None, light=None,
             raise DesignError(
                 f"{source}: {name} must have shape {shape} to match p0 {P0.shape}, got {arrays[name].shape}"
             )
-    for name in ("p0", "p1", "width", "depth", "alpha"):
-        bad = ~np.isfinite(arrays[name])
-        if bad.any():
-            i = _first_bad(bad)
-            raise DesignError(
-                f"{source}: scratch {i}: {name} = {arrays[name][i].tolist()} is not finite "
-                f"({int(bad.reshape(n, -1).any(axis=1).sum())} scratches have a non-finite {name})"
-            )
-    for name, lo_ok, text in (
-        ("width", lambda v: v > 0, "must be > 0 m"),
-        ("depth", lambda v: v > 0, "must be > 0 m"),
-        ("alpha", lambda v: (v > 0) & (v <= 1), "must lie in (0, 1]"),
-    ):
-        bad = ~lo_ok(arrays[name])
-        if bad.any():
-            i = _first_bad(bad)
-            raise DesignError(f"{source}: scratch {i}: {name} = {arrays[name][i]!r} {text}")
-    tol = ON_BOARD_RTOL * float(b.max())
-    for name in ("p0", "p1"):
-        pts = arrays[name]
-        off = (pts < -tol) | (pts > b + tol)
-        if off.any():
-            i = _first_bad(off)
-            raise DesignError(
-                f"{source}: scratch {i}: {name} = ({pts[i, 0]:.6g}, {pts[i, 1]:.6g}) m lies off the board "
-                f"[0, {b[0]:.6g}] x [0, {b[1]:.6g}] m ({int(off.any(axis=1).sum())} such endpoints in {name})"
-            )
+    check_scratches(arrays["p0"], arrays["p1"], arrays["width"], arrays["depth"],
+                    arrays["alpha"], board=b, source=source, error=DesignError)
 
     views = {"camera": camera, "light": light, "intensity": intensity}
     given = [k for k, v in views.items() if v is not None]
@@ -184,16 +155,7 @@ def validate_design(p0, p1, width, depth, alpha, board, camera=None, light=None,
             raise DesignError(f"{source}: light must have shape ({m}, 3) to match camera, got {lig.shape}")
         if inten.shape != (m,):
             raise DesignError(f"{source}: intensity must have shape ({m},) to match camera, got {inten.shape}")
-        for name, arr in (("camera", cam), ("light", lig), ("intensity", inten)):
-            bad = ~np.isfinite(arr)
-            if bad.any():
-                raise DesignError(f"{source}: view {_first_bad(bad)}: {name} is not finite")
-        for name, arr in (("camera", cam), ("light", lig)):
-            bad = arr[:, 2] <= 0
-            if bad.any():
-                raise DesignError(f"{source}: view {_first_bad(bad)}: {name} must be above the board (z > 0)")
-        if np.any(inten < 0):
-            raise DesignError(f"{source}: view {_first_bad(inten < 0)}: intensity must be >= 0")
+        check_views(cam, lig, inten, source=source, error=DesignError)
         views = {"camera": cam, "light": lig, "intensity": inten}
     else:
         views = {"camera": None, "light": None, "intensity": None}
@@ -252,7 +214,7 @@ def load_design(path) -> Design:
     try:
         npz = np.load(path, allow_pickle=False)
     except Exception as exc:
-        raise DesignError(f"{path}: not a readable .npz design file ({exc})") from None
+        raise DesignError(f"{path}: not a readable .npz design file ({error_line(exc)})") from None
     with npz:
         if not hasattr(npz, "files"):
             raise DesignError(f"{path}: expected an .npz archive of arrays, got a single array")
@@ -262,7 +224,7 @@ def load_design(path) -> Design:
         try:
             arrays = {k: npz[k] for k in _REQUIRED + _VIEWS if k in npz.files}
         except Exception as exc:
-            raise DesignError(f"{path}: cannot read arrays ({exc})") from None
+            raise DesignError(f"{path}: cannot read arrays ({error_line(exc)})") from None
     return validate_design(**arrays, source=path)
 
 

@@ -31,6 +31,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from jscratch.errors import error_line
+
 __all__ = [
     "BLUR_SIGMA",
     "LAMBDA_G",
@@ -463,7 +465,7 @@ def load_vgg19(path: str | os.PathLike) -> VGG19Features:
     try:
         data = np.load(path, allow_pickle=False)
     except Exception as e:  # noqa: BLE001 - report any unreadable file the same way
-        raise ValueError(f"VGG-19 weights file {path!r} is not a readable .npz file: {e}") from e
+        raise ValueError(f"VGG-19 weights file {path!r} is not a readable .npz file ({error_line(e)})") from None
     with data:
         keys = set(data.files)
         weights, biases = [], []

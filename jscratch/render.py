@@ -5,26 +5,21 @@ coverage ``c`` are sums of the per-pair integrals ``jscratch.ndf.pair_integral``
 (pixel, scratch) pairs that ``jscratch.bvh`` finds, divided by the footprint area ``S_P``; the pixel
 is then shaded at its footprint centre (SPEC section 4) into linear radiance.
 
-**Scene objects** (equinox modules, data only):
-
-- `Board`: board size ``Sx, Sy`` (m), image shape ``(H, W)`` and the board material (``F0``,
-  Smith roughness ``a_G``, board GGX roughness ``a_S``); all static.
-- `Scratches`: ``p0, p1`` ``(N, 2)`` (m), ``width, depth`` ``(N,)`` (m), ``alpha`` ``(N,)``.
-- `Views`: ``camera, light`` ``(M, 3)`` (m), ``intensity`` ``(M,)`` (W/sr).
-- `views_on_circle`: the paper's view layout (SPEC section 5).
+The scene objects (`Board`, `Scratches`, `Views`, `views_on_circle`) live in `jscratch.scene`
+and the shading (`pixel_footprints`, `half_vectors`, `shade`, `display`) in `jscratch.shading`;
+both are re-exported here.
 
 **Rendering:**
 
 - `render(scratches, views, board, *, eps=0.0)`: host driver; bins (`bin_pairs`), culls per
-  view when ``eps > 0`` (`cull_pairs`, ``bvh.cull``) and calls `render_pairs`.
+  view when ``eps > 0`` (`cull_pairs`, ``cull.cull``) and calls `render_pairs`.
 - `render_pairs(scratches, views, board, pairs)`: the differentiable core, jittable, for use
   inside a loss; the pair list is integer data computed outside the differentiated function
   (`bin_pairs` makes one).
 - `render_reference(scratches, views, board)`: float64 all-pairs reference (every scratch against
   every pixel, dense sum, plain autodiff), for small scenes and tests.
-- `display(radiance)`: the display transform (gamma 2.2 with a finite slope at 0).
-- `pixel_footprints`, `pixel_centres`, `half_vectors`, `shade`: the pieces, public for notebooks,
-  the brute-force renderer (`jscratch.brute`) and `bvh.cull`.
+- `scratch_contributions(scratches, views, board, pairs)`: per-scratch sum over its pairs of the
+  ``D_hat`` each view sees (the design's discard ranks scratches by it).
 
 **Memory design.** `render_pairs` evaluates the pairs in fixed-size chunks inside a `lax.scan`
 and segment-sums each chunk into per-pixel accumulators, so the forward pass holds
@@ -76,9 +71,31 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import PartitionSpec
-from jaxtyping import Array, ArrayLike, Bool, Float, Int
+from jaxtyping import Array, Float
 
 from jscratch import ndf
+from jscratch.bvh import DEFAULT_CHUNK, bin_pairs, pixels_per_shard
+from jscratch.cull import cull_pairs
+from jscratch.scene import (
+    Board,
+    Scratches,
+    Views,
+    check_scratches,
+    flat_highlight,
+    scene_checks,
+    views_on_circle,
+)
+from jscratch.shading import (
+    DISPLAY_GAMMA,
+    DISPLAY_KNEE,
+    board_ndf,
+    display,
+    half_vectors,
+    pixel_centres,
+    pixel_edges,
+    pixel_footprints,
+    shade,
+)
 
 __all__ = [
     "DEFAULT_CHUNK",
@@ -90,6 +107,8 @@ __all__ = [
     "bin_pairs",
     "cull_pairs",
     "display",
+    "flat_highlight",
+    "pixel_edges",
     "grad_compiler_options",
     "half_vectors",
     "board_ndf",
@@ -98,495 +117,11 @@ __all__ = [
     "render",
     "render_pairs",
     "render_reference",
+    "scratch_contributions",
     "shade",
     "views_on_circle",
 ]
 
-#: Pairs per chunk in `render_pairs` (per device). Peak memory of the per-pair work scales with it.
-DEFAULT_CHUNK = 16384
-#: Display gamma: display value ``radiance ** (1 / DISPLAY_GAMMA)`` above the knee.
-DISPLAY_GAMMA = 2.2
-#: Knee of the display transform (linear radiance, W/(sr m^2)); display value ``0.0152`` there.
-DISPLAY_KNEE = 1e-4
-
-
-# --------------------------------------------------------------------------------------------
-# Scene objects
-# --------------------------------------------------------------------------------------------
-
-
-def _to_shape(shape) -> tuple[int, int]:
-    try:
-        h, w = (int(s) for s in shape)
-    except (TypeError, ValueError):
-        raise ValueError(f"Board: `shape` must be (H, W), two positive ints; got {shape!r}") from None
-    return (h, w)
-
-
-class Board(eqx.Module):
-    """The board ``[0, Sx] x [0, Sy]`` (m) in the plane ``z = 0``, its image grid and material.
-
-    Every field is static (hashable, no array leaves): changing one recompiles a jitted render.
-
-    **Arguments:**
-
-    - `shape`: image ``(H, W)`` in pixels; row 0 lies along the board edge ``y = Sy`` (SPEC 1).
-    - `Sx`, `Sy`: board size (m). Default 0.3.
-    - `F0`: Schlick reflectance at normal incidence. Default 0.91 (aluminium).
-    - `a_G`: roughness of the Smith GGX shadowing-masking term. Default 0.04.
-    - `a_S`: GGX roughness of the flat (unscratched) board. Default 0.04.
-    """
-
-    shape: tuple[int, int] = eqx.field(static=True, default=(256, 256), converter=_to_shape)
-    Sx: float = eqx.field(static=True, default=0.3, converter=float)
-    Sy: float = eqx.field(static=True, default=0.3, converter=float)
-    F0: float = eqx.field(static=True, default=0.91, converter=float)
-    a_G: float = eqx.field(static=True, default=0.04, converter=float)
-    a_S: float = eqx.field(static=True, default=0.04, converter=float)
-
-    def __check_init__(self):
-        h, w = self.shape
-        if h < 1 or w < 1:
-            raise ValueError(f"Board: `shape` must be positive (H, W); got {self.shape}")
-        for name in ("Sx", "Sy"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v > 0):
-                raise ValueError(f"Board: `{name}` must be a positive finite length (m); got {v}")
-        if not 0.0 <= self.F0 <= 1.0:
-            raise ValueError(f"Board: `F0` must lie in [0, 1]; got {self.F0}")
-        for name in ("a_G", "a_S"):
-            v = getattr(self, name)
-            if not 0.0 < v <= 1.0:
-                raise ValueError(f"Board: `{name}` must lie in (0, 1]; got {v}")
-
-    @property
-    def H(self) -> int:
-        return self.shape[0]
-
-    @property
-    def W(self) -> int:
-        return self.shape[1]
-
-    @property
-    def n_pixels(self) -> int:
-        return self.shape[0] * self.shape[1]
-
-    @property
-    def pixel_area(self) -> float:
-        """Footprint area ``S_P`` (m^2)."""
-        return (self.Sx / self.W) * (self.Sy / self.H)
-
-
-def _is_tracer(x) -> bool:
-    return isinstance(x, jax.core.Tracer)
-
-
-def _float_dtype(*xs):
-    dt = jnp.result_type(*xs)
-    if not jnp.issubdtype(dt, jnp.floating):
-        dt = jnp.result_type(float)
-    return dt
-
-
-class Scratches(eqx.Module):
-    """``N`` straight scratches (SPEC sections 1-2).
-
-    **Arguments:**
-
-    - `p0`, `p1`: endpoints, ``(N, 2)``, board metres.
-    - `width`: profile width ``w`` (m), ``(N,)`` or a scalar broadcast to ``(N,)``. Default ``1e-4``.
-    - `depth`: depth ``d`` (m), ``(N,)`` or scalar. Default ``1e-4``.
-    - `alpha`: intrinsic GGX roughness in ``(0, 1)`` (the domain of `ndf.pair_integral`),
-      ``(N,)`` or scalar. Default ``0.04``.
-
-    All five arrays share one floating dtype (that of ``p0, p1``; integers become the default float).
-    Shapes are checked always; values (finite, ``width, depth > 0``, ``0 < alpha <= 1``) when the
-    arrays are concrete. Inside jit, `render_pairs` checks values with `eqx.error_if`.
-    """
-
-    p0: Float[Array, "n 2"]
-    p1: Float[Array, "n 2"]
-    width: Float[Array, " n"]
-    depth: Float[Array, " n"]
-    alpha: Float[Array, " n"]
-
-    def __init__(self, p0: ArrayLike, p1: ArrayLike, width: ArrayLike = 1e-4,
-                 depth: ArrayLike = 1e-4, alpha: ArrayLike = 0.04):
-        p0 = jnp.asarray(p0)
-        p1 = jnp.asarray(p1)
-        dtype = _float_dtype(p0, p1)
-        for name, p in (("p0", p0), ("p1", p1)):
-            if p.ndim != 2 or p.shape[1] != 2:
-                raise ValueError(f"Scratches: `{name}` must have shape (N, 2); got {p.shape}")
-        if p0.shape != p1.shape:
-            raise ValueError(f"Scratches: `p0` {p0.shape} and `p1` {p1.shape} must have the same shape")
-        n = p0.shape[0]
-        self.p0 = p0.astype(dtype)
-        self.p1 = p1.astype(dtype)
-        for name, v in (("width", width), ("depth", depth), ("alpha", alpha)):
-            v = jnp.asarray(v, dtype=dtype)
-            if v.ndim == 0:
-                v = jnp.broadcast_to(v, (n,))
-            if v.shape != (n,):
-                raise ValueError(f"Scratches: `{name}` must have shape (N,) = ({n},) or be a scalar;"
-                                 f" got {v.shape}")
-            setattr(self, name, v)
-
-    def __check_init__(self):
-        arrays = (self.p0, self.p1, self.width, self.depth, self.alpha)
-        if any(_is_tracer(a) for a in arrays):
-            return
-        names = ("p0", "p1", "width", "depth", "alpha")
-        for name, a in zip(names, arrays):
-            bad = ~np.isfinite(np.asarray(a))
-            if bad.any():
-                i = int(np.argwhere(bad.reshape(a.shape[0], -1).any(-1))[0, 0])
-                raise ValueError(f"Scratches: `{name}` of scratch {i} is not finite")
-        for name in ("width", "depth"):
-            a = np.asarray(getattr(self, name))
-            if (a <= 0).any():
-                i = int(np.argmax(a <= 0))
-                raise ValueError(f"Scratches: `{name}` must be > 0; scratch {i} has {a[i]}")
-        a = np.asarray(self.alpha)
-        if ((a <= 0) | (a >= 1)).any():
-            i = int(np.argmax((a <= 0) | (a >= 1)))
-            raise ValueError(f"Scratches: `alpha` must lie in (0, 1); scratch {i} has {a[i]}")
-
-    @property
-    def n(self) -> int:
-        return self.p0.shape[0]
-
-    @property
-    def dtype(self):
-        return self.p0.dtype
-
-    @staticmethod
-    def random(key, n: int, board: Board | None = None, *, length=(0.005, 0.025),
-               width: float = 1e-4, depth: float = 1e-4, alpha: float = 0.04,
-               dtype=None) -> "Scratches":
-        """The SPEC section 5 initial layout: midpoints uniform on the board, directions uniform,
-        lengths uniform in ``length`` (m); a segment that would leave the board is shortened about
-        its midpoint (keeping its direction) so both endpoints lie on the board.
-
-        **Arguments:** `key` a PRNG key; `n` number of scratches; `board` (default `Board()`);
-        `length` ``(min, max)`` (m); `width, depth, alpha` scalars; `dtype` (default float).
-
-        **Returns:** `Scratches`.
-        """
-        board = Board() if board is None else board
-        dtype = jnp.result_type(float) if dtype is None else dtype
-        p0, p1 = _random_endpoints(key, n, float(board.Sx), float(board.Sy),
-                                   tuple(float(x) for x in length), jnp.dtype(dtype))
-        return Scratches(p0, p1, width, depth, alpha)
-
-
-@functools.partial(jax.jit, static_argnums=(1, 2, 3, 4, 5))
-def _random_endpoints(key, n: int, Sx: float, Sy: float, length: tuple, dtype):
-    """`Scratches.random`'s endpoints ``(n, 2), (n, 2)`` in one compiled call."""
-    k1, k2, k3 = jax.random.split(key, 3)
-    size = jnp.asarray([Sx, Sy], dtype)
-    mid = jax.random.uniform(k1, (n, 2), dtype) * size
-    phi = jax.random.uniform(k2, (n,), dtype, 0.0, 2 * jnp.pi)
-    half = 0.5 * jax.random.uniform(k3, (n,), dtype, length[0], length[1])
-    t = jnp.stack([jnp.cos(phi), jnp.sin(phi)], -1)
-
-    def reach(direction):  # largest s with mid + s * direction on the board, (n,)
-        pos = (size - mid) / jnp.where(direction > 0, direction, 1)
-        neg = mid / jnp.where(direction < 0, -direction, 1)
-        r = jnp.where(direction > 0, pos, jnp.where(direction < 0, neg, jnp.inf))
-        return r.min(-1)
-
-    s = jnp.minimum(half, jnp.minimum(reach(t), reach(-t)))
-    return jnp.clip(mid - s[:, None] * t, 0, size), jnp.clip(mid + s[:, None] * t, 0, size)
-
-
-class Views(eqx.Module):
-    """``M`` view/light configurations (SPEC section 4).
-
-    **Arguments:**
-
-    - `camera`: camera positions ``(M, 3)`` (m), above the board (``z > 0``).
-    - `light`: point-light positions ``(M, 3)`` (m), above the board (``z > 0``).
-    - `intensity`: light intensities ``I_j`` (W/sr), ``(M,)`` or a scalar. Default 1.
-
-    Shapes are checked always; values (finite, ``z > 0``, ``intensity >= 0``) when concrete.
-    """
-
-    camera: Float[Array, "m 3"]
-    light: Float[Array, "m 3"]
-    intensity: Float[Array, " m"]
-
-    def __init__(self, camera: ArrayLike, light: ArrayLike, intensity: ArrayLike = 1.0):
-        camera = jnp.asarray(camera)
-        light = jnp.asarray(light)
-        dtype = _float_dtype(camera, light)
-        for name, p in (("camera", camera), ("light", light)):
-            if p.ndim != 2 or p.shape[1] != 3:
-                raise ValueError(f"Views: `{name}` must have shape (M, 3); got {p.shape}")
-        if camera.shape != light.shape:
-            raise ValueError(f"Views: `camera` {camera.shape} and `light` {light.shape} must have"
-                             " the same shape")
-        m = camera.shape[0]
-        intensity = jnp.asarray(intensity, dtype)
-        if intensity.ndim == 0:
-            intensity = jnp.broadcast_to(intensity, (m,))
-        if intensity.shape != (m,):
-            raise ValueError(f"Views: `intensity` must have shape (M,) = ({m},) or be a scalar;"
-                             f" got {intensity.shape}")
-        self.camera = camera.astype(dtype)
-        self.light = light.astype(dtype)
-        self.intensity = intensity
-
-    def __check_init__(self):
-        if any(_is_tracer(a) for a in (self.camera, self.light, self.intensity)):
-            return
-        for name in ("camera", "light", "intensity"):
-            a = np.asarray(getattr(self, name))
-            if not np.isfinite(a).all():
-                j = int(np.argwhere(~np.isfinite(a.reshape(a.shape[0], -1)).any(-1))[0, 0])
-                raise ValueError(f"Views: `{name}` of view {j} is not finite")
-        for name in ("camera", "light"):
-            z = np.asarray(getattr(self, name))[:, 2]
-            if (z <= 0).any():
-                j = int(np.argmax(z <= 0))
-                raise ValueError(f"Views: `{name}` of view {j} is at z = {z[j]}: it must be above"
-                                 " the board (z > 0)")
-        i = np.asarray(self.intensity)
-        if (i < 0).any():
-            j = int(np.argmax(i < 0))
-            raise ValueError(f"Views: `intensity` of view {j} is negative ({i[j]})")
-
-    @property
-    def m(self) -> int:
-        return self.camera.shape[0]
-
-
-def _direction(polar, azimuth):
-    return np.array([math.sin(polar) * math.cos(azimuth), math.sin(polar) * math.sin(azimuth),
-                     math.cos(polar)])
-
-
-def flat_highlight(camera, light) -> np.ndarray:
-    """Where the flat board mirrors the light into the camera: the point of ``z = 0`` on the
-    segment from ``camera`` to the light's mirror image ``(Lx, Ly, -Lz)`` (board metres, ``(..., 2)``).
-
-    At that point the half vector is the board normal, so the flat board's GGX peak
-    ``1 / (pi a_S^2)`` shows there.
-    """
-    c = np.asarray(camera, np.float64)
-    l = np.asarray(light, np.float64)
-    s = c[..., 2:3] / (c[..., 2:3] + l[..., 2:3])
-    return c[..., :2] + s * (l[..., :2] - c[..., :2])
-
-
-def views_on_circle(M: int, theta: float, distance: float = 1.0, offset: float | None = None,
-                    board: Board | None = None, *, light_azimuth: float = 0.0,
-                    camera_theta: float | None = None, intensity: ArrayLike = 1.0,
-                    dtype=None) -> Views:
-    """The paper's view layout (section 4.1, SPEC section 5), angles in radians.
-
-    One light at polar angle ``theta`` (from the board normal) and azimuth ``light_azimuth``;
-    camera ``j`` at polar angle ``camera_theta`` (default ``theta``) and azimuth
-    ``2 pi j / M + offset``; all at ``distance`` from the board centre. Every view shares the light.
-
-    A camera that sees the light mirrored by the flat board is refused: if the flat-board
-    highlight (`flat_highlight`, where the half vector is the board normal) falls on the board,
-    the board's own specular peak would dominate that view. With the light and cameras on one
-    circle this is the camera near the light's mirror azimuth ``light_azimuth + pi``.
-
-    **Arguments:**
-
-    - `M`: number of views (>= 1).
-    - `theta`: polar angle of the light (rad), in ``[0, pi/2)``.
-    - `distance`: distance of light and cameras from the board centre (m). Default 1.
-    - `offset`: azimuth of camera 0 relative to ``light_azimuth`` (rad). Default: ``pi / M`` for
-      even ``M`` (the mirror azimuth midway between two cameras, every camera ``pi / M`` from it
-      and from the light); for odd ``M``, ``pi / (2M)`` (every camera at least ``pi / (2M)`` from
-      both the light and its mirror) when that keeps every flat-board highlight off the board,
-      else ``0`` (the mirror midway between two cameras, ``pi / M`` from both; camera 0 then shares
-      the light's azimuth, a retro-reflection view).
-    - `board`: the board (its centre and extent). Default `Board()`.
-    - `light_azimuth`, `camera_theta`, `intensity` ((M,) or scalar, W/sr), `dtype`.
-
-    **Returns:** `Views` with ``camera, light`` ``(M, 3)`` and ``intensity`` ``(M,)``.
-    """
-    board = Board() if board is None else board
-    if int(M) != M or M < 1:
-        raise ValueError(f"views_on_circle: `M` must be a positive int; got {M!r}")
-    M = int(M)
-    camera_theta = theta if camera_theta is None else camera_theta
-    for name, v in (("theta", theta), ("camera_theta", camera_theta)):
-        if not (math.isfinite(v) and 0.0 <= v < math.pi / 2):
-            hint = (f" (angles are in radians: did you mean {math.radians(v):.4f}?)"
-                    if math.isfinite(v) and 1.6 <= v < 90 else "")
-            raise ValueError(f"views_on_circle: `{name}` must lie in [0, pi/2) rad so that it is"
-                             f" above the board; got {v}{hint}")
-    if not (math.isfinite(distance) and distance > 0):
-        raise ValueError(f"views_on_circle: `distance` must be positive (m); got {distance}")
-    centre = np.array([board.Sx / 2, board.Sy / 2, 0.0])
-    light = centre + distance * _direction(theta, light_azimuth)
-
-    def layout(offset):
-        azimuths = [2 * math.pi * j / M + offset + light_azimuth for j in range(M)]
-        cameras = np.stack([centre + distance * _direction(camera_theta, a) for a in azimuths])
-        spot = flat_highlight(cameras, light[None])
-        on = ((spot[:, 0] >= 0) & (spot[:, 0] <= board.Sx) & (spot[:, 1] >= 0)
-              & (spot[:, 1] <= board.Sy))
-        return azimuths, cameras, spot, on
-
-    if offset is None:
-        azimuths, cameras, spot, on = layout(math.pi / (2 * M) if M % 2 else math.pi / M)
-        if on.any() and M % 2:
-            azimuths, cameras, spot, on = layout(0.0)
-    else:
-        azimuths, cameras, spot, on = layout(float(offset))
-    if on.any():
-        j = int(np.argmax(on))
-        raise ValueError(
-            f"views_on_circle: camera {j} (azimuth {math.degrees(azimuths[j]) % 360:.1f} deg) sees"
-            f" the light mirrored by the flat board at board point ({spot[j, 0]:.4f},"
-            f" {spot[j, 1]:.4f}) m, inside the board: the board's specular peak would dominate"
-            " that view. Change `offset`, `M`, `theta`/`camera_theta` or `distance`.")
-    dtype = jnp.result_type(float) if dtype is None else dtype
-    return Views(jnp.asarray(cameras, dtype), jnp.asarray(np.repeat(light[None], M, 0), dtype),
-                 jnp.asarray(intensity, dtype))
-
-
-# --------------------------------------------------------------------------------------------
-# Pixels and shading
-# --------------------------------------------------------------------------------------------
-
-
-def _edges(board: Board) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel edges in float64: x edges ``(W+1,)`` left to right, y edges ``(H+1,)`` top to bottom."""
-    xe = np.arange(board.W + 1, dtype=np.float64) * board.Sx / board.W
-    ye = board.Sy - np.arange(board.H + 1, dtype=np.float64) * board.Sy / board.H
-    ye[-1] = 0.0
-    return xe, ye
-
-
-def pixel_footprints(board: Board, dtype=None) -> Float[Array, "p 4 2"]:
-    """Pixel footprints (SPEC section 1) as counter-clockwise quads.
-
-    **Returns:** ``(H*W, 4, 2)`` board metres; pixel ``r*W + c`` is
-    ``(x0, y0), (x1, y0), (x1, y1), (x0, y1)`` with ``x0 = c Sx/W``, ``y1 = Sy - r Sy/H``.
-    """
-    xe, ye = _edges(board)
-    c = np.tile(np.arange(board.W), board.H)
-    r = np.repeat(np.arange(board.H), board.W)
-    x0, x1, y0, y1 = xe[c], xe[c + 1], ye[r + 1], ye[r]
-    fp = np.stack([np.stack([x0, y0], -1), np.stack([x1, y0], -1), np.stack([x1, y1], -1),
-                   np.stack([x0, y1], -1)], 1)
-    return jnp.asarray(fp, jnp.result_type(float) if dtype is None else dtype)
-
-
-def pixel_centres(board: Board, dtype=None) -> Float[Array, "p 2"]:
-    """Footprint centres ``(H*W, 2)`` (board metres), pixel ``r*W + c``."""
-    xe, ye = _edges(board)
-    c = np.tile(np.arange(board.W), board.H)
-    r = np.repeat(np.arange(board.H), board.W)
-    ctr = np.stack([0.5 * (xe[c] + xe[c + 1]), 0.5 * (ye[r] + ye[r + 1])], -1)
-    return jnp.asarray(ctr, jnp.result_type(float) if dtype is None else dtype)
-
-
-def _unit(v):
-    return v / jnp.sqrt(jnp.sum(v * v, -1, keepdims=True))
-
-
-class _Geometry(NamedTuple):
-    wo: Array  # (M, P, 3)
-    wi: Array  # (M, P, 3)
-    h: Array  # (M, P, 3)
-    r2: Array  # (M, P)
-
-
-@eqx.filter_jit
-def _geometry(views: Views, board: Board, dtype) -> _Geometry:
-    p = pixel_centres(board, dtype)
-    p3 = jnp.concatenate([p, jnp.zeros_like(p[:, :1])], -1)[None]  # (1, P, 3)
-    cam = views.camera.astype(dtype)[:, None]
-    lig = views.light.astype(dtype)[:, None]
-    wo = _unit(cam - p3)
-    dl = lig - p3
-    r2 = jnp.sum(dl * dl, -1)
-    wi = dl / jnp.sqrt(r2)[..., None]
-    return _Geometry(wo, wi, _unit(wi + wo), r2)
-
-
-def half_vectors(views: Views, board: Board, dtype=None) -> Float[Array, "m p 3"]:
-    """Board-frame unit half vectors at every footprint centre, ``(M, H*W, 3)`` (SPEC section 4),
-    as `bvh.cull` wants them (``h_pixel = half_vectors(...)[j]``)."""
-    dtype = views.camera.dtype if dtype is None else dtype
-    return _geometry(views, board, dtype).h
-
-
-def board_ndf(views: Views, board: Board, dtype=None) -> Float[Array, "m p"]:
-    """The flat board's GGX ``D(h; a_S)`` at every footprint centre, ``(M, H*W)`` (1/sr): the
-    board term of `shade` per unit uncovered area, as `bvh.cull_coverage` wants it (largest over
-    the views)."""
-    return _ggx_unit(half_vectors(views, board, dtype), board.a_S)
-
-
-def _ggx_unit(h, a):
-    """GGX ``D(h_z; a)`` for unit ``h`` with the cancellation-free denominator
-    ``(h_z^2 (a^2 - 1) + 1) = h_x^2 + h_y^2 + a^2 h_z^2``."""
-    hz = h[..., 2]
-    den = h[..., 0] ** 2 + h[..., 1] ** 2 + (a * hz) ** 2
-    return jnp.where(hz > 0, a * a / (jnp.pi * den * den), 0.0)
-
-
-def _smith_g1(vz, a):
-    return 2 * vz / (vz + jnp.sqrt(a * a + (1 - a * a) * vz * vz))
-
-
-def shade(D_P: Float[Array, "m p"], coverage: Float[Array, "m p"], views: Views,
-          board: Board) -> Float[Array, "m p"]:
-    """Per-pixel shading (SPEC section 4) at the footprint centres.
-
-    ``f = (D_P + max(0, 1 - c) D_ggx(h_z; a_S)) G F / (4 wi_z wo_z)``,
-    ``radiance = I f wi_z / r2``.
-
-    **Arguments:** `D_P` patch NDF ``(M, H*W)`` (1/sr); `coverage` ``c`` ``(M, H*W)`` or ``(H*W,)``;
-    `views`; `board`.
-
-    **Returns:** linear radiance ``(M, H*W)`` (W/(sr m^2)), in the dtype of `D_P`.
-    """
-    dtype = D_P.dtype
-    g = _geometry(views, board, dtype)
-    wiz, woz = g.wi[..., 2], g.wo[..., 2]
-    D = D_P + jnp.maximum(0.0, 1.0 - coverage) * _ggx_unit(g.h, board.a_S)
-    G = _smith_g1(wiz, board.a_G) * _smith_g1(woz, board.a_G)
-    F = board.F0 + (1 - board.F0) * (1 - jnp.sum(g.wo * g.h, -1)) ** 5
-    f = D * G * F / (4 * wiz * woz)
-    return views.intensity.astype(dtype)[:, None] * f * wiz / g.r2
-
-
-def display(radiance: ArrayLike, gamma: float = DISPLAY_GAMMA,
-            knee: float = DISPLAY_KNEE) -> Array:
-    """Display values from linear radiance: ``radiance ** (1/gamma)`` with a finite slope at 0.
-
-    Exact form, with ``g = 1/gamma``, knee ``k`` and ``P = k ** (g - 1)``:
-
-    - ``x >= k``: ``y = x ** g`` (the plain gamma);
-    - ``x < k``: ``y = (2 - g) P x + (g - 1) (P / k) x**2``, the quadratic through ``0`` that
-      matches ``x ** g`` in value and slope at ``k`` (so ``y`` is C1 and increasing on ``[0, inf)``).
-
-    The slope at 0 is ``(2 - g) P``: ``232.6`` for the defaults (``gamma = 2.2``, ``k = 1e-4``, where
-    ``y = 0.0152``, about 4/255). Negative inputs (the renderer produces none beyond rounding) follow
-    the same quadratic. No clipping above 1. Elementwise, any shape, follows the input dtype.
-    """
-    return _display(jnp.asarray(radiance), float(gamma), float(knee))
-
-
-@functools.partial(jax.jit, static_argnums=(1, 2))
-def _display(x, gamma: float, knee: float) -> Array:
-    if not jnp.issubdtype(x.dtype, jnp.floating):
-        x = x.astype(jnp.result_type(float))
-    g = 1.0 / gamma
-    P = knee ** (g - 1.0)
-    low = (2.0 - g) * P * x + (g - 1.0) * (P / knee) * x * x
-    high = jnp.maximum(x, knee) ** g  # double-where: no inf slope of x**g at 0 in the dead branch
-    return jnp.where(x < knee, low, high)
 
 
 # --------------------------------------------------------------------------------------------
@@ -685,7 +220,7 @@ def _budgets(fn):
 
 
 def _edges_in(cfg: _Cfg, dtype):
-    xe, ye = _edges(_board_of(cfg))
+    xe, ye = pixel_edges(_board_of(cfg))
     return jnp.asarray(xe, dtype), jnp.asarray(ye, dtype)
 
 
@@ -850,12 +385,6 @@ def _round_up(x: int, m: int) -> int:
     return -(-x // m) * m
 
 
-def _pixels_per_shard(board: Board, shards: int) -> int:
-    """Pixels per shard: whole rows, ``ceil(H / shards) * W`` (the pixel axis is padded to
-    ``shards`` times this)."""
-    return -(-board.H // shards) * board.W
-
-
 def _pair_classes(cfg: _Cfg, params, out, scr, valid):
     """Per pair, 1 + the index of the smallest of `PIECE_BUDGETS` that holds its
     `ndf.PairGeometry.count`, 0 for padding; int8. Only the order of the evaluation depends on
@@ -907,7 +436,7 @@ def _run_pair_sums(scratches: Scratches, board: Board, h_views, out, scr, valid,
     to ``Pb * n_shards`` and call `_pair_sums`; returns sums over the board's ``P`` pixels."""
     shards = _n_shards(mesh, axes)
     P = board.n_pixels
-    Pb = _pixels_per_shard(board, shards)
+    Pb = pixels_per_shard(board, shards)
     Ls = out.shape[0] // shards
     chunk = int(min(chunk, _round_up(max(Ls, 1), 64)))
     Ls_pad = _round_up(max(Ls, 1), chunk)
@@ -937,24 +466,6 @@ def _run_pair_sums(scratches: Scratches, board: Board, h_views, out, scr, valid,
 # --------------------------------------------------------------------------------------------
 
 
-def _value_checks(scratches: Scratches, views: Views) -> list:
-    """``(condition, message)`` checks of the scene's values (see `_guard`)."""
-    s = scratches
-    finite = jnp.all(jnp.isfinite(s.p0)) & jnp.all(jnp.isfinite(s.p1)) & jnp.all(
-        jnp.isfinite(s.width)) & jnp.all(jnp.isfinite(s.depth)) & jnp.all(jnp.isfinite(s.alpha))
-    return [
-        (~finite, "render: a scratch parameter (p0, p1, width, depth or alpha) is NaN or infinite"),
-        (jnp.any(s.width <= 0) | jnp.any(s.depth <= 0),
-         "render: scratch `width` and `depth` must be > 0"),
-        (jnp.any(s.alpha <= 0) | jnp.any(s.alpha >= 1), "render: scratch `alpha` must lie in (0, 1)"),
-        (~(jnp.all(jnp.isfinite(views.camera)) & jnp.all(jnp.isfinite(views.light))
-           & jnp.all(jnp.isfinite(views.intensity))),
-         "render: a view (camera, light or intensity) is NaN or infinite"),
-        (jnp.any(views.camera[:, 2] <= 0) | jnp.any(views.light[:, 2] <= 0),
-         "render: every camera and light must be above the board (z > 0)"),
-    ]
-
-
 def _guard(x, checks, mesh):
     """Apply ``(condition, message)`` checks to ``x``. Concrete conditions (an eager call) raise
     `ValueError` at once. Traced ones use `eqx.error_if` on one device; over a mesh a runtime
@@ -975,7 +486,7 @@ def _guard(x, checks, mesh):
 
 def _check_values(scratches: Scratches, views: Views):
     """`eqx.error_if` value checks (work inside jit, single device); returns checked copies."""
-    w, _ = _guard(scratches.width, _value_checks(scratches, views), None)
+    w, _ = _guard(scratches.width, scene_checks(scratches, views), None)
     return eqx.tree_at(lambda t: t.width, scratches, w), views
 
 
@@ -1075,9 +586,9 @@ def render_pairs(scratches: Scratches, views: Views, board: Board, pairs,
     M, P, n = views.m, board.n_pixels, scratches.n
     axes = _mesh_axes(mesh, axis_names)
     shards = _n_shards(mesh, axes)
-    Pb = _pixels_per_shard(board, shards)
+    Pb = pixels_per_shard(board, shards)
     # The checks hang on a small replicated parameter, not on the (sharded) pair arrays.
-    checks = _value_checks(scratches, views)
+    checks = scene_checks(scratches, views)
     views = jax.tree_util.tree_map(lambda x: x.astype(dtype), views)
     geo_h = half_vectors(views, board, dtype)  # (M, P, 3)
 
@@ -1137,94 +648,6 @@ def grad_compiler_options() -> dict:
     return opts
 
 
-def _bucket(n: int, chunk: int) -> int:
-    """Pair-list length for ``n`` pairs: a multiple of 1024 (small) or of ``chunk``, and within
-    ~12% of ``n`` by rounding to 8 steps per octave, so repeated renders of similar scenes reuse
-    compilations."""
-    n = max(n, 1)
-    step = 2 ** max(0, n.bit_length() - 4)
-    return _round_up(_round_up(n, step), min(chunk, 1024))
-
-
-def _layout(pix: np.ndarray, scr: np.ndarray, keeps, n: int, board: Board, shards: int,
-            chunk: int):
-    """Pack the kept pairs of each mask in ``keeps`` into ``shards`` equal segments, segment ``s``
-    holding the pairs of pixels ``[s Pb, (s+1) Pb)`` (``Pb = ceil(H / shards) W``) in their input
-    order, each segment ``_bucket``-ed to the largest count over segments and masks. Padding slots
-    hold the segment's first pixel and the sentinel scratch ``n``. Returns numpy ``(pixel,
-    scratch, valid)``, each ``(len(keeps), shards * Ls)``."""
-    Pb = _pixels_per_shard(board, shards)
-    idx = [np.flatnonzero(k) for k in keeps]
-    blocks = [pix[i] // Pb for i in idx]
-    counts = [np.bincount(b, minlength=shards) for b in blocks]
-    Ls = _bucket(int(max(c.max() for c in counts)), chunk)
-    shape = (len(keeps), shards * Ls)
-    out_pix = np.broadcast_to(np.repeat(np.arange(shards) * Pb, Ls), shape).astype(np.int32)
-    out_scr = np.full(shape, n, np.int32)
-    out_val = np.zeros(shape, bool)
-    for j, (i, b, c) in enumerate(zip(idx, blocks, counts)):
-        order = np.argsort(b, kind="stable")  # by block, input order kept within a block
-        starts = np.concatenate([[0], np.cumsum(c)[:-1]])
-        dest = b[order] * Ls + np.arange(i.size) - np.repeat(starts, c)
-        out_pix[j, dest] = pix[i[order]]
-        out_scr[j, dest] = scr[i[order]]
-        out_val[j, dest] = True
-    return out_pix, out_scr, out_val
-
-
-def _pairs_of(pix, scr, val):
-    from jscratch import bvh
-
-    return bvh.Pairs(pixel=jnp.asarray(pix), scratch=jnp.asarray(scr), valid=jnp.asarray(val),
-                     overflow=jnp.asarray(False))
-
-
-def bin_pairs(scratches: Scratches, board: Board, *, chunk: int = DEFAULT_CHUNK,
-              shards: int = 1):
-    """The complete (pixel, scratch) pair list of a scene, compacted (host code).
-
-    Bins with ``bvh.build_pairs`` and packs the valid pairs into ``shards`` equal segments by
-    pixel block (the layout `render_pairs` needs with a mesh of ``shards`` devices; one segment
-    without), each segment's length rounded up (`_bucket`: within ~12%, a multiple of 1024 or of
-    ``chunk``) so that similar scenes share a compilation of `render_pairs`; padding slots hold
-    the sentinel scratch ``N``.
-
-    **Returns:** `bvh.Pairs` ``(L,)`` for `render_pairs`.
-    """
-    from jscratch import bvh
-
-    full, _ = bvh.build_pairs(scratches.p0, scratches.p1, scratches.width, scratches.depth,
-                              board=(board.Sx, board.Sy), shape=board.shape)
-    pix, scr, val = _layout(np.asarray(full.pixel).reshape(-1),
-                            np.asarray(full.scratch).reshape(-1),
-                            [np.asarray(full.valid).reshape(-1)], scratches.n, board, shards,
-                            chunk)
-    return _pairs_of(pix[0], scr[0], val[0])
-
-
-def cull_pairs(pairs, scratches: Scratches, views: Views, board: Board, eps: float, *,
-               chunk: int = DEFAULT_CHUNK, shards: int = 1):
-    """Per-view culled pair lists from a shared list (host code).
-
-    Culls ``pairs`` (a shared ``(L,)`` list, e.g. from `bin_pairs`) for every view with
-    ``bvh.cull`` (pairs whose rigorous ``D_hat`` bound is below ``eps A / (pi alpha^2)``) and packs
-    each view's survivors into one ``(M, Lv)`` list laid out for ``shards`` pixel shards as in
-    `bin_pairs`. Render it with ``coverage_pairs=pairs``: a culled pair still covers the board.
-
-    **Returns:** `bvh.Pairs` ``(M, Lv)`` for `render_pairs`.
-    """
-    from jscratch import bvh
-
-    if eps <= 0 or not math.isfinite(eps):
-        raise ValueError(f"cull_pairs: `eps` must be finite and > 0; got {eps}")
-    hs = half_vectors(views, board, scratches.dtype)
-    keep = [np.asarray(bvh.cull(pairs, scratches.p0, scratches.p1, scratches.width,
-                                scratches.depth, scratches.alpha, hs[j], eps).valid)
-            for j in range(views.m)]
-    return _pairs_of(*_layout(np.asarray(pairs.pixel), np.asarray(pairs.scratch), keep,
-                              scratches.n, board, shards, chunk))
-
-
 _checked_scene = eqx.filter_jit(_check_values)
 
 
@@ -1240,7 +663,7 @@ def render(scratches: Scratches, views: Views, board: Board, *, eps: float = 0.0
     """Bin, cull and render: the convenience driver (host code; not for inside jit).
 
     Bins with `bin_pairs`; when ``eps > 0`` culls every view's pairs with `cull_pairs`
-    (``bvh.cull``: pairs whose rigorous ``D_hat`` bound is below ``eps A / (pi alpha^2)``); lays
+    (``cull.cull``: pairs whose rigorous ``D_hat`` bound is below ``eps A / (pi alpha^2)``); lays
     the lists out for the mesh's pixel shards; renders with a jitted `render_pairs`. Coverage
     always uses the unculled list.
 
@@ -1253,6 +676,8 @@ def render(scratches: Scratches, views: Views, board: Board, *, eps: float = 0.0
     """
     if eps < 0 or not math.isfinite(eps):
         raise ValueError(f"render: `eps` must be finite and >= 0; got {eps}")
+    check_scratches(scratches.p0, scratches.p1, scratches.width, scratches.depth, scratches.alpha,
+                    board=(board.Sx, board.Sy), source="render")
     axis_names = tuple(axis_names) if isinstance(axis_names, list) else axis_names
     shards = _n_shards(mesh, _mesh_axes(mesh, axis_names))
     full_c = bin_pairs(scratches, board, chunk=chunk, shards=shards)
@@ -1268,6 +693,42 @@ def render(scratches: Scratches, views: Views, board: Board, *, eps: float = 0.0
     if return_pairs:
         return rad, pairs, (full_c if cov_pairs is None else cov_pairs)
     return rad
+
+
+def scratch_contributions(scratches: Scratches, views: Views, board: Board, pairs, *,
+                          chunk: int = DEFAULT_CHUNK, h=None) -> Float[Array, "m n"]:
+    """Per view and scratch, the scratch term of the view's total radiance,
+    ``sum over its pairs of D_hat * shade(1, 1) / S_P`` (W/(sr m^2) summed over pixels): how much
+    light each scratch sends to each camera (jittable; plain autodiff).
+
+    **Arguments:** the scene; `pairs` one shared `bvh.Pairs` list or a sequence of ``M`` lists
+    (one per view); `chunk` pairs per `lax.map` step; `h` the half vectors ``(M, H*W, 3)``
+    (default `half_vectors` of the scene).
+
+    **Returns:** ``(M, N)``.
+    """
+    s = scratches
+    n, m, dt = s.n, views.m, s.dtype
+    hs = half_vectors(views, board, dt) if h is None else h
+    fps = pixel_footprints(board, dt)
+    ones = jnp.ones((m, board.n_pixels), dt)
+    k = shade(ones, ones, views, board) / board.pixel_area  # (M, P), board term is 0
+    lists = pairs if isinstance(pairs, (list, tuple)) else [pairs] * m
+    out = []
+    for j, p in enumerate(lists):
+        i = jnp.clip(p.scratch, 0, n - 1)
+        pix = jnp.clip(p.pixel, 0, board.n_pixels - 1)
+
+        def one(args, j=j):
+            ii, px = args
+            d, _ = ndf.pair_integral(hs[j, px], fps[px], s.p0[ii], s.p1[ii], s.width[ii],
+                                     s.depth[ii], s.alpha[ii])
+            return d
+
+        d = jax.lax.map(one, (i, pix), batch_size=chunk)
+        d = jnp.where(p.valid, d * k[j, pix], 0)
+        out.append(jax.ops.segment_sum(d, i, num_segments=n))
+    return jnp.stack(out)
 
 
 def render_reference(scratches: Scratches, views: Views, board: Board, *,

@@ -81,10 +81,8 @@ from IPython.display import Image, display
 from matplotlib.collections import LineCollection
 from matplotlib.colors import LogNorm
 
-from jscratch import design as D
+import jscratch
 from jscratch import designfile, fabricate, ndf
-from jscratch import loss as L
-from jscratch import render as R
 
 OUT = Path(tempfile.mkdtemp(prefix="jscratch_quickstart_"))  # files written by this notebook
 print("jax", jax.__version__, "on", jax.devices()[0].platform, "| outputs in", OUT)
@@ -230,24 +228,24 @@ view 0's half vector: it glints in view 0 and stays dark in view 1. Random direc
 little in every view. This direction selectivity is what lets one board show several images.
 """),
     code(r"""
-board = R.Board(shape=(SIZE, SIZE))
-views2 = R.views_on_circle(2, math.radians(50), board=board)
-random_scratches = R.Scratches.random(jax.random.PRNGKey(SEED), N_RENDER, board)
+board = jscratch.Board(shape=(SIZE, SIZE))
+views2 = jscratch.views_on_circle(2, math.radians(50), board=board)
+random_scratches = jscratch.Scratches.random(jax.random.PRNGKey(SEED), N_RENDER, board)
 
 # Brushed: same midpoints and lengths, directions within ~5 deg of the line perpendicular to the
 # horizontal part of view 0's half vector at the board centre.
-h0 = R.half_vectors(views2, board)[0].mean(0)
+h0 = jscratch.half_vectors(views2, board)[0].mean(0)
 brush = math.atan2(float(h0[1]), float(h0[0])) + math.pi / 2
 mid = 0.5 * (random_scratches.p0 + random_scratches.p1)
 half = 0.5 * jnp.linalg.norm(random_scratches.p1 - random_scratches.p0, axis=1, keepdims=True)
 phi = brush + math.radians(5) * jax.random.normal(jax.random.PRNGKey(SEED + 1), (N_RENDER,))
 t = jnp.stack([jnp.cos(phi), jnp.sin(phi)], -1)
 size = jnp.array([board.Sx, board.Sy])
-brushed = R.Scratches(jnp.clip(mid - half * t, 0, size), jnp.clip(mid + half * t, 0, size))
+brushed = jscratch.Scratches(jnp.clip(mid - half * t, 0, size), jnp.clip(mid + half * t, 0, size))
 
 fig, axes = plt.subplots(2, 3, figsize=(10, 6.6))
 for row, (name, s) in zip(axes, [("random", random_scratches), ("brushed", brushed)]):
-    img = R.display(R.render(s, views2, board))         # (2, SIZE, SIZE) display values
+    img = jscratch.display(jscratch.render.render(s, views2, board))  # (2, SIZE, SIZE) display values
     draw_scratches(row[0], s.p0, s.p1, board, linewidths=0.3)
     row[0].set_title(f"{name}: {s.n} scratches (top view)")
     for j in range(2):
@@ -269,10 +267,10 @@ Each step renders all views differentiably through the pair integrals of section
 three images bundled with scikit-image; `python -m jscratch.design` does the same from the shell.
 """),
     code(r"""
-targets, names = D.default_targets(3, (SIZE, SIZE))          # (3, SIZE, SIZE) display values in [0, 1]
-views3 = R.views_on_circle(3, math.radians(50), board=board)
-config = D.DesignConfig(n_scratches=N_DESIGN, iterations=ITERATIONS, seed=SEED, cull_eps=CULL_EPS)
-result = D.design(targets, views3, board, config, progress=not SMALL)
+targets, names = jscratch.design.default_targets(3, (SIZE, SIZE))  # (3, SIZE, SIZE), in [0, 1]
+views3 = jscratch.views_on_circle(3, math.radians(50), board=board)
+config = jscratch.DesignConfig(n_scratches=N_DESIGN, iterations=ITERATIONS, seed=SEED, cull_eps=CULL_EPS)
+result = jscratch.design.design(targets, views3, board, config, progress=not SMALL)
 m = result.metrics
 print(f"{m['iterations']} iterations in {m['time_total']:.1f} s (first step, with compilation: "
       f"{m['time_first_step']:.1f} s); intensities {np.round(m['intensity'], 3)} W/sr")
@@ -280,7 +278,7 @@ print("SSIM per view", np.round(m["ssim"], 3), "| PSNR (dB)", np.round(m["psnr"]
 """),
     code(r"""
 hist = result.history
-lambda_g = L.LAMBDA_G if config.loss.lambda_g is None else config.loss.lambda_g
+lambda_g = jscratch.loss.LAMBDA_G if config.loss.lambda_g is None else config.loss.lambda_g
 fig, ax = plt.subplots(figsize=(5.5, 3.4))
 ax.plot(hist["total"], "k", label="E = E_p + lambda_g E_g")
 ax.plot(hist["terms"]["E_p"], "--", label="E_p (blurred L2)")
@@ -309,7 +307,7 @@ step can drop far more than the paper's ~26 %: many scratches have not found a r
 """),
     code(r"""
 all_scratches = result.params.scratches()                     # all N, before the discard
-before = R.display(R.render(all_scratches, result.views, board))
+before = jscratch.display(jscratch.render.render(all_scratches, result.views, board))
 after = result.display
 print(f"kept {m['kept']} of {N_DESIGN} scratches ({m['discarded']} dropped); loss "
       f"{m['loss_before_discard']:.5g} -> {m['loss']:.5g}")

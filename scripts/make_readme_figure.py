@@ -21,7 +21,6 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))  # run from a checkout without installing
 DEFAULT_OUT = ROOT / "docs" / "readme_target_vs_render.png"
 
 
@@ -44,16 +43,16 @@ def main(argv=None) -> int:
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from jscratch import design as D
-    from jscratch import render as R
+    from jscratch import design
+    from jscratch import render
 
     t0 = time.perf_counter()
     shape = (args.size, args.size)
-    board = R.Board(shape=shape)
-    targets, names = D.default_targets(3, shape)
-    views = R.views_on_circle(3, math.radians(args.theta_deg), board=board)
-    config = D.DesignConfig(n_scratches=args.scratches, iterations=args.iterations, seed=args.seed)
-    result = D.design(targets, views, board, config, progress=not args.quiet)
+    board = render.Board(shape=shape)
+    targets, names = design.default_targets(3, shape)
+    views = render.views_on_circle(3, math.radians(args.theta_deg), board=board)
+    config = design.DesignConfig(n_scratches=args.scratches, iterations=args.iterations, seed=args.seed)
+    result = design.design(targets, views, board, config, progress=not args.quiet)
     m = result.metrics
 
     fig, axes = plt.subplots(2, 3, figsize=(7.8, 5.9), layout="constrained")

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jscratch import bvh
+from jscratch import bvh, cull
 
 BOARD = (0.3, 0.3)
 
@@ -460,7 +460,7 @@ def test_cull_ratio_is_a_tight_bound_of_the_point_ndf():
         valid=jnp.ones(n, bool),
         overflow=jnp.array(False),
     )
-    rho = np.asarray(bvh.cull_ratio(pairs, p0, p1, width, depth, alpha, h))
+    rho = np.asarray(cull.cull_ratio(pairs, p0, p1, width, depth, alpha, h))
     big = np.tile([-1.0, 1.0, -1.0, 1.0], (n, 1))  # the whole groove
     _, _, nh = dhat_numeric(h, p0, p1, width, depth, alpha, big, 20001)
     d_max = _ggx(nh, alpha[:, None]).max(-1) * np.pi * alpha**2
@@ -482,7 +482,7 @@ def test_cull_keeps_all_at_zero_and_obeys_the_error_bound():
     alpha = rng.uniform(0.03, 0.3, n)
     pairs, _ = bvh.build_pairs(p0, p1, width, depth, board=board, shape=shape)
     valid = np.asarray(pairs.valid)
-    cull = bvh.cull  # jax.jit-compiled
+    cull_fn = cull.cull  # jax.jit-compiled
     s_p = board[0] * board[1] / (shape[0] * shape[1])
     total_dropped = 0
     for light_az, cam_az in ((0.0, 2.0), (1.0, 3.5)):
@@ -490,11 +490,11 @@ def test_cull_keeps_all_at_zero_and_obeys_the_error_bound():
         light = np.array([0.15 + np.sin(tilt) * np.cos(light_az), 0.15 + np.sin(tilt) * np.sin(light_az), np.cos(tilt)])
         camera = np.array([0.15 + np.sin(tilt) * np.cos(cam_az), 0.15 + np.sin(tilt) * np.sin(cam_az), np.cos(tilt)])
         h = half_vectors(board, shape, camera, light)
-        kept0 = cull(pairs, p0, p1, width, depth, alpha, h, 0.0)
+        kept0 = cull_fn(pairs, p0, p1, width, depth, alpha, h, 0.0)
         np.testing.assert_array_equal(kept0.valid, pairs.valid)
-        rho = np.asarray(bvh.cull_ratio(pairs, p0, p1, width, depth, alpha, h))
+        rho = np.asarray(cull.cull_ratio(pairs, p0, p1, width, depth, alpha, h))
         for eps in (1e-3, 1e-2, 1e-1):
-            kept = np.asarray(cull(pairs, p0, p1, width, depth, alpha, h, eps).valid)
+            kept = np.asarray(cull_fn(pairs, p0, p1, width, depth, alpha, h, eps).valid)
             assert not np.any(kept & ~valid)
             dropped = np.nonzero(valid & ~kept)[0]
             assert np.all(rho[dropped] < eps) and np.all(rho[valid & kept] >= eps)
@@ -548,10 +548,10 @@ def test_cull_error_bound_with_the_ndf_kernel():
         d_hat, area = (np.asarray(v) for v in kernel(h[pix], fps, p0[s], p1[s], width[s], depth[s], alpha[s]))
         d_hat, area = np.where(valid, d_hat, 0.0), np.where(valid, area, 0.0)
         a_max = area / (np.pi * alpha[s] ** 2)
-        rho = np.asarray(bvh.cull_ratio(pairs, p0, p1, width, depth, alpha, h))
+        rho = np.asarray(cull.cull_ratio(pairs, p0, p1, width, depth, alpha, h))
         assert np.all(d_hat <= rho * a_max * (1 + 1e-6) + 1e-18)
         for eps in (1e-3, 3e-2):
-            kept = np.asarray(bvh.cull(pairs, p0, p1, width, depth, alpha, h, eps).valid)
+            kept = np.asarray(cull.cull(pairs, p0, p1, width, depth, alpha, h, eps).valid)
             dropped = valid & ~kept
             full = np.bincount(pix, d_hat, minlength=shape[0] * shape[1]) / s_p
             culled = np.bincount(pix, np.where(kept, d_hat, 0.0), minlength=full.size) / s_p
@@ -563,7 +563,7 @@ def test_cull_error_bound_with_the_ndf_kernel():
 
 
 def test_cull_coverage_bound_through_the_renderer():
-    # Coverage from the culled list (bvh.cull_coverage) against the unculled one, float64, a view
+    # Coverage from the culled list (cull.cull_coverage) against the unculled one, float64, a view
     # whose half vector comes near the board's mirror direction (so some pixels keep their
     # coverage pairs and others drop them; view 1 of the default 3-view layout comes within a few
     # degrees of it): the radiance error per pixel stays within
@@ -592,7 +592,7 @@ def test_cull_coverage_bound_through_the_renderer():
     area = np.where(np.asarray(pairs.valid), np.asarray(area), 0.0)
     n_kept_any = 0
     for eps in (1e-3, 1e-2):
-        cov = bvh.cull_coverage(pairs, s.alpha, board_ndf, eps)
+        cov = cull.cull_coverage(pairs, s.alpha, board_ndf, eps)
         kept = np.asarray(cov.valid)
         dropped = np.asarray(pairs.valid) & ~kept
         assert dropped.any()
@@ -604,7 +604,7 @@ def test_cull_coverage_bound_through_the_renderer():
         assert np.all(err <= k * bound * (1 + 1e-9) + 1e-12 * np.max(full)), eps
     assert n_kept_any > 0
     # eps = 0 keeps everything.
-    assert bool(jnp.all(bvh.cull_coverage(pairs, s.alpha, board_ndf, 0.0).valid == pairs.valid))
+    assert bool(jnp.all(cull.cull_coverage(pairs, s.alpha, board_ndf, 0.0).valid == pairs.valid))
 
 
 def test_compact():
@@ -667,11 +667,11 @@ def test_errors():
         upd(spec, p0, p1, 1e-4, -1e-4)
     h = np.tile([0.0, 0.0, 1.0], (64, 1))
     with pytest.raises(ValueError, match="h_pixel must have shape"):
-        bvh.cull(pairs, p0, p1, 1e-4, 1e-4, 0.04, h[:, :2], 1e-3)
+        cull.cull(pairs, p0, p1, 1e-4, 1e-4, 0.04, h[:, :2], 1e-3)
     with pytest.raises(Exception, match="alpha must be finite and > 0"):
-        bvh.cull(pairs, p0, p1, 1e-4, 1e-4, 0.0, h, 1e-3)
+        cull.cull(pairs, p0, p1, 1e-4, 1e-4, 0.0, h, 1e-3)
     with pytest.raises(Exception, match="eps must be finite and >= 0"):
-        bvh.cull(pairs, p0, p1, 1e-4, 1e-4, 0.04, h, -1.0)
+        cull.cull(pairs, p0, p1, 1e-4, 1e-4, 0.04, h, -1.0)
     with pytest.raises(ValueError, match="capacity must be a positive int"):
         bvh.compact(pairs, 0)
     no_bins = bvh.Pairs(pairs.pixel, pairs.scratch, pairs.valid, pairs.overflow)

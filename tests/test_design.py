@@ -150,7 +150,10 @@ def test_cli_input_errors(tmp_path, capsys):
     bad = tmp_path / "bad.png"
     bad.write_bytes(b"this is not a png")
     assert main([str(bad), "--out", str(tmp_path / "o1"), "--quiet"]) == 2
-    assert "cannot read target image" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    # One line naming the file (not the image reader's lines of plugin advice).
+    assert f"target image {str(bad)!r} is not a readable image" in err
+    assert len(err.strip().splitlines()) == 1
     assert main([str(tmp_path / "missing.png"), "--out", str(tmp_path / "o2"), "--quiet"]) == 2
     assert "does not exist" in capsys.readouterr().err
     wide = tmp_path / "wide.png"
@@ -179,8 +182,9 @@ def test_cli_input_errors(tmp_path, capsys):
 def test_view_lists_report_overflow_without_aborting():
     # Per-view lists too small for the culled pairs: counts exceed the capacities (the host then
     # retries with larger ones) and the lists carry no overflow flag that would abort the render.
-    from jscratch import bvh, loss
-    from jscratch.design import _Ctx, _group_tree, _view_lists
+    from jscratch import bvh, cull, loss
+    from jscratch.design.params import group_tree
+    from jscratch.design.solver import Context, view_lists
 
     board = R.Board(shape=(16, 16))
     views = R.views_on_circle(2, math.radians(50), board=board)
@@ -190,22 +194,22 @@ def test_view_lists_report_overflow_without_aborting():
     pairs, _ = bvh.build_pairs(s.p0, s.p1, s.width, s.depth, board=(0.3, 0.3), shape=(16, 16))
     hs = R.half_vectors(views, board, jnp.float32)
     bound = loss.make_loss(loss.LossConfig(kind="l2")).bind(jnp.zeros((2, 16, 16), jnp.float32))
-    lrs = _group_tree(p, {g: jnp.float32(0) for g in ("endpoints", "width", "depth", "alpha",
-                                                        "intensity")})
+    lrs = group_tree(p, {g: jnp.float32(0) for g in ("endpoints", "width", "depth", "alpha",
+                                                       "intensity")})
     # A board NDF above the threshold everywhere: every pair's coverage is kept.
     board_ndf = jnp.full((256,), 1e3, jnp.float32)
-    ctx = _Ctx(views.camera, views.light, hs, board_ndf, bound, lrs, 1e-3, 1e-3, board, 1024)
-    lists, cov, counts = jax.jit(lambda p, q: _view_lists(p, q, ctx, (4, 4, 4)))(p, pairs)
+    ctx = Context(views.camera, views.light, hs, board_ndf, bound, lrs, 1e-3, 1e-3, board, 1024)
+    lists, cov, counts = jax.jit(lambda p, q: view_lists(p, q, ctx, (4, 4, 4)))(p, pairs)
     counts = np.asarray(counts)
-    expected = [int(bvh.cull(pairs, s.p0, s.p1, s.width, s.depth, s.alpha, hs[j], 1e-3).valid.sum())
+    expected = [int(cull.cull(pairs, s.p0, s.p1, s.width, s.depth, s.alpha, hs[j], 1e-3).valid.sum())
                 for j in range(2)] + [int(pairs.valid.sum())]
     assert counts.tolist() == expected and min(expected) > 4
     assert all(not bool(q.overflow) and q.pixel.shape == (4,) for q in lists + [cov])
 
 
 def test_culled_path_matches_unculled_at_tiny_eps():
-    """The culled step (per-view `bvh.cull` lists compacted to measured capacities, the
-    coverage pass through `bvh.cull_coverage`) against the unculled shared list: at eps = 1e-12
+    """The culled step (per-view `cull.cull` lists compacted to measured capacities, the
+    coverage pass through `cull.cull_coverage`) against the unculled shared list: at eps = 1e-12
     nothing that matters is dropped, so the losses agree to float32 rounding. (This scene's board
     term is too dim for the coverage list to move the loss; what `cull_coverage` keeps is checked
     by `test_view_lists_report_overflow_without_aborting` and its error bound in test_bvh.)"""

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from scipy.integrate import quad
 
-from jscratch import ndf_cases
-from jscratch import ndf_reference
+from jscratch.bench import ndf_cases
+from jscratch.bench import ndf_reference
 from jscratch import ndf
 
 # One jitted vmapped kernel per (function, dtype): batches of any length compile once per shape.

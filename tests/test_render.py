@@ -431,11 +431,11 @@ def test_views_on_circle_layout():
 def test_errors_name_the_argument():
     with pytest.raises(ValueError, match="`p1` must have shape"):
         R.Scratches(jnp.zeros((3, 2)), jnp.zeros((3, 3)))
-    with pytest.raises(ValueError, match="`alpha` must lie in .0, 1.; scratch 1"):
+    with pytest.raises(ValueError, match=r"Scratches: scratch 1: alpha = 1.0 must lie in \(0, 1\)"):
         R.Scratches(jnp.zeros((2, 2)), jnp.ones((2, 2)), alpha=jnp.asarray([0.1, 1.0]))
-    with pytest.raises(ValueError, match="`width` of scratch 1 is not finite"):
+    with pytest.raises(ValueError, match="Scratches: scratch 1: width = nan is not finite"):
         R.Scratches(jnp.zeros((2, 2)), jnp.ones((2, 2)), width=jnp.asarray([1e-4, jnp.nan]))
-    with pytest.raises(ValueError, match="`camera` of view 0 is at z"):
+    with pytest.raises(ValueError, match="Views: view 0: camera is at z"):
         R.Views(jnp.asarray([[0.0, 0.0, -1.0]]), jnp.asarray([[0.0, 0.0, 1.0]]))
     with pytest.raises(ValueError, match="`shape` must be"):
         R.Board(shape=(0, 4))

@@ -1,5 +1,5 @@
 """Sections 3-5 of `python -m jscratch.bench`: the renderer, the brute-force comparison and the
-optimiser (`RUNNERS`, picked up by `jscratch.bench.run_bench`).
+optimiser (`RUNNERS`, picked up by `jscratch.bench.cli.run_bench`).
 
 - ``render``: forward and forward+backward time per view, pairs per second, the binning share of
   a gradient step and XLA's compiled peak memory, for the standard scenes (20k and 60k scratches
@@ -30,20 +30,26 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jscratch import brute
-from jscratch import render as R
+from jscratch import brute, design
+from jscratch.bench.timing import md_table, median_time, plot
+from jscratch.render import (
+    DEFAULT_CHUNK,
+    bin_pairs,
+    cull_pairs,
+    grad_compiler_options,
+    render_pairs,
+)
+from jscratch.scene import Board, Scratches, Views, views_on_circle
+from jscratch.shading import display
 
 DEFAULT_VIEWS = 4
 
 
-def _median_time(fn, repeats: int) -> float:
+def time_median(fn, repeats: int) -> float:
     """Median wall time of `repeats` `block_until_ready` calls of `fn()` after one warm-up."""
-    from jscratch.bench import median_time
-
     return median_time(fn, repeats)[0]
 
-
-def _compiled_mib(compiled) -> float:
+def compiled_mib(compiled) -> float:
     m = compiled.memory_analysis()
     if m is None:
         return float("nan")
@@ -53,17 +59,17 @@ def _compiled_mib(compiled) -> float:
 def scene(n: int, res: int, views: int, dtype=jnp.float32, seed: int = 0, theta_deg: float = 40.0):
     """`(board, scratches, views)`: `n` random scratches (SPEC section 5) on a `res x res` board,
     `views` cameras on a circle at `theta_deg` from the normal."""
-    board = R.Board(shape=(res, res))
-    s = R.Scratches.random(jax.random.PRNGKey(seed), n, board, dtype=dtype)
-    v = R.views_on_circle(views, math.radians(theta_deg), board=board, dtype=dtype)
+    board = Board(shape=(res, res))
+    s = Scratches.random(jax.random.PRNGKey(seed), n, board, dtype=dtype)
+    v = views_on_circle(views, math.radians(theta_deg), board=board, dtype=dtype)
     return board, s, v
 
 
 class _Case(NamedTuple):
     """What `render_case` built, for `culling_rows` to reuse (no second binning or compile)."""
-    board: R.Board
-    scratches: R.Scratches
-    views: R.Views
+    board: Board
+    scratches: Scratches
+    views: Views
     pairs: Any  # bvh.Pairs (L,), the complete shared list
     fwd: Any  # jitted fwd(s, v, pairs, coverage_pairs)
     fwd_compiled: Any  # fwd compiled for (s, v, pairs, None)
@@ -71,7 +77,7 @@ class _Case(NamedTuple):
 
 
 def render_case(n: int, res: int, views: int = DEFAULT_VIEWS, repeats: int = 3,
-                chunk: int = R.DEFAULT_CHUNK) -> tuple[dict, _Case]:
+                chunk: int = DEFAULT_CHUNK) -> tuple[dict, _Case]:
     """Time one scene: binning (host, once), the jitted forward render of all views from one
     shared pair list, and a jitted value-and-gradient of a display-space L2 loss with respect to
     every scratch and view parameter. Compile times apart; medians of `repeats` runs.
@@ -79,17 +85,17 @@ def render_case(n: int, res: int, views: int = DEFAULT_VIEWS, repeats: int = 3,
     **Returns:** ``(row, case)``: the table row and the scene with its compiled forward."""
     board, s, v = scene(n, res, views)
     t = time.perf_counter()
-    pairs = R.bin_pairs(s, board, chunk=chunk)
+    pairs = bin_pairs(s, board, chunk=chunk)
     bin_s = time.perf_counter() - t
     n_pairs = int(np.asarray(pairs.valid).sum())
     target = jnp.full((views, res, res), 0.5, jnp.float32)
 
     # The pair list is an argument, not a closed-over constant (XLA would constant-fold it).
     def fwd(s, v, pairs, cov=None):
-        return R.render_pairs(s, v, board, pairs, cov, chunk=chunk)
+        return render_pairs(s, v, board, pairs, cov, chunk=chunk)
 
     def loss(s, v, pairs):
-        return jnp.mean((R.display(fwd(s, v, pairs)) - target) ** 2)
+        return jnp.mean((display(fwd(s, v, pairs)) - target) ** 2)
 
     row = {"scratches": n, "image": f"{res}x{res}", "views": views, "pairs": n_pairs,
            "bin_s": bin_s}
@@ -97,14 +103,14 @@ def render_case(n: int, res: int, views: int = DEFAULT_VIEWS, repeats: int = 3,
     compiled = {}
     # The gradient is compiled as design's step is (`render.grad_compiler_options`).
     for name, f, opts in (("fwd", jfwd, {}), ("fwd_bwd", jax.jit(jax.value_and_grad(loss, (0, 1))),
-                                                 R.grad_compiler_options())):
+                                                 grad_compiler_options())):
         t = time.perf_counter()
         c = compiled[name] = f.lower(s, v, pairs).compile(opts)
         row[f"{name}_compile_s"] = time.perf_counter() - t
-        step = _median_time(lambda c=c: c(s, v, pairs), repeats)
+        step = time_median(lambda c=c: c(s, v, pairs), repeats)
         row[f"{name}_ms_per_view"] = 1e3 * step / views
         row[f"{name}_pairs_per_s"] = n_pairs * views / step
-        row[f"{name}_mem_mib"] = _compiled_mib(c)
+        row[f"{name}_mem_mib"] = compiled_mib(c)
         row[f"_{name}_s"] = step
     # A gradient step rebins at most once (far less with a skin): the worst-case share.
     row["bin_share_of_step"] = bin_s / (bin_s + row["_fwd_bwd_s"])
@@ -112,7 +118,7 @@ def render_case(n: int, res: int, views: int = DEFAULT_VIEWS, repeats: int = 3,
 
 
 def culling_rows(case: _Case, eps_list, repeats: int = 3) -> list[dict]:
-    """Per-view culling (`render.cull_pairs`, i.e. `bvh.cull`) of `case`'s scene against its
+    """Per-view culling (`render.cull_pairs`, i.e. `cull.cull`) of `case`'s scene against its
     unculled render: pairs kept, culling time, forward time of the culled lists and the radiance
     error, max over pixels and views, over the peak radiance. `eps_list[0]` must be 0 (the
     reference: `case`'s own forward, already timed)."""
@@ -128,10 +134,10 @@ def culling_rows(case: _Case, eps_list, repeats: int = 3) -> list[dict]:
              "max_err_over_peak": 0.0}]
     for eps in eps_list[1:]:
         t = time.perf_counter()
-        pairs = R.cull_pairs(full, s, v, board, eps)
+        pairs = cull_pairs(full, s, v, board, eps)
         cull_s = time.perf_counter() - t
         c = case.fwd.lower(s, v, pairs, full).compile()
-        t_run = _median_time(lambda: c(s, v, pairs, full), repeats)
+        t_run = time_median(lambda: c(s, v, pairs, full), repeats)
         rad = np.asarray(c(s, v, pairs, full), np.float64)
         rows.append({
             "eps": eps,
@@ -157,17 +163,17 @@ def brute_rows(n_scratches: int, res: int, ns, repeats: int = 3) -> dict:
     board, s64, v64 = scene(n_scratches, res, 1, jnp.float64)
     s32 = jax.tree_util.tree_map(lambda x: x.astype(jnp.float32), s64)
     v32 = jax.tree_util.tree_map(lambda x: x.astype(jnp.float32), v64)
-    pairs = R.bin_pairs(s32, board)  # one list for all three renderers
-    ana = jax.jit(lambda s, v, pairs: R.render_pairs(s, v, board, pairs))
+    pairs = bin_pairs(s32, board)  # one list for all three renderers
+    ana = jax.jit(lambda s, v, pairs: render_pairs(s, v, board, pairs))
     ref = ana(s64, v64, pairs)
-    t_ana = _median_time(lambda: ana(s32, v32, pairs), repeats)
+    t_ana = time_median(lambda: ana(s32, v32, pairs), repeats)
     err_ana = _rel_rms(ana(s32, v32, pairs), ref)
     rows = []
     for n in ns:
         f = jax.jit(lambda s, v, n=n: brute.brute_render(s, v, board, n=n, pairs=pairs,
                                                           batch=max(16, 65536 // (n * n))))
         f.lower(s32, v32).compile()
-        t = _median_time(lambda: f(s32, v32), max(1, repeats // 2))
+        t = time_median(lambda: f(s32, v32), max(1, repeats // 2))
         rows.append({"samples_per_pixel": f"{n}x{n}", "n": n,
                      "rel_rms_error": _rel_rms(f(s32, v32), ref), "time_ms": 1e3 * t,
                      "analytic_speedup_at_this_error": t / t_ana})
@@ -181,28 +187,6 @@ def brute_rows(n_scratches: int, res: int, ns, repeats: int = 3) -> dict:
             "pairs": int(np.asarray(pairs.valid).sum()), "analytic_ms": 1e3 * t_ana,
             "analytic_rel_rms_error": err_ana, "rows": rows, "fit_error_exponent": -slope,
             "n_at_analytic_error": n_eq, "extrapolated_speedup_at_equal_error": t_eq / t_ana}
-
-
-def _md(rows, cols) -> str:
-    from jscratch.bench import _md_table
-
-    return _md_table(rows, cols)
-
-
-def _plot(path: Path, draw, xlabel: str, ylabel: str, title: str) -> None:
-    """One PNG: `draw(ax)` plots, this labels it (and adds the legend when anything is labelled)."""
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(6, 4), dpi=110)  # no pyplot: leaves the user's backend alone
-    ax = fig.subplots()
-    draw(ax)
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel(ylabel)
-    ax.set_title(title)
-    if ax.get_legend_handles_labels()[0]:
-        ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -224,19 +208,19 @@ def bench_render(quick: bool, out: Path) -> dict:
         for r, xi, yi in zip(cull, x, y):
             ax.annotate(f"eps={r['eps']:g}", (xi, yi), fontsize=7)
 
-    _plot(out / "render_culling.png", draw, "max radiance error / peak (eps = 0 plotted at 1e-9)",
+    plot(out / "render_culling.png", draw, "max radiance error / peak (eps = 0 plotted at 1e-9)",
           "forward ms per view", f"culling: {cn} scratches, {cr} px, {DEFAULT_VIEWS} views")
     cols = ["scratches", "image", "pairs", "bin_s", "fwd_compile_s", "fwd_ms_per_view",
             "fwd_pairs_per_s", "fwd_mem_mib", "fwd_bwd_compile_s", "fwd_bwd_ms_per_view",
             "fwd_bwd_pairs_per_s", "fwd_bwd_mem_mib", "bin_share_of_step"]
     ccols = ["eps", "pairs_kept", "fwd_ms_per_view", "time_saved", "max_err_over_peak"]
     md = (f"{DEFAULT_VIEWS} views rendered together from one shared pair list, float32, "
-          "chunk " + str(R.DEFAULT_CHUNK) + ". Pairs/s counts (pixel, scratch, view) "
+          "chunk " + str(DEFAULT_CHUNK) + ". Pairs/s counts (pixel, scratch, view) "
           "evaluations; memory is XLA's compiled estimate (arguments + outputs + temporaries); "
           "bin_share_of_step = one full rebin over (rebin + gradient step), an upper bound.\n\n"
-          + _md(rows, cols)
+          + md_table(rows, cols)
           + f"\n\nCulling ({cn} scratches, {cr}x{cr}; error against eps = 0):\n\n"
-          + _md(cull, ccols))
+          + md_table(cull, ccols))
     return {"cases": [{k: v for k, v in r.items() if not k.startswith("_")} for r in rows],
             "culling": cull, "markdown": md}
 
@@ -253,12 +237,12 @@ def bench_brute(quick: bool, out: Path) -> dict:
         ax.loglog([res["analytic_ms"]], [res["analytic_rel_rms_error"]], "r*", ms=12,
                   label="analytic (closed form)")
 
-    _plot(out / "brute_vs_analytic.png", draw, "time (ms)", "relative RMS error",
+    plot(out / "brute_vs_analytic.png", draw, "time (ms)", "relative RMS error",
           f"{res['scratches']} scratches, {res['image']}, 1 view")
     md = (f"{res['scratches']} scratches, {res['image']}, {res['pairs']} pairs, float32 against "
           f"a float64 analytic render. Analytic: {res['analytic_ms']:.1f} ms, relative RMS error "
           f"{res['analytic_rel_rms_error']:.2e}.\n\n"
-          + _md(res["rows"], ["samples_per_pixel", "rel_rms_error", "time_ms",
+          + md_table(res["rows"], ["samples_per_pixel", "rel_rms_error", "time_ms",
                               "analytic_speedup_at_this_error"])
           + f"\n\nBrute-force error ~ n^-{res['fit_error_exponent']:.2f}; at the analytic error it "
           f"would need n = {res['n_at_analytic_error']:.3g} per side, an extrapolated speed-up of "
@@ -269,23 +253,21 @@ def bench_brute(quick: bool, out: Path) -> dict:
 
 
 def bench_design(quick: bool, out: Path) -> dict:
-    from jscratch import design as D
-
     if quick:
-        cfg = D.DesignConfig(n_scratches=400, iterations=8, discard=False)
+        cfg = design.DesignConfig(n_scratches=400, iterations=8, discard=False)
         m, size, stops = 2, 32, [2, 4, 8]
     else:
-        cfg = D.DesignConfig(discard=False)
+        cfg = design.DesignConfig(discard=False)
         m, size, stops = 3, 256, [5, 10, 25, 50, 75, 100]
-    targets, names = D.default_targets(m, (size, size))
-    board = R.Board(shape=(size, size))
-    views = R.views_on_circle(m, math.radians(50), board=board)
+    targets, names = design.default_targets(m, (size, size))
+    board = Board(shape=(size, size))
+    views = views_on_circle(m, math.radians(50), board=board)
     rows, wall = [], 0.0
     with tempfile.TemporaryDirectory() as tmp:
         ck = Path(tmp) / "bench.ckpt.npz"
         for i, k in enumerate(stops):
             t = time.perf_counter()
-            r = D.design(targets, views, board, cfg, checkpoint=ck, resume=i > 0, stop_after=k)
+            r = design.design(targets, views, board, cfg, checkpoint=ck, resume=i > 0, stop_after=k)
             wall += time.perf_counter() - t
             rows.append({"iteration": k, "wall_s": wall, "loss": r.metrics["loss"],
                          "ssim": [round(x, 4) for x in r.metrics["ssim"]],
@@ -297,13 +279,13 @@ def bench_design(quick: bool, out: Path) -> dict:
             ax.plot([r["wall_s"] for r in rows], [r["ssim"][j] for r in rows], "o-",
                     label=f"view {j} ({names[j]})")
 
-    _plot(out / "design_ssim.png", draw,
+    plot(out / "design_ssim.png", draw,
           "wall time (s, includes compilation and each resume's setup)", "SSIM",
           f"design: {m} views, {cfg.n_scratches} scratches, {size} px")
     md = (f"{m} views ({', '.join(names)}), {cfg.n_scratches} scratches, {size}x{size}, float32, "
           "no discard; the run is stopped at each row's iteration and resumed from its checkpoint "
           "(wall time is cumulative and includes compilation and the resumes' setup).\n\n"
-          + _md(rows, ["iteration", "wall_s", "loss", "ssim", "mean_ssim", "psnr"]))
+          + md_table(rows, ["iteration", "wall_s", "loss", "ssim", "mean_ssim", "psnr"]))
     return {"views": m, "size": size, "scratches": cfg.n_scratches, "rows": rows, "markdown": md}
 
 

@@ -1,41 +1,10 @@
-"""`python -m jscratch.bench`: run time against error, numerical stress, and the recorded results.
-
-A thin CLI over `run_bench(sections, quick, out)`. Every timing compiles first (compile time is
-reported apart), then takes the median of repeated `block_until_ready` runs. Results go to
-``OUT/bench.json``, ``OUT/bench.md`` (also printed) and PNG plots in ``OUT``.
-
-**Sections:**
-
-1. ``kernel``: the closed form `ndf.pair_integral` against Gauss-Legendre quadrature
-   (`ndf.pair_integral_quadrature`, n = 8 ... 128), float32 and float64: time per pair
-   (forward and forward+backward) against max and median error on a fixed population (the
-   realistic random pairs plus the adversarial families of `jscratch.ndf_cases`), the error taken
-   against the independent reference `jscratch.ndf_reference` (exact clipping, adaptive
-   quadrature). Pareto plot ``kernel_pareto.png``.
-2. ``stability``: a sweep over alpha (1e-4 ... 0.9), grazing ``hz``, ``hy`` near 0, width over
-   footprint and depth over width, footprint positions across the groove; worst float32 error
-   (against the float64 closed form, itself checked against the reference in the test suite) and
-   the count of non-finite values and gradients. 10^5+ cases in full mode.
-3. ``render``: forward and forward+backward time per view, pairs per second, binning share and
-   peak memory for the standard scenes, and culling ``eps`` against image error.
-4. ``brute``: the analytic renderer against the brute-force supersampled renderer: the time each
-   needs to reach the same error, and the speed-up.
-5. ``design``: SSIM per view against iterations and time for the default design.
-
-``--quick`` shrinks every section (measured 49-51 s on a 2-core CPU, mostly compilation); the
-test suite runs it as a smoke test.
-"""
+"""Sections 1-2 of `python -m jscratch.bench`: the kernel (closed form against Gauss-Legendre
+quadrature, error against the independent reference `jscratch.bench.ndf_reference` on the cases
+of `jscratch.bench.ndf_cases`) and the numerical stability sweep."""
 
 from __future__ import annotations
 
-import argparse
-import datetime
 import functools
-import json
-import os
-import platform
-import statistics
-import sys
 import time
 from pathlib import Path
 
@@ -43,87 +12,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-SECTIONS = ("kernel", "stability", "render", "brute", "design")
-
-
-# ---------------------------------------------------------------------------------------------
-# Timing.
-
-
-_COMPILED: dict = {}
-
-
-def compile_once(fn, *args, options: dict | None = None):
-    """``jax.jit(fn)`` compiled ahead of time for the shapes and dtypes of `args` (with XLA
-    compiler `options`), cached per ``(fn, shapes, dtypes, options)`` for the process, so sections
-    that run the same function on the same shapes share one compilation. Returns ``(compiled,
-    compile_s)``, ``compile_s`` measured at the first compilation."""
-    options = dict(options or {})
-    key = (fn, tuple((np.shape(a), np.dtype(a.dtype).str) for a in args),
-           tuple(sorted(options.items())))
-    if key not in _COMPILED:
-        t0 = time.perf_counter()
-        compiled = jax.jit(fn).lower(*args).compile(options)
-        _COMPILED[key] = (compiled, time.perf_counter() - t0)
-    return _COMPILED[key]
-
-
-def median_time(fn, reps: int = 5, min_time: float = 0.0):
-    """`(median_s, out)`: ``fn()`` run once to warm up, then timed with `block_until_ready` at
-    least `reps` times and, up to 50 runs, until `min_time` seconds have passed."""
-    out = jax.block_until_ready(fn())
-    times = []
-    t_start = time.perf_counter()
-    while len(times) < max(1, reps) or (time.perf_counter() - t_start < min_time
-                                        and len(times) < 50):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times), out
-
-
-def time_compiled(fn, *args, reps: int = 5, min_time: float = 0.2, options: dict | None = None):
-    """Compile `fn` for `args` (`compile_once`, with XLA compiler `options`; timed apart) and
-    return `(compile_s, median_run_s, out)` (`median_time` with `reps` and `min_time`)."""
-    compiled, compile_s = compile_once(fn, *args, options=options)
-    med, out = median_time(lambda: compiled(*args), reps, min_time)
-    return compile_s, med, out
-
-
-def machine_info() -> dict:
-    dev = jax.devices()[0]
-    return {
-        "date": datetime.date.today().isoformat(),
-        "platform": platform.platform(),
-        "processor": platform.processor() or platform.machine(),
-        "cpu_count": os.cpu_count(),
-        "device": f"{dev.platform}:{getattr(dev, 'device_kind', '')}",
-        "n_devices": len(jax.devices()),
-        "jax": jax.__version__,
-        "python": platform.python_version(),
-    }
-
-
-def _md_table(rows: list[dict], cols: list[str]) -> str:
-    def fmt(v):
-        if isinstance(v, float):
-            if v == 0:
-                return "0"
-            if abs(v) >= 1e4 or abs(v) < 1e-3:
-                return f"{v:.3g}"
-            return f"{v:.4g}"
-        return str(v)
-
-    head = "| " + " | ".join(cols) + " |\n|" + "|".join("---" for _ in cols) + "|\n"
-    return head + "".join("| " + " | ".join(fmt(r.get(c, "")) for c in cols) + " |\n" for r in rows)
-
+from jscratch import ndf
+from jscratch.bench import ndf_cases, ndf_reference
+from jscratch.bench.timing import compile_once, md_table, plot, time_compiled
+from jscratch.render import grad_compiler_options
 
 # ---------------------------------------------------------------------------------------------
 # 1. Kernel: closed form vs Gauss-Legendre.
 
 
 def _kernel_population(quick: bool):
-    from jscratch import ndf_cases
 
     if quick:
         fams = {"random": ndf_cases.random_cases(n=96), **{
@@ -152,7 +50,6 @@ def _errors(D, Dr, Ar, alpha):
 
 
 def _quadrature(*args, n: int):
-    from jscratch import ndf
 
     return ndf.pair_integral_quadrature(*args, n)
 
@@ -192,8 +89,6 @@ def _kernel_timing_pairs(quick: bool) -> int:
 
 
 def bench_kernel(quick: bool, out: Path) -> dict:
-    from jscratch import ndf, ndf_reference
-    from jscratch import render as R
 
     C = _kernel_population(quick)
     n_pairs_time = _kernel_timing_pairs(quick)
@@ -223,7 +118,7 @@ def bench_kernel(quick: bool, out: Path) -> dict:
                 c_b, t_b = 0.0, float("nan")
             else:
                 c_b, t_b, _ = time_compiled(_per_pair_grads(one), *T,
-                                            options=R.grad_compiler_options())
+                                            options=grad_compiler_options())
             rows.append({
                 "method": name, "dtype": np.dtype(dtype).name,
                 "ns_per_pair_fwd": t_f / n_pairs_time * 1e9,
@@ -237,14 +132,12 @@ def bench_kernel(quick: bool, out: Path) -> dict:
             "max_rel", "median_rel", "max_abs_scaled", "nonfinite", "compile_s"]
     _pareto_plot(rows, out / "kernel_pareto.png")
     return {"n_pairs_error": C.len(), "n_pairs_timing": n_pairs_time, "rows": rows,
-            "markdown": _md_table(rows, cols),
+            "markdown": md_table(rows, cols),
             "note": "max_rel/median_rel over pairs whose reference exceeds 1e-6 A/(pi alpha); "
                     "max_abs_scaled = max |D - ref| / (A / (pi alpha)) over all pairs."}
 
 
 def _pareto_plot(rows, path):
-    from jscratch.bench_render import _plot
-
     def draw(ax):
         for dtype, marker in (("float32", "o"), ("float64", "s")):
             for r in rows:
@@ -258,7 +151,7 @@ def _pareto_plot(rows, path):
         ax.set_xscale("log")
         ax.set_yscale("log")
 
-    _plot(path, draw, "time per pair, forward (ns)", "max relative error vs reference",
+    plot(path, draw, "time per pair, forward (ns)", "max relative error vs reference",
           "Pair integral: run time against error (red: closed form)")
 
 
@@ -272,7 +165,6 @@ def stability_cases(n: int, seed: int = 1):
     +-10^U(-8, 0) of the tangential part; width over footprint 10^U(-3, 2); depth over width
     10^U(-3, log10 50); footprint positions across and along the groove, endpoints inside,
     zero-length scratches (1 in 50) and scratch directions snapped to the axes (1 in 5)."""
-    from jscratch import ndf_cases
 
     rng = np.random.default_rng(seed)
     s = ndf_cases.PIXEL
@@ -303,8 +195,6 @@ def stability_cases(n: int, seed: int = 1):
 
 
 def bench_stability(quick: bool, out: Path) -> dict:
-    from jscratch import ndf
-    from jscratch import render as R
 
     n = 2048 if quick else 131072
     C = stability_cases(n)
@@ -318,7 +208,7 @@ def bench_stability(quick: bool, out: Path) -> dict:
     head = tuple(a[first] for a in C32)
     D32, A32 = _run_in_chunks(compile_once(fwd, *head)[0], C32, chunk)
     D64, A64 = _run_in_chunks(compile_once(fwd, *(a[first] for a in C64))[0], C64, chunk)
-    g = _run_in_chunks(compile_once(grads, *head, options=R.grad_compiler_options())[0], C32,
+    g = _run_in_chunks(compile_once(grads, *head, options=grad_compiler_options())[0], C32,
                        chunk)
     bad_g = int(np.any([~np.isfinite(x.reshape(n, -1)).any(axis=1) for x in g], axis=0).sum())
     # The float64 closed form at the float32-rounded inputs is the reference here.
@@ -352,59 +242,7 @@ def bench_stability(quick: bool, out: Path) -> dict:
         f"{n} cases; non-finite values f32/f64: {res['nonfinite_values_f32']}/"
         f"{res['nonfinite_values_f64']}; cases with non-finite f32 gradients: {bad_g}; worst "
         f"f32 error / tolerance: {res['worst_f32_err_over_tol']:.3g}; within tolerance: "
-        f"{100 * res['within_tolerance_fraction']:.3f}%\n\n" + _md_table(bins, ["alpha", "n", "worst_err_over_tol", "median_err_over_tol"])
+        f"{100 * res['within_tolerance_fraction']:.3f}%\n\n" + md_table(bins, ["alpha", "n", "worst_err_over_tol", "median_err_over_tol"])
     )
     return res
 
-
-# ---------------------------------------------------------------------------------------------
-# Driver.
-
-
-def run_bench(sections=SECTIONS, quick: bool = False, out: str | Path = "bench_out") -> dict:
-    """Run the chosen sections; write `bench.json`, `bench.md` and plots to `out`; return the
-    results dict (`machine`, one entry per section, each with a `markdown` table)."""
-    # float64 rows and references need x64; float32 paths build float32 arrays explicitly.
-    jax.config.update("jax_enable_x64", True)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    unknown = set(sections) - set(SECTIONS)
-    if unknown:
-        raise ValueError(f"unknown bench sections {sorted(unknown)}; choose from {SECTIONS}")
-    from jscratch import bench_render
-
-    runners = {"kernel": bench_kernel, "stability": bench_stability, **bench_render.RUNNERS}
-    res = {"machine": machine_info(), "quick": quick, "command": " ".join(sys.argv)}
-    for s in sections:
-        if s not in runners:
-            res[s] = {"skipped": "not available in this build", "markdown": "(skipped)"}
-            continue
-        t0 = time.perf_counter()
-        res[s] = runners[s](quick, out)
-        res[s]["section_wall_s"] = time.perf_counter() - t0
-    md = [f"# jscratch bench ({'quick' if quick else 'full'})\n",
-          "Machine: " + ", ".join(f"{k} {v}" for k, v in res["machine"].items()) + "\n"]
-    for s in sections:
-        md.append(f"\n## {s}\n\n{res[s].get('markdown', '')}\n")
-        if "note" in res[s]:
-            md.append(f"\n{res[s]['note']}\n")
-    text = "".join(md)
-    (out / "bench.md").write_text(text)
-    (out / "bench.json").write_text(json.dumps(res, indent=1, default=float))
-    return res
-
-
-def main(argv=None):
-    p = argparse.ArgumentParser(prog="python -m jscratch.bench", description=__doc__.split("\n\n")[0])
-    p.add_argument("--quick", action="store_true", help="small sizes (about 50 s on 2 CPU cores)")
-    p.add_argument("--out", default="bench_out", help="output folder (default: bench_out)")
-    p.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=SECTIONS,
-                   help="sections to run (default: all)")
-    a = p.parse_args(argv)
-    res = run_bench(a.sections, a.quick, a.out)
-    print((Path(a.out) / "bench.md").read_text())
-    return res
-
-
-if __name__ == "__main__":
-    main()

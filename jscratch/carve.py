@@ -1,0 +1,227 @@
+"""Carving: stream a G-code program written by `jscratch.fabricate` to a GRBL 1.1 controller over a
+serial port, journalling every confirmed scratch so that a job survives a fault, a lost device or an
+interrupt and resumes where it stopped (`carve`, `CarveError`). The journal and the protocol are
+`jscratch.grbl`'s (`Journal`, `Grbl`); see `jscratch.fabricate`'s docstring for the program's roles
+and the work-zero rules.
+
+Imports: `jscratch.grbl`, `jscratch.gcode` (the `Program` it reads).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+from jscratch.grbl import clip
+from jscratch.gcode import Program, read_program
+
+
+# ----------------------------------------------------------------------------------------------
+# Streaming with a journal.
+
+
+class CarveError(RuntimeError):
+    """Carving stopped (fault, lost device, interrupt); the message says where and how to resume."""
+
+
+def _strip(text: str) -> str:
+    if "(" in text or ";" in text:
+        out, depth = [], 0
+        for ch in text:
+            if ch == ";" and depth == 0:
+                break
+            if ch == "(":
+                depth += 1
+            elif ch == ")":
+                depth -= 1
+            elif depth == 0:
+                out.append(ch)
+        text = "".join(out)
+    return text.strip()
+
+
+def _program_setup(prog: Program, path) -> tuple:
+    """The program's safe Z (the highest `G0 Z`, mm) and the work system its preamble selects (or None)."""
+    zs, coord = [], None
+    for text, role in zip(prog.lines, prog.role):
+        words = _strip(text).split()
+        if words[:1] == ["G0"]:
+            zs += [float(w[1:]) for w in words if w[0] == "Z"]
+        if role == "pre":
+            coord = next((w for w in words if w in ("G54", "G55", "G56", "G57", "G58", "G59")), coord)
+    if not zs:
+        raise CarveError(f"G-code {clip(path, 60)!r} has no 'G0 Z' line (safe height): refusing to carve, "
+                         "an emergency retract would not know where to go")
+    return max(zs), coord
+
+
+def _xyz(v) -> str:
+    return " ".join(f"{a}{x:.3f}" for a, x in zip("XYZ", v))
+
+
+def carve(gcode_path, port: str, *, baud: int = 115200, resume: bool = False, counting: bool = False,
+          check: bool = False, home: bool = False, unlock: bool = False, rezeroed: bool = False,
+          safe_z_mm: float | None = None, journal_path=None, quiet: bool = False, banner_timeout: float = 5.0,
+          stall_timeout: float = 30.0, idle_timeout: float = 10.0, poll_interval: float = 0.25,
+          on_scratch=None) -> dict:
+    """Stream a G-code file (with its line map) to GRBL, journalling carved scratches.
+
+    Before any motion: the G-code and map are read and checked, the journal checked (none, or on
+    `resume` matching the G-code's SHA-256), the port opened and GRBL 1.1 recognised (no reset
+    when it reports `Idle`); an Alarm state stops the run unless `home` (`$H`) or `unlock` (`$X`).
+    The work zero is checked (`$#`): no `G92` or tool length offset (GRBL clears both at reset), and
+    on `resume` the work system's offset equal to the one journalled (unless `rezeroed`). With
+    `check`, the lines first run through GRBL's `$C` check mode. Only then is the journal written
+    and the preamble and the scratches from the first unconfirmed one sent; each scratch is
+    journalled when its `G4 P0.000` is answered `ok`.
+
+    On `error:N`, a lost `ok` (no answer for `idle_timeout` s while the controller reports `Idle`)
+    or Ctrl-C: feed hold, soft reset, retract to the program's safe Z. On `ALARM:N` or a lost
+    device: stop. Each raises :class:`CarveError` (one line; `KeyboardInterrupt` after Ctrl-C) naming
+    the G-code line and scratch and how to resume.
+
+    **Arguments:** `gcode_path`; `port`; `baud`; `resume`; `counting` (character counting instead of
+    send-and-wait); `check`; `home`; `unlock`; `rezeroed` (accept a changed work zero on resume);
+    `safe_z_mm` retract height, mm (default and lowest: the program's highest `G0 Z`);
+    `journal_path` (default `gcode_path + '.journal'`); `quiet`; timeouts in seconds;
+    `on_scratch(k, scratch)` called after each journalled scratch.
+
+    **Returns:** dict with `done`, `total`, `sent_lines`.
+    """
+    from jscratch.grbl import DeviceLost, Grbl, GrblError, JobFault, Journal, Stalled, sha256_file
+
+    prog = read_program(gcode_path)
+    digest = sha256_file(gcode_path)
+    n = prog.info["scratches"]
+    journal_path = os.fspath(journal_path or os.fspath(gcode_path) + ".journal")
+    retract_z, coord = _program_setup(prog, gcode_path)
+    if safe_z_mm is not None:
+        retract_z = max(retract_z, float(safe_z_mm))  # never retract below the program's travel height
+    state = Journal.check(journal_path, digest, resume=resume)  # refuses before any port is opened
+    k0 = state["done"]
+    if k0 >= n:
+        return {"done": n, "total": n, "sent_lines": 0}
+    first = next((i for i, k in enumerate(prog.k.tolist()) if k >= 0), len(prog.lines))
+    sel = [i for i, (k, r) in enumerate(zip(prog.k.tolist(), prog.role))
+           if (r != "comment") and (i < first or k >= k0 or r == "post")]
+    sel = [i for i in sel if _strip(prog.lines[i])]
+    items = [_strip(prog.lines[i]) for i in sel]
+    roles = [prog.role[i] for i in sel]
+    barrier = [r == "plunge" or (j > 0 and roles[j - 1] == "sync") for j, r in enumerate(roles)]
+
+    def say(msg):
+        if not quiet:
+            print(msg, file=sys.stderr)
+
+    try:
+        grbl = Grbl(port, baud, banner_timeout=banner_timeout, stall_timeout=stall_timeout,
+                    idle_timeout=idle_timeout, poll_interval=poll_interval, log=say)
+    except GrblError as exc:
+        raise CarveError(f"{exc} (no motion was sent)") from None
+
+    def untouched():
+        return ("(the homing cycle $H ran; no G-code line was sent)" if grbl.homed else "(no motion was sent)")
+
+    journal = bar = None
+    try:
+        try:
+            grbl.connect(home=home, unlock=unlock)
+        except GrblError as exc:
+            raise CarveError(f"{exc} {untouched()}") from None
+        coord = coord or next((w for w in grbl.modes if w in ("G54", "G55", "G56", "G57", "G58", "G59")), "G54")
+        zero = _check_work_zero(grbl, coord, state["work_zero"] if resume else None, rezeroed, untouched)
+        if check:
+            try:
+                grbl.check_mode(items, counting=counting)
+            except JobFault as exc:
+                i = sel[exc.index] if exc.index >= 0 else -1
+                raise CarveError(f"check mode ($C): {exc} at G-code line {i + 1}: {clip(prog.lines[i], 60)!r} "
+                                 f"{untouched()}") from None
+        # Motion is about to be sent: only now is the journal written.
+        journal = Journal(journal_path, digest, n, resume=resume, header={"work_zero": {coord: zero}})
+        journal.event("start", k=k0, port=port, counting=counting, work_zero={coord: zero})
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=n, initial=k0, unit="scratch", disable=quiet, desc="carving", dynamic_ncols=True)
+
+        def on_ok(j):
+            if roles[j] == "sync":
+                i = sel[j]
+                k, s = int(prog.k[i]), int(prog.scratch[i])
+                journal.confirm(k, s)
+                bar.update(1)
+                if on_scratch is not None:
+                    on_scratch(k, s)
+
+        def where(j):
+            i = sel[j] if 0 <= j < len(sel) else -1
+            k = int(prog.k[i]) if i >= 0 else -1
+            what = f"scratch position {k} (design scratch {int(prog.scratch[i])})" if k >= 0 else "outside scratches"
+            return i, f"G-code line {i + 1} {clip(prog.lines[i], 40)!r}, {what}" if i >= 0 else "no line"
+
+        def retract():
+            try:
+                return "; " + grbl.hold_and_retract(retract_z, coord=coord)
+            except GrblError as e2:
+                return f"; hold/retract failed: {clip(e2, 80)}"
+
+        try:
+            grbl.stream(items, barrier=barrier, counting=counting, on_ok=on_ok)
+        except JobFault as exc:
+            i, loc = where(exc.index)
+            journal.event("fault", reply=exc.reply, line=i + 1, done=journal.done)
+            if isinstance(exc, Stalled):
+                action, advice = retract(), "check the machine, then run again with --resume"
+            elif exc.reply.startswith("error"):
+                action, advice = retract(), "fix the cause and run again with --resume"
+            elif exc.reply.startswith("ALARM"):
+                action = "; machine stopped by the controller, position likely lost"
+                advice = "re-home (--home) or re-zero the board (G10 L20 P1, then --rezeroed), then run again with --resume"
+            else:
+                action = "; the controller reset itself, position may be lost"
+                advice = "re-home (--home) or re-zero the board (G10 L20 P1, then --rezeroed), then run again with --resume"
+            raise CarveError(f"{exc} at {loc}{action}. {journal.done} of {n} scratches are journalled; {advice}") from None
+        except DeviceLost as exc:
+            journal.event("lost", error=clip(exc, 200), done=journal.done)
+            raise CarveError(
+                f"{exc}. {journal.done} of {n} scratches are journalled; reconnect, and if the controller was reset or "
+                "power-cycled its position is lost: re-home it (--home) or re-zero the board (G10 L20 P1, then "
+                "--rezeroed); then run again with --resume (the scratch in progress will be cut again)") from None
+        except KeyboardInterrupt:
+            msg = "interrupted" + retract().replace(";", ":", 1)
+            journal.event("interrupt", done=journal.done)
+            say(f"{msg}. {journal.done} of {n} scratches are journalled; run again with --resume")
+            raise
+        journal.event("finished", done=journal.done)
+        return {"done": journal.done, "total": n, "sent_lines": len(grbl.lines_sent)}
+    finally:
+        if bar is not None:
+            bar.close()
+        grbl.close()
+        if journal is not None:
+            journal.close()
+
+
+def _check_work_zero(grbl, coord: str, journalled: dict | None, rezeroed: bool, untouched) -> list:
+    """Refuse offsets a reset would clear and, on resume, a work zero that changed; returns it (mm)."""
+    g92, tlo = grbl.offsets["G92"], grbl.offsets.get("TLO", (0.0,))
+    if any(abs(v) > 5e-4 for v in g92):
+        raise CarveError(
+            f"a G92 offset ({_xyz(g92)}) is active, and GRBL clears G92 at every reset, so the job would shift after "
+            f"a fault or on resume; set the board zero with G10 L20 P1 X0 Y0 Z0 (kept in G54), clear G92 with G92.1, "
+            f"and run again {untouched()}")
+    if any(abs(v) > 5e-4 for v in tlo):
+        raise CarveError(f"a tool length offset (TLO {tlo[0]:.3f}) is active, and GRBL clears it at every reset; "
+                         f"cancel it with G49 and zero Z in G54 (G10 L20 P1 Z0), then run again {untouched()}")
+    if coord not in grbl.offsets:
+        raise CarveError(f"the controller did not report the {coord} offset ($#) {untouched()}")
+    zero = [float(v) for v in grbl.offsets[coord]]
+    old = (journalled or {}).get(coord)
+    if old is not None and not rezeroed and max(abs(a - b) for a, b in zip(zero, old)) > 2e-3:
+        raise CarveError(
+            f"the {coord} work zero is {_xyz(zero)} (machine mm) but was {_xyz(old)} when this job last ran; "
+            f"restore it with G10 L2 P{int(coord[1:]) - 53} {_xyz(old)}, or pass --rezeroed if you re-zeroed the same "
+            f"board at its corner {untouched()}")
+    return zero
+
+

@@ -1,0 +1,344 @@
+"""Culling pairs that cannot matter: a rigorous per-pair bound on the scratch NDF, per-view culled
+pair lists at fixed capacities (jax-md's pattern: host `allocate_views`, jitted `update_views`,
+overflow reported in the counts) and the host driver `cull_pairs`.
+
+**View culling: the bound.** For one view, pixel `P` with half vector `h` and scratch `i`, SPEC
+section 3 gives `D_hat = ∫∫_{F ∩ groove} D_x(h, n(x)) dx dy <= A * max_x D_x(h, n(x))`. In the
+scratch-local frame the groove normals are `n(psi) = (-sin psi, 0, cos psi)` for `|psi| <= psi_max`
+(Eq. 5 with `tan(psi/2) = 2u`, `u = x/w`), and the wall is steepest at the groove edge:
+`tan(psi_max/2) = 2 x_max / w = sqrt(s)`, `s = 1 - exp(-2d/w)`, so `cos psi_max = (1-s)/(1+s)` and
+`sin psi_max = 2 sqrt(s)/(1+s)`. With `h = (hx, hy, hz)` in that frame, `n.h = hz cos psi - hx sin psi`,
+whose maximum over the arc is
+
+    c_max = sqrt(hx^2 + hz^2)                       if atan2(|hx|, hz) <= psi_max (peak on the arc)
+          = hz cos psi_max + |hx| sin psi_max       otherwise,
+
+and `c_max <= sqrt(1 - hy^2)` always: this is the "scratch direction far from perpendicular to `h`"
+case (large `|hy|`), the second branch the "every groove normal far from `h`" case. For `alpha < 1`
+the GGX `D(c) = chi+(c) alpha^2 / (pi (c^2 (alpha^2 - 1) + 1)^2)` increases on `[0, 1]` from
+`alpha^2/pi` to its peak `1/(pi alpha^2)`, so
+
+    D_hat <= A D(c_max) = rho A / (pi alpha^2),    rho = alpha^4 / (c_max^2 (alpha^2 - 1) + 1)^2
+
+(`rho = 0` when `c_max <= 0`: chi+ zeroes every wall; for `alpha >= 1` GGX peaks at `c -> 0+` and
+`rho = alpha^4` bounds it). `rho` is in `[0, 1]`: the fraction of the most the pair could ever
+contribute. `c_max` gets 4 ulps added so that the bound survives rounding. [`cull_ratio`][] computes
+`rho` per pair in O(1) (no integral); [`cull`][] drops the pair when `rho < eps`. `eps = 0` keeps all.
+
+**View culling: the rendered error.** Per pixel the dropped pairs lower `D_P = sum_i D_hat_i / S_P`
+(never raise it) by
+
+    0 <= D_P - D_P_culled < eps * sum_dropped A_i / (pi alpha_i^2 S_P) <= eps * c / (pi alpha_min^2),
+
+with `c = sum_i A_i / S_P` the pixel's coverage. The coverage must come from the *unculled* list
+(a culled pair still covers the board; `render.render` does this), so the board term of SPEC 4 is
+unchanged and the radiance error is the same bound times the shading factor:
+`0 <= radiance - radiance_culled < eps * (I wi_z / r^2) G F / (4 wi_z wo_z) * sum_dropped A_i /
+(pi alpha_i^2 S_P)`, i.e. at most `eps` times the radiance the pixel would have if every groove in
+it were a mirror at its GGX peak. `tests/test_bvh.py` checks the per-pixel bound by independent
+quadrature on random scenes. [`compact`][] re-packs a culled list into fewer slots so that the
+culling saves shading time. The default [`DEFAULT_EPS`][] comes from the time-against-error table
+in `benchmarks/results/bvh.md`.
+
+**Coverage culling.** The coverage enters shading only through the board term
+`max(0, 1 - c) D_S(h)` (SPEC 4, `D_S` the flat board's GGX at the pixel's half vector), so a pair
+left out of the coverage sum raises `D` by at most `D_S(h) A_i / S_P`. [`cull_coverage`][] keeps a
+pair for the coverage pass only where `D_S(h) > eps / (pi alpha_i^2)` in some view, which bounds that
+error by the same `eps A_i / (pi alpha_i^2 S_P)` as view culling (the two errors have opposite
+signs and each stays within its bound). Away from the board's mirror direction `D_S` is tiny and
+most pairs drop out: for the default 3-view design 70% of the pixels need no coverage pairs at
+`eps = 1e-3`.
+
+Imports: `jscratch.bvh` (pair lists), `jscratch.scene`, `jscratch.shading` (half vectors).
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from jscratch.bvh import (
+    DEFAULT_CHUNK,
+    DEFAULT_MARGIN,
+    Pairs,
+    checked_scratches,
+    compact,
+    layout,
+    pairs_of,
+)
+from jscratch.ndf import local_frame
+from jscratch.scene import Board, Scratches, Views
+from jscratch.shading import half_vectors
+
+__all__ = [
+    "DEFAULT_EPS",
+    "VIEW_CAP_ROUND",
+    "ViewPairs",
+    "allocate_views",
+    "cull",
+    "cull_coverage",
+    "cull_pairs",
+    "cull_ratio",
+    "cull_views",
+    "grow_caps",
+    "update_views",
+]
+
+DEFAULT_EPS = 1e-3
+"""Default culling threshold (fraction of a pair's largest possible contribution), from the
+time-against-error table in `benchmarks/results/bvh.md` (20k SPEC-default scratches, 256x256, 4
+views at 30 deg): `eps = 1e-3` keeps ~55% of the pairs and cuts shading time ~40% for a radiance
+error of ~3e-4 of the image's peak (`1e-2`: ~31% kept, error ~2e-3 of the peak)."""
+
+
+@jax.jit
+def cull_ratio(
+    pairs: Pairs,
+    p0: Float[ArrayLike, "N 2"],
+    p1: Float[ArrayLike, "N 2"],
+    width: Float[ArrayLike, "N"],
+    depth: Float[ArrayLike, "N"],
+    alpha: Float[ArrayLike, "N"],
+    h_pixel: Float[ArrayLike, "P 3"],
+) -> Float[Array, " L"]:
+    """Rigorous bound `rho` per pair with `D_hat <= rho * A / (pi alpha^2)` (jittable).
+
+    In the scratch-local frame the groove normals are `n = (-sin psi, 0, cos psi)` for `psi` in
+    `[-psi_max, psi_max]`, `tan psi_max = |h'(x_max)|`, so with `h_local = (hx, hy, hz)`,
+    `n.h <= c_max`, the maximum of `hz cos psi + |hx| sin psi` over that arc (at most
+    `sqrt(1 - hy^2)`). For `alpha < 1` GGX is increasing in `n.h` on `[0, 1]`, so
+    `D_hat <= A D_ggx(c_max) = rho A / (pi alpha^2)` with
+    `rho = alpha^4 / (c_max^2 (alpha^2 - 1) + 1)^2` (and `rho = 0` when `c_max <= 0`: the groove
+    faces away and chi+ zeroes it). For `alpha >= 1` GGX peaks at `n.h -> 0+` and `rho = alpha^4`.
+    `c_max` gets 4 ulps added so that the bound survives rounding. Derivation: module docstring.
+
+    **Arguments:** `pairs`; current `p0`, `p1` `(N, 2)`, `width`, `depth`, `alpha` (`(N,)` or
+    scalar); `h_pixel` `(P, 3)` unit board-frame half vector per pixel (`P = H * W`).
+
+    **Returns:** `(L,)` bound ratio, in `[0, 1]` for `alpha < 1`; padding slots get 0.
+    """
+    p0, p1, width, depth = checked_scratches(p0, p1, width, depth)
+    n = p0.shape[0]
+    dtype = p0.dtype
+    alpha = jnp.asarray(alpha, dtype)
+    if alpha.shape not in ((), (n,)):
+        raise ValueError(f"alpha must be a scalar or have shape ({n},), got {alpha.shape}")
+    alpha = jnp.broadcast_to(alpha, (n,))
+    alpha = eqx.error_if(
+        alpha, ~jnp.all(jnp.isfinite(alpha) & (alpha > 0)), "alpha must be finite and > 0"
+    )
+    h_pixel = jnp.asarray(h_pixel, dtype)
+    if h_pixel.ndim != 2 or h_pixel.shape[-1] != 3:
+        raise ValueError(f"h_pixel must have shape (H*W, 3), got {h_pixel.shape}")
+    h_pixel = eqx.error_if(h_pixel, ~jnp.all(jnp.isfinite(h_pixel)), "h_pixel has non-finite entries")
+    t, b, length = local_frame(p0, p1)
+    # cos/sin of psi_max from 2 u_max = sqrt(1 - exp(-2d/w)) =: sqrt(s): tan(psi_max/2) = 2 u_max.
+    s = -jnp.expm1(-2.0 * depth / width)
+    cos_m = (1 - s) / (1 + s)
+    sin_m = 2 * jnp.sqrt(s) / (1 + s)
+    i = jnp.clip(pairs.scratch, 0, n - 1)
+    h = h_pixel[jnp.clip(pairs.pixel, 0, h_pixel.shape[0] - 1)]
+    ti, bi = t[i], b[i]
+    hx = h[:, 0] * bi[:, 0] + h[:, 1] * bi[:, 1]
+    hz = h[:, 2]
+    cm, sm = cos_m[i], sin_m[i]
+    # The maximiser psi* = atan2(|hx|, hz) lies on the arc iff hz > 0 and |hx| cos <= hz sin.
+    on_arc = (hz > 0) & (jnp.abs(hx) * cm <= hz * sm)
+    c_max = jnp.where(on_arc, jnp.sqrt(hx * hx + hz * hz), hz * cm + jnp.abs(hx) * sm)
+    c_max = jnp.minimum(c_max + 4 * jnp.finfo(dtype).eps, 1.0)
+    a = alpha[i]
+    a2 = a * a
+    denom = jnp.where(a < 1, c_max * c_max * (a2 - 1) + 1, 1.0)
+    rho = jnp.where(c_max > 0, a2 * a2 / (denom * denom), 0.0)
+    rho = jnp.where((length[i] > 0) | (a >= 1), rho, 0.0)  # zero-length: D_hat = A = 0
+    return jnp.where(pairs.valid, rho, 0.0)
+
+
+def _checked_eps(eps, dtype) -> Array:
+    """The culling tolerance as a scalar of `dtype`; `eqx.error_if` unless finite and >= 0."""
+    eps = jnp.asarray(eps, dtype)
+    if eps.shape != ():
+        raise ValueError(f"eps must be a scalar, got shape {eps.shape}")
+    return eqx.error_if(eps, ~(jnp.isfinite(eps) & (eps >= 0)), "eps must be finite and >= 0")
+
+
+@jax.jit
+def cull(
+    pairs: Pairs,
+    p0: Float[ArrayLike, "N 2"],
+    p1: Float[ArrayLike, "N 2"],
+    width: Float[ArrayLike, "N"],
+    depth: Float[ArrayLike, "N"],
+    alpha: Float[ArrayLike, "N"],
+    h_pixel: Float[ArrayLike, "P 3"],
+    eps: float | Float[ArrayLike, ""] = DEFAULT_EPS,
+) -> Pairs:
+    """Clear `valid` of pairs whose `D_hat` bound is below `eps * A / (pi alpha^2)` (jittable).
+
+    A pair is dropped when `rho < eps` ([`cull_ratio`][]); `eps = 0` keeps every pair. Per pixel
+    the dropped pairs change `D_P` by at most `(1/S_P) sum_dropped rho_i A_i / (pi alpha_i^2)
+    < eps (1/S_P) sum_dropped A_i / (pi alpha_i^2)` (and never increase it). The coverage `c` of
+    SPEC 4 must still come from the unculled list, else the board term adds its own error (module
+    docstring). Use [`compact`][] to turn the dropped slots into saved time.
+
+    **Arguments:** as [`cull_ratio`][], plus `eps >= 0` (scalar; may be traced).
+
+    **Returns:** [`Pairs`][] of the same capacity with fewer valid slots.
+    """
+    rho = cull_ratio(pairs, p0, p1, width, depth, alpha, h_pixel)
+    eps = _checked_eps(eps, rho.dtype)
+    valid = pairs.valid & ~(rho < eps)
+    return eqx.tree_at(lambda p: p.valid, pairs, valid)
+
+
+@jax.jit
+def cull_coverage(
+    pairs: Pairs,
+    alpha: Float[ArrayLike, "N"],
+    board_ndf: Float[ArrayLike, "P"],
+    eps: float | Float[ArrayLike, ""] = DEFAULT_EPS,
+) -> Pairs:
+    """Clear `valid` of pairs whose coverage cannot matter at tolerance `eps` (jittable).
+
+    A pair is kept when `board_ndf[pixel] * pi * alpha^2 > eps`, with `board_ndf` the flat
+    board's GGX `D_S(h)` at each pixel's half vector, largest over the views (1/sr). Leaving a pair
+    out of the coverage sum changes `D` by at most `D_S A / S_P <= eps A / (pi alpha^2 S_P)`, the
+    bound of [`cull`][] (module docstring). `eps = 0` keeps every pair.
+
+    **Arguments:** `pairs` (the unculled list); `alpha` `(N,)` or scalar; `board_ndf` `(P,)`
+    (e.g. ``render.board_ndf(views, board).max(0)``); `eps >= 0`.
+
+    **Returns:** [`Pairs`][] of the same capacity with fewer valid slots.
+    """
+    board_ndf = jnp.asarray(board_ndf)
+    if board_ndf.ndim != 1:
+        raise ValueError(f"board_ndf must have shape (H*W,), got {board_ndf.shape}")
+    dtype = board_ndf.dtype
+    n = pairs.bin_p0.shape[0] if pairs.bin_p0 is not None else None
+    alpha = jnp.asarray(alpha, dtype)
+    if alpha.ndim == 0:
+        a = jnp.broadcast_to(alpha, pairs.scratch.shape)
+    else:
+        if n is not None and alpha.shape != (n,):
+            raise ValueError(f"alpha must be a scalar or have shape ({n},), got {alpha.shape}")
+        a = alpha.at[pairs.scratch].get(mode="clip")
+    eps = _checked_eps(eps, dtype)
+    d = board_ndf.at[pairs.pixel].get(mode="clip")
+    valid = pairs.valid & ((d * jnp.pi * a * a > eps) | (eps == 0))
+    return eqx.tree_at(lambda p: p.valid, pairs, valid)
+
+
+# --------------------------------------------------------------------------------------------
+# Per-view lists at fixed capacities
+
+
+class ViewPairs(eqx.Module):
+    """The pair lists of one multi-view render, culled per view and compacted to fixed capacities.
+
+    **Fields:**
+
+    - `views`: ``M`` [`Pairs`][] lists, view ``j`` culled by [`cull`][] and compacted to
+      ``caps[j]`` slots (their `overflow` flags are cleared: overflow is read from `counts`).
+    - `coverage`: the coverage list: culled by [`cull_coverage`][] and compacted to ``caps[M]``
+      when ``coverage_eps > 0``, else the shared list itself.
+    - `counts`: ``(M + 1,)`` int, pairs kept per list before compaction (views, then coverage).
+    - `caps`: the ``M + 1`` capacities (static).
+
+    [`overflow`][ViewPairs.overflow] is true when a list held more pairs than its capacity: the
+    lists are then incomplete; the host re-allocates (`grow_caps`) and recomputes.
+    """
+
+    views: list
+    coverage: Pairs
+    counts: Int[Array, " k"]
+    caps: tuple = eqx.field(static=True)
+
+    @property
+    def overflow(self) -> Bool[Array, ""]:
+        return jnp.any(self.counts > jnp.asarray(self.caps))
+
+
+def cull_views(pairs: Pairs, p0, p1, width, depth, alpha, h_views, eps: float,
+               board_ndf=None, coverage_eps: float = 0.0) -> list[Pairs]:
+    """The ``M`` per-view culled lists ([`cull`][] with ``h_views[j]``, same capacity as
+    `pairs`) and the coverage list ([`cull_coverage`][] with `board_ndf` when
+    ``coverage_eps > 0``, else `pairs` itself): ``M + 1`` lists (jittable)."""
+    culled = [cull(pairs, p0, p1, width, depth, alpha, h_views[j], eps)
+              for j in range(h_views.shape[0])]
+    if coverage_eps > 0:
+        return culled + [cull_coverage(pairs, alpha, board_ndf, coverage_eps)]
+    return culled + [pairs]
+
+
+def update_views(pairs: Pairs, p0, p1, width, depth, alpha, h_views, eps: float, caps,
+                 board_ndf=None, coverage_eps: float = 0.0) -> ViewPairs:
+    """[`cull_views`][] compacted to the capacities `caps` (``M + 1`` static ints, from
+    [`allocate_views`][]): a [`ViewPairs`][] (jittable). An overflowing list is incomplete: the
+    caller checks `ViewPairs.overflow` (or ``counts > caps``) and retries with larger capacities;
+    the lists' own flags are cleared so that a renderer's overflow check does not fire first."""
+    culled = cull_views(pairs, p0, p1, width, depth, alpha, h_views, eps, board_ndf, coverage_eps)
+    m = h_views.shape[0]
+    counts = jnp.stack([jnp.sum(c.valid) for c in culled])
+    compacted = lambda c, cap: eqx.tree_at(lambda q: q.overflow, compact(c, cap),
+                                           jnp.zeros((), bool))
+    views = [compacted(c, cap) for c, cap in zip(culled[:m], caps)]
+    cov = compacted(culled[m], caps[m]) if coverage_eps > 0 else pairs
+    return ViewPairs(views, cov, counts, tuple(int(c) for c in caps))
+
+
+#: Per-view capacities are rounded up to a multiple of this.
+VIEW_CAP_ROUND = 1024
+
+
+def grow_caps(caps, counts, margin: float = DEFAULT_MARGIN) -> tuple[int, ...]:
+    """Capacities that hold `counts` times `margin` (rounded up to `VIEW_CAP_ROUND`), never
+    smaller than `caps` (host code)."""
+    return tuple(max(int(c), max(VIEW_CAP_ROUND, int(math.ceil(margin * int(n) / VIEW_CAP_ROUND))
+                                 * VIEW_CAP_ROUND))
+                 for c, n in zip(caps, np.asarray(counts)))
+
+
+@eqx.filter_jit
+def _view_counts(pairs, p0, p1, width, depth, alpha, h_views, eps, board_ndf, coverage_eps):
+    culled = cull_views(pairs, p0, p1, width, depth, alpha, h_views, eps, board_ndf, coverage_eps)
+    return jnp.stack([jnp.sum(c.valid) for c in culled])
+
+
+def allocate_views(pairs: Pairs, p0, p1, width, depth, alpha, h_views, eps: float,
+                   board_ndf=None, coverage_eps: float = 0.0,
+                   margin: float = DEFAULT_MARGIN) -> tuple[int, ...]:
+    """The ``M + 1`` capacities of [`update_views`][]: the culled pair counts times `margin`,
+    rounded up to `VIEW_CAP_ROUND` (host code; one jitted count)."""
+    counts = _view_counts(pairs, p0, p1, width, depth, alpha, h_views, float(eps), board_ndf,
+                          float(coverage_eps))
+    return grow_caps((0,) * int(counts.shape[0]), counts, margin)
+
+
+# --------------------------------------------------------------------------------------------
+# Host driver
+
+
+def cull_pairs(pairs, scratches: Scratches, views: Views, board: Board, eps: float, *,
+               chunk: int = DEFAULT_CHUNK, shards: int = 1):
+    """Per-view culled pair lists from a shared list (host code).
+
+    Culls ``pairs`` (a shared ``(L,)`` list, e.g. from `bin_pairs`) for every view with
+    ``cull.cull`` (pairs whose rigorous ``D_hat`` bound is below ``eps A / (pi alpha^2)``) and packs
+    each view's survivors into one ``(M, Lv)`` list laid out for ``shards`` pixel shards as in
+    `bin_pairs`. Render it with ``coverage_pairs=pairs``: a culled pair still covers the board.
+
+    **Returns:** `bvh.Pairs` ``(M, Lv)`` for `render_pairs`.
+    """
+    if eps <= 0 or not math.isfinite(eps):
+        raise ValueError(f"cull_pairs: `eps` must be finite and > 0; got {eps}")
+    hs = half_vectors(views, board, scratches.dtype)
+    keep = [np.asarray(cull(pairs, scratches.p0, scratches.p1, scratches.width,
+                                scratches.depth, scratches.alpha, hs[j], eps).valid)
+            for j in range(views.m)]
+    return pairs_of(*layout(np.asarray(pairs.pixel), np.asarray(pairs.scratch), keep,
+                              scratches.n, board, shards, chunk))

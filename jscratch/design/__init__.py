@@ -1,0 +1,78 @@
+"""Multi-view scratch design: optimise scratches and light intensities so that the board shows each
+target image from its view (paper sections 3.4 and 4.1, SPEC section 6).
+
+**Library:** `design(targets, views, board=None, config=DesignConfig()) -> DesignResult`.
+**Command line:** ``python -m jscratch.design [TARGET ...] [options]`` (``--help`` lists every
+option; with no targets it uses three images bundled with scikit-image).
+
+**Parameters** (`DesignParams`, an equinox module) live in unconstrained coordinates:
+
+- endpoints: ``p = S * sigmoid(4 z)`` per coordinate (``S`` the board size), i.e. board-normalised
+  ``u = p / S`` through a sigmoid of unit slope at the centre, so an Adam step of ``lr`` moves an
+  endpoint by at most about ``lr`` board widths and never off the board. The ablation
+  parameterisation ``"midpoint"`` uses the midpoint (same map), the direction angle (rad) and the
+  log length (log m); its endpoints are clipped to the board.
+- ``log width``, ``log depth`` (log m), ``logit alpha``, ``log intensity`` (log W/sr).
+
+Each group (``"endpoints"``, ``"width"``, ``"depth"``, ``"alpha"``, ``"intensity"``) has its own
+learning rate and can be frozen (the paper freezes ``alpha = 0.04`` for fabrication; so does our
+default). The optimiser (`solver.make_optimizer`) is an ``optax.multi_transform`` over the
+groups: Adam (``optax.scale_by_adam``) then a scale ``-lr_g``, and ``optax.set_to_zero()`` for a
+frozen group.
+
+**Light intensities** start in closed form: with ``R_j`` the view-``j`` radiance at ``I_j = 1``,
+``I_j = (mean(T_j) / mean(display(R_j)))^2.2``, which makes the mean display value equal the
+target's mean wherever the render is above the display knee (``display`` is a pure power there).
+
+**Each iteration** (one jitted step): the shared pair list (`bvh.build_pairs`) is rendered for
+every view; with ``cull_eps > 0`` each view's list is first culled with `cull.cull` (pairs whose NDF
+bound is below ``cull_eps`` of their possible maximum) and compacted to a per-view capacity, and
+with ``coverage_eps > 0`` the coverage pass keeps only the pairs `cull.cull_coverage` keeps. Both
+are off by default: culling bounds the forward error but removes the small gradients that turn
+unlit grooves towards a view, and Adam's per-parameter scaling makes those matter (measured on the
+default run: loss 0.0136 unculled vs 0.0323 at ``cull_eps = 1e-3``, 1.9x slower; see
+`benchmarks/RESULTS.md`). The renderer (`render.render_pairs`) gives radiance, `render.display`
+gives display values, and the loss (`loss.make_loss`) its value and gradient; Adam updates the
+parameters; `bvh.needs_rebin` says whether the pair list still holds every pair. The list is
+rebuilt on the host (outside the jitted step, same capacities, so no recompilation) only when it
+says so. Capacity overflows (pair list or
+per-view lists) re-allocate and recompile; they are rare (margins 1.25).
+
+**Discard** (paper Fig. 21): after the optimisation each scratch gets a score, the largest over
+views of its share of the view's scratch radiance relative to the mean scratch's
+(``sum over its pairs of D_hat * shading / S_P``); scratches are dropped in increasing score order,
+as many as bisection finds while the loss stays within ``(1 + discard_tol)`` of the loss with all
+scratches (default ``discard_tol = 0.01``: at most 1 % higher).
+
+**Failures** raise `DesignError` (a `ValueError`) for bad input (targets, views) and
+`NonFiniteError` (a `RuntimeError`) when the loss, a gradient or an updated parameter becomes NaN or
+infinite: the message names the iteration, the parameter group and the first bad scratch or view,
+and the last good state stays in the checkpoint.
+
+**Modules** (one way: config <- params <- solver <- discard <- run <- cli):
+
+- `jscratch.design.config`: `DesignConfig`, `GROUPS`, `NonFiniteError`.
+- `jscratch.design.params`: `DesignParams`, `group_tree`.
+- `jscratch.design.solver`: the jitted step (`Context`, `view_lists`, `evaluate`, `step`, ...).
+- `jscratch.design.discard`, `jscratch.design.checkpoint`, `jscratch.design.result`.
+- `jscratch.design.io`: targets, images and outputs; `jscratch.design.run`: `design`;
+  `jscratch.design.cli`: the command line (``python -m jscratch.design``).
+"""
+
+from jscratch.design.cli import main as main
+from jscratch.design.config import (
+    DEFAULT_IMAGES as DEFAULT_IMAGES,
+    GROUPS as GROUPS,
+    PARAMETERISATIONS as PARAMETERISATIONS,
+    DesignConfig as DesignConfig,
+    NonFiniteError as NonFiniteError,
+)
+from jscratch.design.io import (
+    default_targets as default_targets,
+    load_target as load_target,
+    write_outputs as write_outputs,
+)
+from jscratch.design.params import DesignParams as DesignParams
+from jscratch.design.result import DesignResult as DesignResult
+from jscratch.design.run import design as design
+from jscratch.designfile import DesignError as DesignError

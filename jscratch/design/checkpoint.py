@@ -1,0 +1,112 @@
+"""Checkpoints: the loop `State` and its save/load (bitwise resume)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import tempfile
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jscratch import bvh
+from jscratch.designfile import DesignError
+from jscratch.design.config import DesignConfig
+from jscratch.design.params import DesignParams
+
+
+def save_npz(path: str, arrays: dict[str, np.ndarray]) -> None:
+    directory = os.path.dirname(os.path.abspath(path))
+    os.makedirs(directory, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=".ckpt-", suffix=".npz.tmp", dir=directory)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, **arrays)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+_PAIR_FIELDS = ("pixel", "scratch", "valid", "overflow", "bin_p0", "bin_p1", "bin_half_width",
+                "bin_extend", "bin_tol")
+
+
+_SPEC_FIELDS = ("board", "shape", "strip_capacity", "rows_per_strip", "pair_capacity", "skin",
+                "margin")
+
+
+@dataclasses.dataclass
+class State:
+    """Everything the loop carries between iterations (what a checkpoint holds)."""
+
+    iteration: int
+    params: DesignParams
+    opt_state: Any
+    pairs: bvh.Pairs | None
+    spec: bvh.GridSpec | None
+    caps: tuple[int, ...]
+    history: dict[str, Any]
+    rebins: int
+
+
+def save_checkpoint(path: str, state: State, config: DesignConfig, thash: str) -> None:
+    arrays: dict[str, np.ndarray] = {}
+    for i, leaf in enumerate(jax.tree_util.tree_leaves(state.params)):
+        arrays[f"params/{i}"] = np.asarray(leaf)
+    for i, leaf in enumerate(jax.tree_util.tree_leaves(state.opt_state)):
+        arrays[f"opt/{i}"] = np.asarray(leaf)
+    for f in _PAIR_FIELDS:
+        arrays[f"pairs/{f}"] = np.asarray(getattr(state.pairs, f))
+    meta = {
+        "iteration": state.iteration,
+        "spec": {f: getattr(state.spec, f) for f in _SPEC_FIELDS},
+        "caps": list(state.caps),
+        "history": state.history,
+        "rebins": state.rebins,
+        "config": config.to_dict(),
+        "targets_hash": thash,
+    }
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+    save_npz(path, arrays)
+
+
+def load_checkpoint(path: str, like: State, config: DesignConfig, thash: str) -> State:
+    if not os.path.isfile(path):
+        raise DesignError(f"--resume: no checkpoint at {path!r}")
+    with np.load(path, allow_pickle=False) as z:
+        data = {k: z[k] for k in z.files}
+    meta = json.loads(bytes(data["meta"]).decode())
+    if meta["targets_hash"] != thash:
+        raise DesignError(f"checkpoint {path!r} was made for different target images")
+    saved = DesignConfig.from_dict(meta["config"])
+    keys = ("n_scratches", "seed", "parameterisation", "freeze", "dtype", "cull_eps",
+            "coverage_eps", "skin")
+    for k in keys:
+        if getattr(saved, k) != getattr(config, k):
+            raise DesignError(f"checkpoint {path!r} was made with {k} = {getattr(saved, k)!r}, "
+                              f"not {getattr(config, k)!r}")
+
+    def restore(tree, prefix):
+        leaves, treedef = jax.tree_util.tree_flatten(tree)
+        new = []
+        for i, leaf in enumerate(leaves):
+            a = data.get(f"{prefix}/{i}")
+            if a is None or a.shape != np.shape(leaf):
+                raise DesignError(f"checkpoint {path!r} does not match this design ({prefix} leaf {i})")
+            new.append(jnp.asarray(a, dtype=jnp.asarray(leaf).dtype))
+        return jax.tree_util.tree_unflatten(treedef, new)
+
+    params = restore(like.params, "params")
+    opt_state = restore(like.opt_state, "opt")
+    pairs = bvh.Pairs(**{f: jnp.asarray(data[f"pairs/{f}"]) for f in _PAIR_FIELDS})
+    sp = meta["spec"]
+    spec = bvh.GridSpec(board=tuple(sp["board"]), shape=tuple(sp["shape"]),
+                        strip_capacity=sp["strip_capacity"], rows_per_strip=sp["rows_per_strip"],
+                        pair_capacity=sp["pair_capacity"], skin=sp["skin"], margin=sp["margin"])
+    return State(meta["iteration"], params, opt_state, pairs, spec, tuple(meta["caps"]),
+                  meta["history"], meta["rebins"])

@@ -1,0 +1,38 @@
+"""The discard step (paper Fig. 21): drop the dimmest scratches while the loss allows."""
+
+from __future__ import annotations
+
+
+import jax.numpy as jnp
+import numpy as np
+
+from jscratch.design import solver
+
+
+def discard(params, pairs, ctx, caps, loss_all, tol, rad_all, terms_all):
+    """Drop the lowest-scoring scratches while the loss stays within ``(1 + tol) loss_all``."""
+    n = params.log_width.shape[0]
+    lists, _, _ = solver.view_lists(params, pairs, ctx, caps)
+    contrib = np.asarray(solver.contributions(params, lists, ctx), np.float64)  # (M, N)
+    mean = contrib.mean(axis=1, keepdims=True)
+    score = (contrib / np.where(mean > 0, mean, 1.0)).max(axis=0)
+    order = np.argsort(score, kind="stable")
+    limit = loss_all * (1 + tol)
+
+    def evaluate(k):
+        keep = np.ones(n, bool)
+        keep[order[:k]] = False
+        rad, terms, _ = solver.evaluate(params, pairs, jnp.asarray(keep), ctx, caps)
+        return keep, rad, terms
+
+    best = (np.ones(n, bool), rad_all, terms_all)
+    lo, hi = 0, n  # loss(lo) within the limit; search the largest such k
+    resolution = max(1, n // 256)
+    while hi - lo > resolution:
+        mid = (lo + hi) // 2
+        cand = evaluate(mid)
+        if float(cand[2]["total"]) <= limit:
+            lo, best = mid, cand
+        else:
+            hi = mid
+    return best

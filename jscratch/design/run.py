@@ -1,0 +1,267 @@
+"""The optimisation loop: `design(targets, views, board, config) -> DesignResult`."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import ArrayLike, Float
+
+from jscratch import bvh, cull
+from jscratch import loss as loss_mod
+from jscratch.designfile import DesignError
+from jscratch.metrics import image_metrics
+from jscratch.scene import Board, Scratches, Views
+from jscratch.shading import DISPLAY_GAMMA, board_ndf, display, half_vectors
+from jscratch.design.checkpoint import State, load_checkpoint, save_checkpoint
+from jscratch.design.config import DesignConfig, NonFiniteError
+from jscratch.design.discard import discard
+from jscratch.design.io import check_design_views, check_targets, targets_hash
+from jscratch.design.params import DesignParams, group_tree
+from jscratch.design.result import DesignResult
+from jscratch.design.solver import (
+    Context,
+    evaluate,
+    make_optimizer,
+    measure_caps,
+    physical,
+    step,
+)
+
+
+def design(
+    targets: Float[ArrayLike, "M H W"],
+    views: Views,
+    board: Board | None = None,
+    config: DesignConfig | None = None,
+    *,
+    checkpoint: str | os.PathLike | None = None,
+    resume: bool = False,
+    progress: bool = False,
+    stop_after: int | None = None,
+) -> DesignResult:
+    """Optimise scratches and light intensities so that view ``j`` shows ``targets[j]``.
+
+    **Arguments:**
+
+    - `targets`: ``(M, H, W)`` display values in ``[0, 1]``, row 0 at the top (SPEC section 1).
+    - `views`: `render.Views` with ``M`` cameras and lights (m, above the board); the intensities
+      are the starting values when ``config.init_intensity == "given"``.
+    - `board`: `render.Board`; its ``shape`` must be ``(H, W)``. Default ``Board(shape=(H, W))``.
+    - `config`: `DesignConfig` (default ``DesignConfig()``).
+    - `checkpoint`: path of a checkpoint file, written every ``config.checkpoint_every``
+      iterations, at the end, and with the last good state when a NaN stops the run.
+    - `resume`: continue from `checkpoint` (same targets and config); the continued run is
+      identical to an uninterrupted one.
+    - `progress`: show a tqdm progress bar with the loss.
+    - `stop_after`: stop after this many iterations in total (for tests of resuming); the
+      checkpoint is written and the result describes the state at that point.
+
+    **Returns:** a `DesignResult`.
+
+    **Raises:** `DesignError` for bad targets, views or config; `NonFiniteError` when the loss, a
+    gradient or a parameter becomes non-finite (after saving the last good state to `checkpoint`).
+    """
+    t_start = time.perf_counter()
+    config = DesignConfig() if config is None else config
+    tnp, board = _check_inputs(targets, views, board, config, checkpoint, resume)
+    checkpoint = None if checkpoint is None else os.fspath(checkpoint)
+    thash = targets_hash(tnp)
+    params, optimizer, ctx = _setup(tnp, views, board, config)
+    if resume:
+        like = State(0, params, optimizer.init(params), None, None, (1,) * views.m, {}, 0)
+        state = load_checkpoint(checkpoint, like, config, thash)
+    else:
+        state = _initial_state(params, optimizer, ctx, tnp, config)
+    n_iter = config.iterations if stop_after is None else min(config.iterations, stop_after)
+    state, step_times = _iterate(state, optimizer, ctx, config, n_iter, checkpoint, thash, progress)
+    result = _finish(state, ctx, tnp, config, discard_now=config.discard and stop_after is None)
+    result.metrics.update({
+        "time_total": time.perf_counter() - t_start,
+        "time_first_step": step_times[0] if step_times else None,
+        "time_step_median": float(np.median(step_times[1:])) if len(step_times) > 1 else None,
+    })
+    return result
+
+
+def _check_inputs(targets, views, board, config, checkpoint, resume):
+    """The checked targets ``(M, H, W)`` (numpy) and the board; raises `DesignError`."""
+    if not isinstance(config, DesignConfig):
+        raise DesignError(f"config must be a DesignConfig, got {type(config).__name__}")
+    if not isinstance(views, Views):
+        raise DesignError(f"views must be a jscratch.render.Views, got {type(views).__name__}")
+    tnp = check_targets(targets, views.m)
+    h, w = tnp.shape[1:]
+    board = Board(shape=(h, w)) if board is None else board
+    if board.shape != (h, w):
+        raise DesignError(f"targets are {h}x{w} px but the board's image shape is {board.shape}")
+    check_design_views(views, board)
+    if config.dtype == "float64" and jax.dtypes.canonicalize_dtype(jnp.float64) != jnp.float64:
+        raise DesignError("dtype float64 needs jax_enable_x64 (jax.config.update('jax_enable_x64', True))")
+    if resume and checkpoint is None:
+        raise DesignError("resume=True needs a checkpoint path")
+    return tnp, board
+
+
+def _setup(tnp, views, board, config):
+    """The initial parameters (the structure a checkpoint is restored into), the optimiser and the
+    step's `Context`."""
+    dt = jnp.dtype(config.dtype)
+    scratches = Scratches.random(
+        jax.random.PRNGKey(config.seed), config.n_scratches, board, length=config.init_length,
+        width=config.init_width, depth=config.init_depth, alpha=config.init_alpha, dtype=dt)
+    params = DesignParams.from_physical(scratches, np.asarray(views.intensity), board,
+                                        config.parameterisation)
+    optimizer = make_optimizer(config.adam_b1, config.adam_b2, config.adam_eps,
+                          tuple(sorted(config.learning_rates().items())))
+    lrs = group_tree(params, {g: jnp.asarray(v, dt) for g, v in config.learning_rates().items()})
+    cam = jnp.asarray(views.camera, dt)
+    lig = jnp.asarray(views.light, dt)
+    hs = half_vectors(Views(cam, lig), board, dt)
+    bound = loss_mod.make_loss(config.loss).bind(jnp.asarray(tnp, dt))
+    ndf_max = jnp.max(board_ndf(Views(cam, lig), board, dt), axis=0)  # (P,)
+    ctx = Context(cam, lig, hs, ndf_max, bound, lrs, float(config.cull_eps),
+                  float(config.coverage_eps), board, int(config.chunk))
+    return params, optimizer, ctx
+
+
+def _bin(params, spec, board, config):
+    """The shared pair list of ``params`` (`bvh.build_pairs`, reusing ``spec``'s capacities)."""
+    p0, p1, wd, dp, _, _ = physical(params)
+    return bvh.build_pairs(p0, p1, wd, dp, board=(board.Sx, board.Sy), shape=board.shape,
+                           spec=spec, skin=config.skin)
+
+
+def _initial_state(params, optimizer, ctx, tnp, config):
+    """Iteration 0: the pair list, the per-view capacities and (``init_intensity ==
+    "match_mean"``) the closed-form light intensities."""
+    m, dt = tnp.shape[0], params.geom.dtype
+    pairs, spec = _bin(params, None, ctx.board, config)
+    caps = measure_caps(params, pairs, ctx, m)
+    if config.init_intensity == "match_mean":
+        unit = eqx.tree_at(lambda p: p.log_intensity, params, jnp.zeros((m,), dt))
+        all_keep = jnp.ones((config.n_scratches,), bool)
+        rad = np.asarray(evaluate(unit, pairs, all_keep, ctx, caps)[0], np.float64)
+        mean_disp = np.asarray(display(rad)).mean(axis=(1, 2))
+        tmean = tnp.mean(axis=(1, 2))
+        if np.any(mean_disp <= 0):
+            j = int(np.argmax(mean_disp <= 0))
+            raise DesignError(f"view {j} renders black at intensity 1: cannot set its light")
+        log_i = DISPLAY_GAMMA * (np.log(np.maximum(tmean, 1e-6)) - np.log(mean_disp))
+        params = eqx.tree_at(lambda p: p.log_intensity, params, jnp.asarray(log_i, dt))
+    history = {"total": [], "terms": {}}
+    return State(0, params, optimizer.init(params), pairs, spec, caps, history, 0)
+
+
+def _check_health(health, state, config, checkpoint, thash):
+    """Raise `NonFiniteError` (after saving ``state``, the last good one) when a check failed."""
+    for what, (ok, idx) in health.items():
+        if not bool(ok):
+            if checkpoint is not None:
+                save_checkpoint(checkpoint, state, config, thash)
+            unit = "view" if what.endswith("intensity") else "scratch"
+            where = "" if what == "loss" else f" (first bad {unit}: {int(idx)})"
+            saved = f"; the last good state is in {checkpoint!r}" if checkpoint else ""
+            raise NonFiniteError(
+                f"non-finite or out-of-range {what} at iteration {state.iteration}{where}: "
+                f"the optimisation stopped{saved}. Lower the learning rate of that group "
+                "or freeze it.")
+
+
+def _iterate(state, optimizer, ctx, config, n_iter, checkpoint, thash, progress):
+    """Run `step` until ``n_iter``: capacity retries, health checks, history, rebinning,
+    progress bar and checkpoints. Returns the final state and the per-step wall times."""
+    step_times: list[float] = []
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=config.iterations, initial=state.iteration, desc="design", unit="it",
+                   dynamic_ncols=True)
+    try:
+        while state.iteration < n_iter:
+            t0 = time.perf_counter()
+            new, opt_state, terms, rebin, counts, health = step(
+                state.params, state.opt_state, state.pairs, ctx, state.caps, optimizer)
+            counts = np.asarray(counts)
+            if ctx.cull_eps > 0 and np.any(counts > np.asarray(state.caps)):
+                caps = cull.grow_caps(state.caps, counts)
+                state = dataclasses.replace(state, caps=caps)
+                continue  # retry the same iteration with larger per-view lists
+            _check_health(health, state, config, checkpoint, thash)
+            hist = state.history
+            hist["total"].append(float(terms["total"]))
+            for k, v in terms.items():
+                if k != "total":
+                    hist["terms"].setdefault(k, []).append(float(v))
+            pairs, spec, rebins = state.pairs, state.spec, state.rebins
+            if bool(rebin):
+                pairs, spec = _bin(new, spec, ctx.board, config)
+                rebins += 1
+            state = State(state.iteration + 1, new, opt_state, pairs, spec, state.caps, hist,
+                          rebins)
+            step_times.append(time.perf_counter() - t0)
+            if bar is not None:
+                bar.set_postfix(loss=f"{hist['total'][-1]:.5g}")
+                bar.update(1)
+            if checkpoint is not None and (state.iteration % config.checkpoint_every == 0
+                                           or state.iteration == n_iter):
+                save_checkpoint(checkpoint, state, config, thash)
+    finally:
+        if bar is not None:
+            bar.close()
+    return state, step_times
+
+
+def _finish(state, ctx, tnp, config, *, discard_now: bool) -> DesignResult:
+    """Final render, discard (when ``discard_now``) and metrics (timings of the loop are the
+    caller's)."""
+    m = tnp.shape[0]
+    params, pairs = state.params, state.pairs
+    caps = state.caps
+    all_keep = jnp.ones((config.n_scratches,), bool)
+    t_d = time.perf_counter()
+    rad, terms, counts = evaluate(params, pairs, all_keep, ctx, caps)
+    if ctx.cull_eps > 0 and np.any(np.asarray(counts) > np.asarray(caps)):
+        caps = measure_caps(params, pairs, ctx, m)
+        rad, terms, counts = evaluate(params, pairs, all_keep, ctx, caps)
+    loss_all = float(terms["total"])
+    metrics_all = image_metrics(np.asarray(display(rad)), tnp)
+    keep = np.ones(config.n_scratches, bool)
+    if discard_now:
+        keep, rad, terms = discard(params, pairs, ctx, caps, loss_all, config.discard_tol,
+                                   rad, terms)
+    t_discard = time.perf_counter() - t_d
+    rad = np.asarray(rad)
+    disp = np.asarray(display(rad))
+    p0, p1, wd, dp, al, inten = (np.asarray(a) for a in physical(params))
+    k = keep
+    result_scratches = Scratches(p0[k], p1[k], wd[k], dp[k], al[k])
+    result_views = Views(np.asarray(ctx.camera), np.asarray(ctx.light), inten)
+    mets = image_metrics(disp, tnp)
+    mets.update({
+        "loss": float(terms["total"]),
+        "loss_terms": {k2: float(v) for k2, v in terms.items()},
+        "loss_before_discard": loss_all,
+        "metrics_before_discard": metrics_all,
+        "discarded": int((~keep).sum()),
+        "kept": int(keep.sum()),
+        "pairs_total": int(np.asarray(pairs.valid).sum()),
+        "pairs_per_view": [int(c) for c in np.asarray(counts)[:m]],
+        "coverage_pairs": (int(np.asarray(counts)[m]) if len(counts) > m
+                           else int(np.asarray(pairs.valid).sum())),
+        "rebins": state.rebins,
+        "iterations": state.iteration,
+        "time_total": None,
+        "time_first_step": None,
+        "time_step_median": None,
+        "time_discard": t_discard,
+        "intensity": [float(x) for x in inten],
+    })
+    return DesignResult(result_scratches, result_views, ctx.board, params, keep, rad, disp, tnp,
+                        state.history, mets, config)

@@ -1,0 +1,177 @@
+"""The jitted pieces of the optimisation: the per-design `Context`, the per-view pair lists
+(`view_lists`), the forward `evaluate`, one Adam `step` with its health report, the per-scratch
+`contributions` and the per-view capacities (`measure_caps`). Module level, so that repeated designs
+of the same shapes reuse compilations. Tests drive a step through these names."""
+
+from __future__ import annotations
+
+import functools
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import optax
+from jaxtyping import Array
+
+from jscratch import bvh, cull
+from jscratch import loss as loss_mod
+from jscratch.render import grad_compiler_options, render_pairs, scratch_contributions
+from jscratch.scene import SCRATCH_RULES, Board, Views
+from jscratch.shading import display
+from jscratch.design.config import GROUPS
+from jscratch.design.params import DesignParams, group_tree
+
+
+class Context(eqx.Module):
+    """Per-design constants of the jitted functions."""
+
+    camera: Array
+    light: Array
+    hs: Array  # (M, P, 3) half vectors
+    board_ndf: Array  # (P,) flat board's GGX at each pixel, largest over the views (1/sr)
+    loss: loss_mod.BoundLoss
+    lrs: DesignParams  # per-group learning rate (0 = frozen), scalar leaves: the frozen mask
+    cull_eps: float = eqx.field(static=True)
+    coverage_eps: float = eqx.field(static=True)
+    board: Board = eqx.field(static=True)
+    chunk: int = eqx.field(static=True)
+
+
+def _group_labels(params: DesignParams) -> DesignParams:
+    return group_tree(params, {g: g for g in GROUPS})
+
+
+@functools.lru_cache(maxsize=None)
+def make_optimizer(b1: float, b2: float, eps: float,
+                   learning_rates: tuple[tuple[str, float], ...]) -> optax.GradientTransformation:
+    """Per parameter group (`optax.multi_transform`): Adam (``optax.scale_by_adam``) then a step
+    of ``-lr``; a frozen group (``lr == 0``) gets ``optax.set_to_zero()``. `learning_rates` is
+    ``DesignConfig.learning_rates()`` as sorted items. Cached: the same object for the same
+    constants, so jit caches hit across designs."""
+    groups = {g: (optax.set_to_zero() if lr == 0 else
+                  optax.chain(optax.scale_by_adam(b1=b1, b2=b2, eps=eps), optax.scale(-lr)))
+              for g, lr in learning_rates}
+    return optax.multi_transform(groups, _group_labels)
+
+
+def view_lists(params: DesignParams, pairs: bvh.Pairs, ctx: Context, caps: tuple[int, ...]):
+    """``(lists, coverage list, counts)``: the per-view culled lists compacted to ``caps``, the
+    coverage list and the ``M + 1`` counts of kept pairs (views, then coverage), from
+    `cull.update_views` (``counts > caps`` means overflow: the caller retries with larger
+    capacities). Unculled (``cull_eps == 0``): the shared list, ``None`` (coverage from the same
+    list) and ``M`` counts."""
+    m = ctx.hs.shape[0]
+    if ctx.cull_eps == 0:
+        n = jnp.sum(pairs.valid)
+        return pairs, None, jnp.stack([n] * m)
+    s = jax.lax.stop_gradient(params).scratches()
+    v = cull.update_views(pairs, s.p0, s.p1, s.width, s.depth, s.alpha, ctx.hs, ctx.cull_eps, caps,
+                         ctx.board_ndf, ctx.coverage_eps)
+    return v.views, v.coverage, v.counts
+
+
+def radiance(params: DesignParams, lists, cov, ctx: Context) -> Array:
+    """Radiance ``(M, H, W)`` from `view_lists`' pair lists."""
+    views = Views(ctx.camera, ctx.light, params.intensity())
+    return render_pairs(params.scratches(), views, ctx.board, lists, cov, chunk=ctx.chunk)
+
+
+def _masked(p: bvh.Pairs, keep_ext: Array) -> bvh.Pairs:
+    return eqx.tree_at(lambda q: q.valid, p, p.valid & keep_ext[p.scratch])
+
+
+@eqx.filter_jit
+def evaluate(params: DesignParams, pairs: bvh.Pairs, keep: Array, ctx: Context, caps):
+    """Forward only: ``(radiance (M,H,W), loss terms, per-view counts)`` with scratches outside
+    ``keep`` removed (their pairs masked, so they neither shine nor cover)."""
+    keep_ext = jnp.concatenate([keep, jnp.zeros((1,), bool)])
+    lists, cov, counts = view_lists(params, pairs, ctx, caps)
+    if isinstance(lists, list):
+        lists = [_masked(p, keep_ext) for p in lists]
+    else:
+        lists = _masked(lists, keep_ext)
+    cov = None if cov is None else _masked(cov, keep_ext)
+    rad = radiance(params, lists, cov, ctx)
+    return rad, ctx.loss.terms(display(rad)), counts
+
+
+def _health(loss, grads: DesignParams, new: DesignParams) -> dict[str, Array]:
+    """Per check: ``(ok, first bad index)``; names the parameter group that went wrong."""
+    out = {"loss": (jnp.isfinite(loss), jnp.asarray(-1))}
+    s = new.scratches()
+    phys = {"endpoints": jnp.concatenate([s.p0, s.p1], 1), "width": s.width, "depth": s.depth,
+            "alpha": s.alpha, "intensity": new.intensity()}
+    ranges = {name: ok for name, (ok, _) in SCRATCH_RULES.items()}
+    ranges["intensity"] = lambda x: x >= 0
+    for g in GROUPS:
+        gr, val = grads.group(g), phys[g]
+        good_g = jnp.isfinite(gr).reshape(gr.shape[0], -1).all(-1)
+        good_v = jnp.isfinite(val).reshape(val.shape[0], -1).all(-1) & jnp.isfinite(
+            new.group(g)).reshape(val.shape[0], -1).all(-1)
+        if g in ranges:
+            good_v = good_v & ranges[g](val)
+        out[f"gradient of {g}"] = (jnp.all(good_g), jnp.argmin(good_g))
+        out[f"updated {g}"] = (jnp.all(good_v), jnp.argmin(good_v))
+    return out
+
+
+def step(params: DesignParams, opt_state, pairs: bvh.Pairs, ctx: Context, caps, optimizer):
+    """`_step_impl`, jitted with `render.grad_compiler_options` (faster compile and step)."""
+    return _jitted_step()(params, opt_state, pairs, ctx, caps, optimizer)
+
+
+@functools.lru_cache(maxsize=None)
+def _jitted_step():
+    return eqx.filter_jit(_step_impl, compiler_options=grad_compiler_options())
+
+
+def _step_impl(params: DesignParams, opt_state, pairs: bvh.Pairs, ctx: Context, caps,
+               optimizer):
+    """One Adam iteration (`make_optimizer`). Returns the new state, the loss terms at
+    ``params``, whether the pair list must be rebuilt for the new parameters, per-view counts (to
+    detect capacity overflow) and the health report."""
+    lists, cov, counts = view_lists(params, pairs, ctx, caps)
+
+    def f(p):
+        terms = ctx.loss.terms(display(radiance(p, lists, cov, ctx)))
+        return terms["total"], terms
+
+    (value, terms), grads = eqx.filter_value_and_grad(f, has_aux=True)(params)
+    # A frozen group's gradient is reported as zero (the health check); its step is zero.
+    frozen = jax.tree_util.tree_map(lambda lr: lr == 0, ctx.lrs)
+    grads = jax.tree_util.tree_map(lambda g, fr: jnp.where(fr, 0, g), grads, frozen)
+    updates, opt_state = optimizer.update(grads, opt_state, params)
+    new = eqx.apply_updates(params, updates)
+    s = new.scratches()
+    # Non-finite or out-of-range values are reported by the health check (and the host stops);
+    # here they are replaced so that needs_rebin's own checks do not fire first.
+    ok = lambda x: jnp.isfinite(x) & (x > 0)
+    p0 = jnp.where(jnp.isfinite(s.p0), s.p0, 0)
+    p1 = jnp.where(jnp.isfinite(s.p1), s.p1, 0)
+    rebin = bvh.needs_rebin(pairs, p0, p1, jnp.where(ok(s.width), s.width, 1e-4),
+                            jnp.where(ok(s.depth), s.depth, 1e-4))
+    return new, opt_state, terms, rebin, counts, _health(value, grads, new)
+
+
+@eqx.filter_jit
+def physical(params: DesignParams):
+    s = params.scratches()
+    return s.p0, s.p1, s.width, s.depth, s.alpha, params.intensity()
+
+
+@eqx.filter_jit
+def contributions(params: DesignParams, lists, ctx: Context) -> Array:
+    """`render.scratch_contributions` of the design's scene, ``(M, N)``."""
+    views = Views(ctx.camera, ctx.light, params.intensity())
+    return scratch_contributions(params.scratches(), views, ctx.board, lists, chunk=ctx.chunk,
+                                   h=ctx.hs)
+
+
+def measure_caps(params, pairs, ctx, m) -> tuple[int, ...]:
+    """Capacities of the ``M`` view lists and the coverage list (`cull.allocate_views`: the culled
+    pair counts times a margin; ``M`` ones when not culling)."""
+    if ctx.cull_eps == 0:
+        return (1,) * m
+    s = jax.lax.stop_gradient(params).scratches()
+    return cull.allocate_views(pairs, s.p0, s.p1, s.width, s.depth, s.alpha, ctx.hs, ctx.cull_eps,
+                              ctx.board_ndf, ctx.coverage_eps)

@@ -1,0 +1,112 @@
+"""G-code programs with their line maps: `Program` (the lines and, per line, the scratch and its
+role), the dry run's checker (`check_program_lines`), `write_program` and `read_program`.
+
+Imports: `jscratch.grbl`.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+from typing import NamedTuple
+
+import numpy as np
+
+from jscratch.grbl import check_words, clip
+
+__all__ = ["MAX_LINE", "Program", "check_program_lines", "read_program", "write_program"]
+
+MAX_LINE = 79  # characters, without the newline (GRBL's line buffer is 80 bytes)
+
+class Program(NamedTuple):
+    """G-code with its line map.
+
+    - `lines`: the G-code lines (no line endings); file line `i + 1` is `lines[i]`.
+    - `k`: `(L,)` int, position in the cutting order of the scratch a line belongs to, -1 for the
+      preamble and postamble.
+    - `scratch`: `(L,)` int, design index of that scratch, -1 outside scratches.
+    - `role`: `(L,)` str: `comment`, `pre`, `travel`, `plunge`, `cut`, `retract`, `sync`, `post`.
+    - `info`: dict of summary numbers (see :func:`summarize`).
+    """
+
+    lines: list
+    k: np.ndarray
+    scratch: np.ndarray
+    role: list
+    info: dict
+
+
+def check_program_lines(lines, lo, hi) -> dict:
+    """The dry run's checker: line length, strict words (:func:`~jscratch.grbl.check_words`), bounds.
+
+    **Arguments:** `lines` G-code text lines; `lo`, `hi` the allowed `(x, y, z)` limits in mm.
+
+    **Returns:** the program's extents `{"x": [min, max], "y": .., "z": ..}` in mm (None for an axis
+    never written). **Raises:** `ValueError` naming the line.
+    """
+    ext = {a: None for a in "xyz"}
+    for ln, text in enumerate(lines, start=1):
+        if len(text) > MAX_LINE:
+            raise ValueError(f"G-code line {ln} is {len(text)} characters (> {MAX_LINE}): {clip(text, 40)!r}")
+        try:
+            check_words(text)
+        except ValueError as exc:
+            raise ValueError(f"G-code line {ln} {clip(text, 40)!r}: {exc}") from None
+        if text.startswith("("):
+            continue
+        for word in text.split():
+            axis = "XYZ".find(word[0])
+            if axis >= 0:
+                v = float(word[1:])
+                if not (lo[axis] - 5e-4 <= v <= hi[axis] + 5e-4):
+                    raise ValueError(f"G-code line {ln} {text!r}: {word[0]} = {v} outside [{lo[axis]:.3f}, {hi[axis]:.3f}] mm")
+                e = ext["xyz"[axis]]
+                ext["xyz"[axis]] = [v, v] if e is None else [min(e[0], v), max(e[1], v)]
+    return ext
+
+
+def write_program(prog: Program, gcode_path) -> str:
+    """Write `gcode_path` and its line map `gcode_path + '.map.csv'` (line, k, scratch, role).
+
+    **Returns:** the map's path.
+    """
+    gcode_path = os.fspath(gcode_path)
+    with open(gcode_path, "w", encoding="ascii", newline="\n") as f:
+        f.write("\n".join(prog.lines) + "\n")
+    map_path = gcode_path + ".map.csv"
+    with open(map_path, "w", encoding="ascii", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["line", "k", "scratch", "role"])
+        for ln, (k, s, r) in enumerate(zip(prog.k.tolist(), prog.scratch.tolist(), prog.role), start=1):
+            w.writerow([ln, k, s, r])
+    return map_path
+
+
+def read_program(gcode_path) -> Program:
+    """Read a G-code file and its line map (as written by :func:`write_program`); checks they agree."""
+    gcode_path = os.fspath(gcode_path)
+    if not os.path.exists(gcode_path):
+        raise FileNotFoundError(f"G-code file {gcode_path!r} does not exist")
+    map_path = gcode_path + ".map.csv"
+    if not os.path.exists(map_path):
+        raise FileNotFoundError(f"line map {map_path!r} does not exist (write it with the G-code)")
+    with open(gcode_path, encoding="ascii") as f:
+        lines = f.read().split("\n")
+    if lines and lines[-1] == "":
+        lines.pop()
+    with open(map_path, encoding="ascii", newline="") as f:
+        rows = list(csv.reader(f))[1:]
+    if len(rows) != len(lines):
+        raise ValueError(f"line map {map_path!r} has {len(rows)} rows for {len(lines)} G-code lines")
+    ks, ss, roles = [], [], []
+    for i, row in enumerate(rows, start=1):
+        if int(row[0]) != i:
+            raise ValueError(f"line map {map_path!r}: row {i} names line {row[0]}")
+        ks.append(int(row[1]))
+        ss.append(int(row[2]))
+        roles.append(row[3])
+    k = np.asarray(ks)
+    syncs = [i for i, r in enumerate(roles) if r == "sync"]
+    if [int(k[i]) for i in syncs] != list(range(len(syncs))):
+        raise ValueError(f"line map {map_path!r}: scratch blocks are not numbered 0..{len(syncs) - 1} in order")
+    return Program(lines, k, np.asarray(ss), roles, {"scratches": len(syncs)})

@@ -1,0 +1,479 @@
+"""The scene: board, scratches and views (SPEC sections 1, 2, 4 and 5), and the one set of rules
+every stage checks them by.
+
+**Scene objects** (equinox modules, data only):
+
+- `Board`: board size ``Sx, Sy`` (m), image shape ``(H, W)`` and the board material (``F0``,
+  Smith roughness ``a_G``, board GGX roughness ``a_S``); all static.
+- `Scratches`: ``p0, p1`` ``(N, 2)`` (m), ``width, depth`` ``(N,)`` (m), ``alpha`` ``(N,)``.
+- `Views`: ``camera, light`` ``(M, 3)`` (m), ``intensity`` ``(M,)`` (W/sr).
+- `views_on_circle`: the paper's view layout (SPEC section 5); `flat_highlight`.
+
+**The rules** (`SCRATCH_RULES`, `check_scratches`, `check_views`, `scene_checks`): every value
+finite; ``width > 0``, ``depth > 0`` (m); ``0 < alpha < 1`` (the domain of
+`ndf.pair_integral`); endpoints on the board ``[0, Sx] x [0, Sy]`` (within `ON_BOARD_RTOL` of its
+size) when the board is known; cameras and lights above the board (``z > 0``); intensities
+``>= 0``. The scene objects (`Scratches`, `Views`), the binning (`jscratch.bvh`), the renderer
+(`jscratch.render`), the design file (`jscratch.designfile`) and the optimiser
+(`jscratch.design`) all check by these functions, so a scene one of them accepts the others
+accept too. Host checks raise one line naming the source, the scratch (or view) and the field;
+traced checks (`scene_checks`) give ``(condition, message)`` pairs for `eqx.error_if`.
+
+Imports: ``jax``, ``equinox``, ``numpy`` only (no other jscratch module).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+__all__ = [
+    "ON_BOARD_RTOL",
+    "SCRATCH_RULES",
+    "Board",
+    "Scratches",
+    "Views",
+    "check_scratches",
+    "check_views",
+    "flat_highlight",
+    "scene_checks",
+    "views_on_circle",
+]
+
+#: Endpoints may exceed the board by this fraction of its size (float32 rounding of values the
+#: optimiser keeps on ``[0, S]``: one float32 ulp at 0.3 m is 3e-8 m = 1e-7 of the board).
+ON_BOARD_RTOL = 1e-6
+
+#: The range rule of each per-scratch value: ``name -> (predicate, text)``; the predicate works
+#: elementwise on numpy and jax arrays alike.
+SCRATCH_RULES = {
+    "width": (lambda v: v > 0, "must be > 0 m"),
+    "depth": (lambda v: v > 0, "must be > 0 m"),
+    "alpha": (lambda v: (v > 0) & (v < 1), "must lie in (0, 1)"),
+}
+
+
+# --------------------------------------------------------------------------------------------
+# The rules
+# --------------------------------------------------------------------------------------------
+
+
+def _first_bad(mask: np.ndarray) -> int:
+    """Index of the first True along axis 0 (rows reduced with any)."""
+    rows = mask.reshape(mask.shape[0], -1).any(axis=1) if mask.ndim > 1 else mask
+    return int(np.flatnonzero(rows)[0])
+
+
+def check_scratches(p0, p1, width, depth, alpha=None, *, board=None, source: str = "scratches",
+                    error: type[Exception] = ValueError) -> None:
+    """Check scratch values on the host (numpy) by the scene's rules; shapes are the caller's.
+
+    **Arguments:** `p0`, `p1` ``(N, 2)`` (m); `width`, `depth`, `alpha` ``(N,)`` or scalars
+    (`alpha` may be ``None``: not checked); `board` ``(Sx, Sy)`` (m) or ``None`` (endpoints not
+    checked); `source` names the caller in messages; `error` the exception class raised.
+
+    **Raises:** `error`, one line: ``"{source}: scratch {i}: {field} = {value} {what is wrong}"``.
+    """
+    fields = {"p0": p0, "p1": p1, "width": width, "depth": depth}
+    if alpha is not None:
+        fields["alpha"] = alpha
+    arrays = {k: np.asarray(v, np.float64) for k, v in fields.items()}
+    n = arrays["p0"].shape[0] if arrays["p0"].ndim else 1
+    for name, a in arrays.items():
+        bad = ~np.isfinite(a)
+        if bad.any():
+            i = _first_bad(bad) if a.ndim else 0
+            count = int(bad.reshape(a.shape[0], -1).any(axis=1).sum()) if a.ndim else n
+            v = a[i].tolist() if a.ndim else a.tolist()
+            raise error(f"{source}: scratch {i}: {name} = {v} is not finite ({count} scratches"
+                        f" have a non-finite {name})")
+    for name, (ok, text) in SCRATCH_RULES.items():
+        if name not in arrays:
+            continue
+        a = arrays[name]
+        bad = ~ok(a)
+        if bad.any():
+            i = _first_bad(bad) if a.ndim else 0
+            raise error(f"{source}: scratch {i}: {name} = {float(a[i] if a.ndim else a)!r} {text}")
+    if board is not None:
+        b = np.asarray(board, np.float64)
+        tol = ON_BOARD_RTOL * float(b.max())
+        for name in ("p0", "p1"):
+            pts = arrays[name]
+            off = (pts < -tol) | (pts > b + tol)
+            if off.any():
+                i = _first_bad(off)
+                raise error(
+                    f"{source}: scratch {i}: {name} = ({pts[i, 0]:.6g}, {pts[i, 1]:.6g}) m lies off"
+                    f" the board [0, {b[0]:.6g}] x [0, {b[1]:.6g}] m ({int(off.any(axis=1).sum())}"
+                    f" such endpoints in {name})")
+
+
+def check_views(camera, light, intensity, *, source: str = "views",
+                error: type[Exception] = ValueError) -> None:
+    """Check view values on the host by the scene's rules (finite, cameras and lights at
+    ``z > 0``, intensities ``>= 0``); shapes are the caller's.
+
+    **Raises:** `error`, one line: ``"{source}: view {j}: {field} ..."``.
+    """
+    arrays = {"camera": np.asarray(camera, np.float64), "light": np.asarray(light, np.float64),
+              "intensity": np.asarray(intensity, np.float64)}
+    for name, a in arrays.items():
+        bad = ~np.isfinite(a)
+        if bad.any():
+            raise error(f"{source}: view {_first_bad(bad)}: {name} is not finite")
+    for name in ("camera", "light"):
+        z = arrays[name][:, 2]
+        if (z <= 0).any():
+            j = int(np.argmax(z <= 0))
+            raise error(f"{source}: view {j}: {name} is at z = {z[j]}: it must be above the board"
+                        " (z > 0)")
+    i = arrays["intensity"]
+    if (i < 0).any():
+        j = int(np.argmax(i < 0))
+        raise error(f"{source}: view {j}: intensity is negative ({i[j]}): it must be >= 0")
+
+
+def scene_checks(scratches: "Scratches", views: "Views | None" = None, *,
+                 source: str = "render") -> list:
+    """The rules as traced ``(condition, message)`` pairs (a condition True means broken), for
+    `eqx.error_if` inside jit. Endpoints are not checked here (the board is static: the host
+    checks them)."""
+    s = scratches
+    checks = [(~(jnp.all(jnp.isfinite(s.p0)) & jnp.all(jnp.isfinite(s.p1))),
+               f"{source}: a scratch endpoint (p0 or p1) is not finite")]
+    for name, (ok, text) in SCRATCH_RULES.items():
+        v = getattr(s, name)
+        checks.append((~jnp.all(jnp.isfinite(v) & ok(v)),
+                       f"{source}: a scratch {name} is not finite or breaks the rule:"
+                       f" {name} {text}"))
+    if views is not None:
+        checks += [
+            (~(jnp.all(jnp.isfinite(views.camera)) & jnp.all(jnp.isfinite(views.light))
+               & jnp.all(jnp.isfinite(views.intensity))),
+             f"{source}: a view (camera, light or intensity) is not finite"),
+            (jnp.any(views.camera[:, 2] <= 0) | jnp.any(views.light[:, 2] <= 0),
+             f"{source}: every camera and light must be above the board (z > 0)"),
+            (jnp.any(views.intensity < 0), f"{source}: a view intensity is negative"),
+        ]
+    return checks
+
+
+# --------------------------------------------------------------------------------------------
+# Scene objects
+# --------------------------------------------------------------------------------------------
+
+
+def _to_shape(shape) -> tuple[int, int]:
+    try:
+        h, w = (int(s) for s in shape)
+    except (TypeError, ValueError):
+        raise ValueError(f"Board: `shape` must be (H, W), two positive ints; got {shape!r}") from None
+    return (h, w)
+
+
+class Board(eqx.Module):
+    """The board ``[0, Sx] x [0, Sy]`` (m) in the plane ``z = 0``, its image grid and material.
+
+    Every field is static (hashable, no array leaves): changing one recompiles a jitted render.
+
+    **Arguments:**
+
+    - `shape`: image ``(H, W)`` in pixels; row 0 lies along the board edge ``y = Sy`` (SPEC 1).
+    - `Sx`, `Sy`: board size (m). Default 0.3.
+    - `F0`: Schlick reflectance at normal incidence. Default 0.91 (aluminium).
+    - `a_G`: roughness of the Smith GGX shadowing-masking term. Default 0.04.
+    - `a_S`: GGX roughness of the flat (unscratched) board. Default 0.04.
+    """
+
+    shape: tuple[int, int] = eqx.field(static=True, default=(256, 256), converter=_to_shape)
+    Sx: float = eqx.field(static=True, default=0.3, converter=float)
+    Sy: float = eqx.field(static=True, default=0.3, converter=float)
+    F0: float = eqx.field(static=True, default=0.91, converter=float)
+    a_G: float = eqx.field(static=True, default=0.04, converter=float)
+    a_S: float = eqx.field(static=True, default=0.04, converter=float)
+
+    def __check_init__(self):
+        h, w = self.shape
+        if h < 1 or w < 1:
+            raise ValueError(f"Board: `shape` must be positive (H, W); got {self.shape}")
+        for name in ("Sx", "Sy"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"Board: `{name}` must be a positive finite length (m); got {v}")
+        if not 0.0 <= self.F0 <= 1.0:
+            raise ValueError(f"Board: `F0` must lie in [0, 1]; got {self.F0}")
+        for name in ("a_G", "a_S"):
+            v = getattr(self, name)
+            if not 0.0 < v <= 1.0:
+                raise ValueError(f"Board: `{name}` must lie in (0, 1]; got {v}")
+
+    @property
+    def H(self) -> int:
+        return self.shape[0]
+
+    @property
+    def W(self) -> int:
+        return self.shape[1]
+
+    @property
+    def n_pixels(self) -> int:
+        return self.shape[0] * self.shape[1]
+
+    @property
+    def pixel_area(self) -> float:
+        """Footprint area ``S_P`` (m^2)."""
+        return (self.Sx / self.W) * (self.Sy / self.H)
+
+
+def _is_tracer(x) -> bool:
+    return isinstance(x, jax.core.Tracer)
+
+
+def _float_dtype(*xs):
+    dt = jnp.result_type(*xs)
+    if not jnp.issubdtype(dt, jnp.floating):
+        dt = jnp.result_type(float)
+    return dt
+
+
+class Scratches(eqx.Module):
+    """``N`` straight scratches (SPEC sections 1-2).
+
+    **Arguments:**
+
+    - `p0`, `p1`: endpoints, ``(N, 2)``, board metres.
+    - `width`: profile width ``w`` (m), ``(N,)`` or a scalar broadcast to ``(N,)``. Default ``1e-4``.
+    - `depth`: depth ``d`` (m), ``(N,)`` or scalar. Default ``1e-4``.
+    - `alpha`: intrinsic GGX roughness in ``(0, 1)`` (the domain of `ndf.pair_integral`),
+      ``(N,)`` or scalar. Default ``0.04``.
+
+    All five arrays share one floating dtype (that of ``p0, p1``; integers become the default float).
+    Shapes are checked always; values (`check_scratches`: finite, ``width, depth > 0``,
+    ``0 < alpha < 1``) when the arrays are concrete. Inside jit, `render_pairs` checks values
+    with `eqx.error_if` (`scene_checks`).
+    """
+
+    p0: Float[Array, "n 2"]
+    p1: Float[Array, "n 2"]
+    width: Float[Array, " n"]
+    depth: Float[Array, " n"]
+    alpha: Float[Array, " n"]
+
+    def __init__(self, p0: ArrayLike, p1: ArrayLike, width: ArrayLike = 1e-4,
+                 depth: ArrayLike = 1e-4, alpha: ArrayLike = 0.04):
+        p0 = jnp.asarray(p0)
+        p1 = jnp.asarray(p1)
+        dtype = _float_dtype(p0, p1)
+        for name, p in (("p0", p0), ("p1", p1)):
+            if p.ndim != 2 or p.shape[1] != 2:
+                raise ValueError(f"Scratches: `{name}` must have shape (N, 2); got {p.shape}")
+        if p0.shape != p1.shape:
+            raise ValueError(f"Scratches: `p0` {p0.shape} and `p1` {p1.shape} must have the same shape")
+        n = p0.shape[0]
+        self.p0 = p0.astype(dtype)
+        self.p1 = p1.astype(dtype)
+        for name, v in (("width", width), ("depth", depth), ("alpha", alpha)):
+            v = jnp.asarray(v, dtype=dtype)
+            if v.ndim == 0:
+                v = jnp.broadcast_to(v, (n,))
+            if v.shape != (n,):
+                raise ValueError(f"Scratches: `{name}` must have shape (N,) = ({n},) or be a scalar;"
+                                 f" got {v.shape}")
+            setattr(self, name, v)
+
+    def __check_init__(self):
+        if any(_is_tracer(a) for a in (self.p0, self.p1, self.width, self.depth, self.alpha)):
+            return
+        check_scratches(self.p0, self.p1, self.width, self.depth, self.alpha, source="Scratches")
+
+    @property
+    def n(self) -> int:
+        return self.p0.shape[0]
+
+    @property
+    def dtype(self):
+        return self.p0.dtype
+
+    @staticmethod
+    def random(key, n: int, board: Board | None = None, *, length=(0.005, 0.025),
+               width: float = 1e-4, depth: float = 1e-4, alpha: float = 0.04,
+               dtype=None) -> "Scratches":
+        """The SPEC section 5 initial layout: midpoints uniform on the board, directions uniform,
+        lengths uniform in ``length`` (m); a segment that would leave the board is shortened about
+        its midpoint (keeping its direction) so both endpoints lie on the board.
+
+        **Arguments:** `key` a PRNG key; `n` number of scratches; `board` (default `Board()`);
+        `length` ``(min, max)`` (m); `width, depth, alpha` scalars; `dtype` (default float).
+
+        **Returns:** `Scratches`.
+        """
+        board = Board() if board is None else board
+        dtype = jnp.result_type(float) if dtype is None else dtype
+        p0, p1 = _random_endpoints(key, n, float(board.Sx), float(board.Sy),
+                                   tuple(float(x) for x in length), jnp.dtype(dtype))
+        return Scratches(p0, p1, width, depth, alpha)
+
+
+@functools.partial(jax.jit, static_argnums=(1, 2, 3, 4, 5))
+def _random_endpoints(key, n: int, Sx: float, Sy: float, length: tuple, dtype):
+    """`Scratches.random`'s endpoints ``(n, 2), (n, 2)`` in one compiled call."""
+    k1, k2, k3 = jax.random.split(key, 3)
+    size = jnp.asarray([Sx, Sy], dtype)
+    mid = jax.random.uniform(k1, (n, 2), dtype) * size
+    phi = jax.random.uniform(k2, (n,), dtype, 0.0, 2 * jnp.pi)
+    half = 0.5 * jax.random.uniform(k3, (n,), dtype, length[0], length[1])
+    t = jnp.stack([jnp.cos(phi), jnp.sin(phi)], -1)
+
+    def reach(direction):  # largest s with mid + s * direction on the board, (n,)
+        pos = (size - mid) / jnp.where(direction > 0, direction, 1)
+        neg = mid / jnp.where(direction < 0, -direction, 1)
+        r = jnp.where(direction > 0, pos, jnp.where(direction < 0, neg, jnp.inf))
+        return r.min(-1)
+
+    s = jnp.minimum(half, jnp.minimum(reach(t), reach(-t)))
+    return jnp.clip(mid - s[:, None] * t, 0, size), jnp.clip(mid + s[:, None] * t, 0, size)
+
+
+class Views(eqx.Module):
+    """``M`` view/light configurations (SPEC section 4).
+
+    **Arguments:**
+
+    - `camera`: camera positions ``(M, 3)`` (m), above the board (``z > 0``).
+    - `light`: point-light positions ``(M, 3)`` (m), above the board (``z > 0``).
+    - `intensity`: light intensities ``I_j`` (W/sr), ``(M,)`` or a scalar. Default 1.
+
+    Shapes are checked always; values (finite, ``z > 0``, ``intensity >= 0``) when concrete.
+    """
+
+    camera: Float[Array, "m 3"]
+    light: Float[Array, "m 3"]
+    intensity: Float[Array, " m"]
+
+    def __init__(self, camera: ArrayLike, light: ArrayLike, intensity: ArrayLike = 1.0):
+        camera = jnp.asarray(camera)
+        light = jnp.asarray(light)
+        dtype = _float_dtype(camera, light)
+        for name, p in (("camera", camera), ("light", light)):
+            if p.ndim != 2 or p.shape[1] != 3:
+                raise ValueError(f"Views: `{name}` must have shape (M, 3); got {p.shape}")
+        if camera.shape != light.shape:
+            raise ValueError(f"Views: `camera` {camera.shape} and `light` {light.shape} must have"
+                             " the same shape")
+        m = camera.shape[0]
+        intensity = jnp.asarray(intensity, dtype)
+        if intensity.ndim == 0:
+            intensity = jnp.broadcast_to(intensity, (m,))
+        if intensity.shape != (m,):
+            raise ValueError(f"Views: `intensity` must have shape (M,) = ({m},) or be a scalar;"
+                             f" got {intensity.shape}")
+        self.camera = camera.astype(dtype)
+        self.light = light.astype(dtype)
+        self.intensity = intensity
+
+    def __check_init__(self):
+        if any(_is_tracer(a) for a in (self.camera, self.light, self.intensity)):
+            return
+        check_views(self.camera, self.light, self.intensity, source="Views")
+
+    @property
+    def m(self) -> int:
+        return self.camera.shape[0]
+
+
+def _direction(polar, azimuth):
+    return np.array([math.sin(polar) * math.cos(azimuth), math.sin(polar) * math.sin(azimuth),
+                     math.cos(polar)])
+
+
+def flat_highlight(camera, light) -> np.ndarray:
+    """Where the flat board mirrors the light into the camera: the point of ``z = 0`` on the
+    segment from ``camera`` to the light's mirror image ``(Lx, Ly, -Lz)`` (board metres, ``(..., 2)``).
+
+    At that point the half vector is the board normal, so the flat board's GGX peak
+    ``1 / (pi a_S^2)`` shows there.
+    """
+    c = np.asarray(camera, np.float64)
+    l = np.asarray(light, np.float64)
+    s = c[..., 2:3] / (c[..., 2:3] + l[..., 2:3])
+    return c[..., :2] + s * (l[..., :2] - c[..., :2])
+
+
+def views_on_circle(M: int, theta: float, distance: float = 1.0, offset: float | None = None,
+                    board: Board | None = None, *, light_azimuth: float = 0.0,
+                    camera_theta: float | None = None, intensity: ArrayLike = 1.0,
+                    dtype=None) -> Views:
+    """The paper's view layout (section 4.1, SPEC section 5), angles in radians.
+
+    One light at polar angle ``theta`` (from the board normal) and azimuth ``light_azimuth``;
+    camera ``j`` at polar angle ``camera_theta`` (default ``theta``) and azimuth
+    ``2 pi j / M + offset``; all at ``distance`` from the board centre. Every view shares the light.
+
+    A camera that sees the light mirrored by the flat board is refused: if the flat-board
+    highlight (`flat_highlight`, where the half vector is the board normal) falls on the board,
+    the board's own specular peak would dominate that view. With the light and cameras on one
+    circle this is the camera near the light's mirror azimuth ``light_azimuth + pi``.
+
+    **Arguments:**
+
+    - `M`: number of views (>= 1).
+    - `theta`: polar angle of the light (rad), in ``[0, pi/2)``.
+    - `distance`: distance of light and cameras from the board centre (m). Default 1.
+    - `offset`: azimuth of camera 0 relative to ``light_azimuth`` (rad). Default: ``pi / M`` for
+      even ``M`` (the mirror azimuth midway between two cameras, every camera ``pi / M`` from it
+      and from the light); for odd ``M``, ``pi / (2M)`` (every camera at least ``pi / (2M)`` from
+      both the light and its mirror) when that keeps every flat-board highlight off the board,
+      else ``0`` (the mirror midway between two cameras, ``pi / M`` from both; camera 0 then shares
+      the light's azimuth, a retro-reflection view).
+    - `board`: the board (its centre and extent). Default `Board()`.
+    - `light_azimuth`, `camera_theta`, `intensity` ((M,) or scalar, W/sr), `dtype`.
+
+    **Returns:** `Views` with ``camera, light`` ``(M, 3)`` and ``intensity`` ``(M,)``.
+    """
+    board = Board() if board is None else board
+    if int(M) != M or M < 1:
+        raise ValueError(f"views_on_circle: `M` must be a positive int; got {M!r}")
+    M = int(M)
+    camera_theta = theta if camera_theta is None else camera_theta
+    for name, v in (("theta", theta), ("camera_theta", camera_theta)):
+        if not (math.isfinite(v) and 0.0 <= v < math.pi / 2):
+            hint = (f" (angles are in radians: did you mean {math.radians(v):.4f}?)"
+                    if math.isfinite(v) and 1.6 <= v < 90 else "")
+            raise ValueError(f"views_on_circle: `{name}` must lie in [0, pi/2) rad so that it is"
+                             f" above the board; got {v}{hint}")
+    if not (math.isfinite(distance) and distance > 0):
+        raise ValueError(f"views_on_circle: `distance` must be positive (m); got {distance}")
+    centre = np.array([board.Sx / 2, board.Sy / 2, 0.0])
+    light = centre + distance * _direction(theta, light_azimuth)
+
+    def layout(offset):
+        azimuths = [2 * math.pi * j / M + offset + light_azimuth for j in range(M)]
+        cameras = np.stack([centre + distance * _direction(camera_theta, a) for a in azimuths])
+        spot = flat_highlight(cameras, light[None])
+        on = ((spot[:, 0] >= 0) & (spot[:, 0] <= board.Sx) & (spot[:, 1] >= 0)
+              & (spot[:, 1] <= board.Sy))
+        return azimuths, cameras, spot, on
+
+    if offset is None:
+        azimuths, cameras, spot, on = layout(math.pi / (2 * M) if M % 2 else math.pi / M)
+        if on.any() and M % 2:
+            azimuths, cameras, spot, on = layout(0.0)
+    else:
+        azimuths, cameras, spot, on = layout(float(offset))
+    if on.any():
+        j = int(np.argmax(on))
+        raise ValueError(
+            f"views_on_circle: camera {j} (azimuth {math.degrees(azimuths[j]) % 360:.1f} deg) sees"
+            f" the light mirrored by the flat board at board point ({spot[j, 0]:.4f},"
+            f" {spot[j, 1]:.4f}) m, inside the board: the board's specular peak would dominate"
+            " that view. Change `offset`, `M`, `theta`/`camera_theta` or `distance`.")
+    dtype = jnp.result_type(float) if dtype is None else dtype
+    return Views(jnp.asarray(cameras, dtype), jnp.asarray(np.repeat(light[None], M, 0), dtype),
+                 jnp.asarray(intensity, dtype))
