@@ -530,6 +530,9 @@ def main(argv=None) -> int:
                     raise FileNotFoundError(f"--resume: G-code {gcode!r} does not exist")
             else:
                 _refuse_overwrite(gcode)
+                folder = os.path.dirname(gcode)
+                if folder:  # `--out NEWDIR/job`: the folder is made, as the design command does
+                    os.makedirs(folder, exist_ok=True)
                 prog = make_program(design, cfg, improve=not args.no_improve, time_limit=args.order_time)
                 write_program(prog, gcode)
                 write_preview(prog, prefix + ".preview.png", 1000.0 * design.board, cfg.board_offset_mm)

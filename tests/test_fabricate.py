@@ -211,6 +211,15 @@ def test_zero_length_and_bad_design_give_clear_errors(tmp_path, capsys):
     assert "off the board" in capsys.readouterr().err
 
 
+def test_cli_dry_run_makes_the_output_folder(tmp_path):
+    """`--out NEWDIR/job` with NEWDIR missing (and nested): made, as the design command does."""
+    prefix = tmp_path / "new" / "deeper" / "job"
+    assert main(["--dry-run", "--quiet", "--demo-n", "12", "--order-time", "1",
+                 "--out", str(prefix)]) == 0
+    for suffix in (".gcode", ".gcode.map.csv", ".preview.png", ".summary.json"):
+        assert (tmp_path / "new" / "deeper" / ("job" + suffix)).stat().st_size > 0
+
+
 def test_cli_dry_run_demo(tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     assert main(["--dry-run", "--demo-n", "60", "--order-time", "2"]) == 0
