@@ -16,9 +16,8 @@ option; with no targets it uses three images bundled with scikit-image).
 
 Each group (``"endpoints"``, ``"width"``, ``"depth"``, ``"alpha"``, ``"intensity"``) has its own
 learning rate and can be frozen (the paper freezes ``alpha = 0.04`` for fabrication; so does our
-default). The optimiser (`solver.make_optimizer`) is an ``optax.multi_transform`` over the
-groups: Adam (``optax.scale_by_adam``) then a scale ``-lr_g``, and ``optax.set_to_zero()`` for a
-frozen group.
+default). The optimiser is optax's Adam (``optax.scale_by_adam``) followed by a per-group scale
+``-lr_g``; a frozen group gets a zero gradient and a zero step.
 
 **Light intensities** start in closed form: with ``R_j`` the view-``j`` radiance at ``I_j = 1``,
 ``I_j = (mean(T_j) / mean(display(R_j)))^2.2``, which makes the mean display value equal the

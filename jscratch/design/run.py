@@ -27,7 +27,7 @@ from jscratch.design.result import DesignResult
 from jscratch.design.solver import (
     Context,
     evaluate,
-    make_optimizer,
+    make_adam,
     measure_caps,
     physical,
     step,
@@ -117,8 +117,7 @@ def _setup(tnp, views, board, config):
         width=config.init_width, depth=config.init_depth, alpha=config.init_alpha, dtype=dt)
     params = DesignParams.from_physical(scratches, np.asarray(views.intensity), board,
                                         config.parameterisation)
-    optimizer = make_optimizer(config.adam_b1, config.adam_b2, config.adam_eps,
-                          tuple(sorted(config.learning_rates().items())))
+    optimizer = make_adam(config.adam_b1, config.adam_b2, config.adam_eps)
     lrs = group_tree(params, {g: jnp.asarray(v, dt) for g, v in config.learning_rates().items()})
     cam = jnp.asarray(views.camera, dt)
     lig = jnp.asarray(views.light, dt)
