@@ -62,6 +62,11 @@ class DesignConfig:
     - `checkpoint_every`: iterations between checkpoints (when a checkpoint path is given).
     - `chunk`: pairs per chunk in the renderer (memory knob).
     - `dtype`: ``"float32"`` (default) or ``"float64"`` (needs ``jax_enable_x64``).
+    - `prune_every` [iterations]: every this many iterations, move the least useful scratches
+      to where the image is most too dark (`design.prune`); 0 (default) never.
+    - `prune_fraction`: fraction of the ``N`` scratches moved per round. Default 0.05.
+    - `prune_until`: no round after this fraction of ``iterations`` (moved scratches need
+      iterations to settle). Default 0.6.
     """
 
     n_scratches: int = 20000
@@ -91,6 +96,9 @@ class DesignConfig:
     checkpoint_every: int = 10
     chunk: int = DEFAULT_CHUNK
     dtype: str = "float32"
+    prune_every: int = 0
+    prune_fraction: float = 0.05
+    prune_until: float = 0.6
 
     def __post_init__(self):
         def bad(name, what):
@@ -135,6 +143,11 @@ class DesignConfig:
             bad("init_intensity", "'match_mean' or 'given'")
         if self.dtype not in ("float32", "float64"):
             bad("dtype", "'float32' or 'float64'")
+        if not (isinstance(self.prune_every, (int, np.integer)) and self.prune_every >= 0):
+            bad("prune_every", "an int >= 0 (iterations; 0 = never)")
+        for name in ("prune_fraction", "prune_until"):
+            if not (math.isfinite(getattr(self, name)) and 0 <= getattr(self, name) <= 1):
+                bad(name, "in [0, 1]")
 
     def learning_rates(self) -> dict[str, float]:
         """Per-group learning rate, 0 for frozen groups."""
