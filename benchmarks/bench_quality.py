@@ -9,7 +9,8 @@ distance (`metrics.texture_distance`), scratches kept, the carving estimate of S
     python benchmarks/bench_quality.py --suite lambda --size 128 --scratches 5000 \
         --out /tmp/w17/lambda128.md
 
-Suites: ``lambda`` (the ``lambda_g`` sweep), ``pieces`` (today's defaults, each new piece alone,
+Suites: ``lambda`` (the ``lambda_g`` sweep), ``ghost`` (``lambda_x``), ``prune`` (re-seed
+rounds), ``pieces`` (today's defaults, each new piece alone,
 the new defaults). ``--sets`` picks target sets (``default``: camera/astronaut/chelsea; ``other``:
 coins/clock/line art; ``other2``: text/brick/page).
 """
@@ -112,14 +113,20 @@ def suite(name: str) -> list[tuple[str, dict]]:
         for lg in (20, 50, 100, 200, 400):
             rows.append((f"E_p + {lg} E_g", {"loss": {"kind": "perceptual+gram", "lambda_g": lg}}))
         return rows
+    if name == "ghost":
+        return [(f"E_p + {lx} E_x", {"loss": {"kind": "perceptual", "lambda_x": lx}})
+                for lx in (0.003, 0.01, 0.03)]
+    if name == "prune":
+        return [(f"E_p, prune every {e}, {f:.0%}", {"loss": {"kind": "perceptual"},
+                                                     "prune_every": e, "prune_fraction": f})
+                for e, f in ((10, 0.05), (20, 0.1))]
     if name == "pieces":
-        old = {"loss": {"kind": "perceptual+gram", "lambda_g": 200.0}, "prune_every": 0,
-               "ghost_weight": 0.0}
+        old = {"loss": {"kind": "perceptual+gram", "lambda_g": 200.0}, "prune_every": 0}
         return [
             ("today's defaults (E_p + 200 E_g)", old),
             ("E_p alone", {**old, "loss": {"kind": "perceptual"}}),
             ("prune/re-seed alone", {**old, "prune_every": 20}),
-            ("ghosting term alone", {**old, "ghost_weight": 1.0}),
+            ("ghosting term alone", {**old, "loss": {**old["loss"], "lambda_x": 0.01}}),
             ("new defaults", {}),
         ]
     raise SystemExit(f"unknown suite {name!r}")

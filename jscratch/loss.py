@@ -48,11 +48,14 @@ __all__ = [
     "calibrate_lambda_g",
     "gaussian_kernel3",
     "gram",
+    "cross_ssim",
+    "ghost_loss",
     "gram_loss",
     "l2_loss",
     "load_vgg19",
     "make_loss",
     "perceptual_loss",
+    "ssim_mean",
     "total_loss",
 ]
 
@@ -194,6 +197,61 @@ def perceptual_loss(render: Float[Array, "M H W"], target: Float[Array, "M H W"]
     render, target = _check_images(render, target)
     d = blur3(render - target)
     return jnp.sum(jnp.mean(d * d, axis=(-2, -1)))
+
+
+_SSIM_WIN = 7  # skimage.metrics.structural_similarity's default uniform window
+_SSIM_C1, _SSIM_C2 = 0.01**2, 0.03**2  # its constants for data_range 1
+
+
+def ssim_mean(x: Float[Array, "... H W"], y: Float[Array, "... H W"]) -> Float[Array, "..."]:
+    """Mean SSIM of ``x`` against ``y`` as ``skimage.metrics.structural_similarity`` computes it
+    (7x7 uniform window, sample covariance, ``data_range = 1``, mean over the pixels whose window
+    lies inside the image), differentiable: the measure of SPEC section 7's ghosting.
+
+    **Arguments:** `x`, `y`: ``(..., H, W)`` with ``H, W >= 7``. **Returns:** ``(...)``.
+    """
+    w = _SSIM_WIN
+    n = w * w
+
+    def mean(a):
+        dims = (1,) * (a.ndim - 2) + (w, w)
+        return jax.lax.reduce_window(a, 0.0, jax.lax.add, dims, (1,) * a.ndim, "VALID") / n
+
+    mx, my = mean(x), mean(y)
+    cn = n / (n - 1)
+    vx = cn * (mean(x * x) - mx * mx)
+    vy = cn * (mean(y * y) - my * my)
+    vxy = cn * (mean(x * y) - mx * my)
+    s = ((2 * mx * my + _SSIM_C1) * (2 * vxy + _SSIM_C2)) / (
+        (mx * mx + my * my + _SSIM_C1) * (vx + vy + _SSIM_C2))
+    return jnp.mean(s, axis=(-2, -1))
+
+
+def cross_ssim(render: Float[Array, "M H W"], target: Float[Array, "M H W"]) -> Array:
+    """``(M, M)``: ``S[j, k] = ssim_mean(g * I_j, g * T_k)`` (``g``: ``blur3``)."""
+    bi, bt = blur3(render), blur3(target)
+    return ssim_mean(bi[:, None], bt[None, :])
+
+
+def ghost_loss(render: Float[Array, "M H W"], target: Float[Array, "M H W"],
+               baseline: Float[Array, "M M"] | None = None) -> Array:
+    """Cross-view ghosting penalty ``E_x = sum_j sum_{k != j} max(0, S[j, k] - B[j, k])``.
+
+    ``S = cross_ssim(render, target)``: how much view ``j``'s render resembles view ``k``'s target
+    (SPEC section 7's ghosting, up to the 3x3 truncation of ``g``); ``B = cross_ssim(target,
+    target)`` (default): the resemblance a perfect render would have, so the term only penalises
+    ghosting *beyond* what the targets share and is 0 at the optimum of ``E_p``.
+
+    **Arguments:** `render`, `target`: ``(M, H, W)``; `baseline`: ``B`` if precomputed.
+
+    **Returns:** scalar (0 for ``M = 1``).
+    """
+    render, target = _check_images(render, target)
+    m = render.shape[0]
+    if baseline is None:
+        baseline = cross_ssim(target, target)
+    off = 1.0 - jnp.eye(m, dtype=render.dtype)
+    return jnp.sum(off * jax.nn.relu(cross_ssim(render, target) - baseline.astype(render.dtype)))
 
 
 def l2_loss(render: Float[Array, "M H W"], target: Float[Array, "M H W"]) -> Array:
@@ -614,17 +672,20 @@ class LossConfig:
       bank; with ``vgg_weights`` it must be given (``calibrate_lambda_g`` helps).
     - `vgg_weights`: path of a local VGG-19 ``.npz`` (``load_vgg19``); ``None`` uses
       ``FilterBank``.
+    - `lambda_x`: weight of the cross-view ghosting term ``E_x`` (``ghost_loss``), ``>= 0``;
+      added to any kind; 0 (default) leaves it out.
     """
 
     kind: str = "perceptual+gram"
     lambda_p: float = 1.0
     lambda_g: float | None = None
     vgg_weights: str | None = None
+    lambda_x: float = 0.0
 
     def __post_init__(self):
         if self.kind not in LOSS_KINDS:
             raise ValueError(f"kind must be one of {LOSS_KINDS}, got {self.kind!r}")
-        for name in ("lambda_p", "lambda_g"):
+        for name in ("lambda_p", "lambda_g", "lambda_x"):
             v = getattr(self, name)
             if v is None and name == "lambda_g":
                 continue
@@ -673,6 +734,7 @@ class Loss(eqx.Module):
     lambda_p: float = eqx.field(static=True)
     lambda_g: float = eqx.field(static=True)
     features: FilterBank | VGG19Features | None
+    lambda_x: float = eqx.field(static=True, default=0.0)
 
     def __call__(self, render: Float[Array, "M H W"], target: Float[Array, "M H W"]) -> Array:
         """Total loss (scalar in ``render``'s dtype)."""
@@ -718,6 +780,10 @@ class Loss(eqx.Module):
             eg = _gram_distance(_grams(self.features, render), target_grams)
             out["E_g"] = eg
             out["total"] = out["total"] + self.lambda_g * eg
+        if self.lambda_x > 0:
+            ex = ghost_loss(render, target)
+            out["E_x"] = ex
+            out["total"] = out["total"] + self.lambda_x * ex
         return out
 
     def _combine(self, render, target, target_grams) -> Array:
@@ -750,4 +816,4 @@ def make_loss(config: LossConfig | None = None) -> Loss:
     if config.kind == "perceptual+gram":
         features = FilterBank() if config.vgg_weights is None else load_vgg19(config.vgg_weights)
     lambda_g = LAMBDA_G if config.lambda_g is None else float(config.lambda_g)
-    return Loss(config.kind, float(config.lambda_p), lambda_g, features)
+    return Loss(config.kind, float(config.lambda_p), lambda_g, features, float(config.lambda_x))
