@@ -12,10 +12,14 @@ differentiable in ``render``.
 - ``gram_loss``: ``E_g = sum_j mean_l ||Gram(phi_l(I_j)) - Gram(phi_l(T_j))||_F^2`` with Gatys-style
   Gram matrices normalised by channels times positions; ``phi`` is ``FilterBank`` (weight-free,
   default) or ``VGG19Features`` (from a local weights file, ``load_vgg19``).
-- ``total_loss``, ``LossConfig``, ``make_loss``: the weighted sum ``lambda_p E_p + lambda_g E_g``.
+- ``total_loss``, ``LossConfig``, ``make_loss``: the weighted sum ``lambda_p E_p + lambda_g E_g``
+  (plus ``lambda_x E_x`` when ``LossConfig.lambda_x > 0``).
+- ``ghost_loss``: ``E_x``, the cross-view ghosting beyond the targets' own (``ssim_mean``, a
+  differentiable copy of scikit-image's SSIM; ``cross_ssim``), off by default (measured, issue 17).
 
 The design of the filter bank is in ``FilterBank``, the VGG file format in ``load_vgg19`` and the
-calibration of ``LAMBDA_G`` next to it (and ``calibrate_lambda_g``). NaN detection is the optimiser's job: these functions propagate NaN.
+calibration of ``LAMBDA_G`` next to it (measured on design runs in issue 17; ``calibrate_lambda_g``
+for VGG features). NaN detection is the optimiser's job: these functions propagate NaN.
 """
 
 from __future__ import annotations
