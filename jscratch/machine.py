@@ -62,6 +62,9 @@ class MachineProfile:
     - `min_length_mm`: shorter scratches are an error (or dropped with `drop_short`).
     - `spindle_rpm`: 0 for no spindle commands, else ``M3 S..`` / ``M5``.
     - `spinup_s`: dwell after ``M3`` for the spindle to reach speed (also sent on resume).
+    - `groove_fit`: how a carvable design maps a plunge to the renderer's groove profile
+      (`jscratch.design.carvable`): ``"height"`` (least-squares heights; default, measured best
+      "as carved") or ``"slope"`` (least-squares wall angles).
     - `overhead_s`: per-scratch acceleration and settling time, for the estimate (with the paper's
       mean 1.5 cm scratch at 1.5 cm/s this makes about one scratch a second plus travel).
     """
@@ -85,6 +88,7 @@ class MachineProfile:
     holder: str = "spring"
     plunge_min_mm: float = 0.005
     plunge_max_mm: float = 0.1
+    groove_fit: str = "height"
 
     def __post_init__(self):
         from jscratch.grbl import gword
@@ -105,13 +109,15 @@ class MachineProfile:
             if not (number(v) and v >= 0):
                 bad(name, "a finite number >= 0")
             setattr(self, name, float(v))
-        for name in ("name", "cutter", "holder", "fit"):
+        for name in ("name", "cutter", "holder", "fit", "groove_fit"):
             if not isinstance(getattr(self, name), str):
                 bad(name, "a string")
         if self.cutter != "ball":
             bad("cutter", "'ball' (the only cutter kind supported)")
         if self.holder not in ("spring", "rigid"):
             bad("holder", "'spring' or 'rigid'")
+        if self.groove_fit not in ("height", "slope"):
+            bad("groove_fit", "'height' or 'slope'")
         if not isinstance(self.drop_short, bool):
             bad("drop_short", "true or false")
         r = self.cutter_radius_mm
