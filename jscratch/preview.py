@@ -118,7 +118,7 @@ def write_gif(path, frames, marks, az, *, fps: float = 8.0):
     for img, m, a in zip(frames, marks, az):
         im = Image.fromarray(_frame_rgb(img, m))
         d = ImageDraw.Draw(im)
-        label = f"{math.degrees(a) % 360:5.1f} deg" + (f"  view {m}" if m >= 0 else "")
+        label = f"{round(math.degrees(a), 1) % 360:5.1f} deg" + (f"  view {m}" if m >= 0 else "")
         d.text((4, 2), label, fill=(255, 140, 0) if m >= 0 else (80, 160, 255))
         ims.append(im)
     ims[0].save(os.fspath(path), save_all=True, append_images=ims[1:], duration=int(1000 / fps), loop=0)
@@ -140,7 +140,7 @@ def write_sheet(path, frames, marks, az, title=""):
         if k >= f:
             continue
         ax.imshow(_frame_rgb(frames[k], marks[k]))
-        lab = f"{math.degrees(az[k]) % 360:.0f}°" + (f" view {marks[k]}" if marks[k] >= 0 else "")
+        lab = f"{round(math.degrees(az[k])) % 360}°" + (f" view {marks[k]}" if marks[k] >= 0 else "")
         ax.set_title(lab, fontsize=7, color="#d46a00" if marks[k] >= 0 else "black")
     if title:
         fig.suptitle(title, fontsize=8)

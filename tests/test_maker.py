@@ -112,26 +112,35 @@ def test_profile_toml_round_trip_and_old_config_name(tmp_path):
 # Carvable grooves.
 
 
-def _slope_rms_reference(w, d, p, R_):
-    """RMS (rad) over the cut of (paper wall angle - ball wall angle), by scipy quadrature."""
+def _fit_error_reference(w, p, R_, criterion):
+    """Mean squared misfit over the cut (scipy quadrature, float64) of the paper profile of width
+    `w` and half width `a` (its depth from x_max = a) against the ball's arc at plunge `p`:
+    wall angles (rad^2) or heights (m^2)."""
     a = math.sqrt(2 * R_ * p - p * p)
-    f = lambda x: (2 * math.atan(2 * x / w) - math.asin(x / R_)) ** 2  # noqa: E731
-    return math.sqrt(integrate.quad(f, 0, a)[0] / a)
+    d = -0.5 * w * math.log1p(-((2 * a / w) ** 2))
+    if criterion == "slope":
+        f = lambda x: (2 * math.atan(2 * x / w) - math.asin(x / R_)) ** 2  # noqa: E731
+    else:
+        f = lambda x: (-0.5 * w * math.log1p(-((2 * x / w) ** 2)) - d  # noqa: E731
+                       - (R_ - p - math.sqrt(R_ * R_ - x * x))) ** 2
+    return integrate.quad(f, 0, a, limit=200)[0] / a
 
 
-def test_groove_map_against_an_independent_slope_integral():
+@pytest.mark.parametrize("criterion", ["height", "slope"])
+def test_groove_map_is_the_least_squares_optimum(criterion):
     R_, lo, hi = 1.25e-4, 5e-6, 1e-4
-    g = groove_map(R_, lo, hi)
+    g = groove_map(R_, lo, hi, criterion)
     for p in (5e-6, 3e-5, 7e-5, 1e-4):
         w, d = (float(v) for v in g.profile_of_plunge(jnp.float64(p)))
-        best = _slope_rms_reference(w, d, p, R_)
-        # The fitted w is a least-squares optimum: nudging it either way is no better.
+        a = math.sqrt(2 * R_ * p - p * p)
+        assert groove_half_width(w, d) == pytest.approx(a, rel=1e-6)
+        best = _fit_error_reference(w, p, R_, criterion)
+        # The fitted w is the optimum of an independent float64 quadrature of the same misfit.
         for f in (0.97, 1.03):
-            a = math.sqrt(2 * R_ * p - p * p)
-            w2 = f * w
-            if w2 > 2 * a:
-                assert _slope_rms_reference(w2, d, p, R_) >= best * (1 - 1e-3)
-        assert math.degrees(best) <= g.rms_deg + 0.05
+            if f * w > 2 * a:
+                assert _fit_error_reference(f * w, p, R_, criterion) >= best * (1 - 1e-3)
+        if criterion == "slope":
+            assert math.degrees(math.sqrt(best)) <= g.rms_deg + 0.05
 
 
 @settings(max_examples=25, deadline=None)
@@ -139,7 +148,7 @@ def test_groove_map_against_an_independent_slope_integral():
        z=st.lists(st.floats(-1e6, 1e6, allow_nan=False), min_size=1, max_size=16))
 def test_carvable_bounds_for_any_parameter(r, lo, hi, z):
     R_ = r * 1e-3
-    g = groove_map(R_, lo * R_, hi * R_)
+    g = groove_map(R_, lo * R_, hi * R_)  # the default criterion
     z = jnp.asarray(z, jnp.float32)
     p = np.asarray(g.plunge(z), np.float64)
     w, d = (np.asarray(v, np.float64) for v in g.profile(z))

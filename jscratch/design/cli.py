@@ -81,8 +81,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="carvable: one plunge per scratch within the machine's range, mapped to the "
                         "groove profile (every groove cuttable); free: width and depth optimised freely "
                         "(before issue 15)")
-    p.add_argument("--as-carved-samples", type=int, default=8,
-                   help="strata per pixel side of the brute-force 'as carved' render (0: skip it)")
+    p.add_argument("--as-carved-samples", type=int, default=32,
+                   help="strata per pixel side of the brute-force 'as carved' render (0: skip it; ~50 s "
+                        "at 256 px, 20k scratches; 8 is too noisy to judge, see benchmarks/RESULTS.md)")
     return p
 
 

@@ -40,7 +40,7 @@ def plunges(design: designfile.Design, profile: MachineProfile) -> tuple[np.ndar
 
 
 def as_carved(design: designfile.Design, profile: MachineProfile, shape, design_display=None, *,
-              samples: int = 8, seed: int = 0) -> dict:
+              samples: int = 32, seed: int = 0) -> dict:
     """Per-view SSIM of the as-carved render against the design's render.
 
     **Arguments:** `design` with views; `profile` the machine; `shape` ``(H, W)`` pixels;
@@ -130,7 +130,7 @@ def carving_estimate(design: designfile.Design, profile: MachineProfile, *, time
             "machine": profile.name}
 
 
-def write_maker_outputs(result, out: str, profile: MachineProfile, *, as_carved_samples: int = 8,
+def write_maker_outputs(result, out: str, profile: MachineProfile, *, as_carved_samples: int = 32,
                         order_time: float = 5.0) -> dict:
     """After `jscratch.design.io.write_outputs`: rewrite ``design.npz`` with the machine profile and
     the plunges (carvable designs), add ``"machine"``, ``"as_carved"`` and ``"carving"`` to
