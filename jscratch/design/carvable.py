@@ -104,7 +104,9 @@ def ball_slope_fit(plunge_over_r, criterion: str = "slope") -> tuple[np.ndarray,
     p = np.asarray(plunge_over_r, np.float64)
     a = np.sqrt(2.0 * p - p * p)
     t0 = np.log(np.maximum(2.0 / a - 1.0, 1e-3))
-    t, rms = _fit_vmapped[criterion](jnp.asarray(t0, jnp.float32), jnp.asarray(a, jnp.float32))
+    # float64 when enabled (optimistix's damped operator then carries float64 scalars too).
+    dt = jnp.float64 if jnp.zeros(()).dtype == jnp.float64 else jnp.float32
+    t, rms = _fit_vmapped[criterion](jnp.asarray(t0, dt), jnp.asarray(a, dt))
     return np.asarray(t, np.float64), np.asarray(rms, np.float64)
 
 
