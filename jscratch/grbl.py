@@ -12,11 +12,11 @@ Protocol notes (GRBL 1.1 interface documentation):
 - the receive buffer holds ``rx_size - 1`` bytes (``rx_size`` from ``$I``'s ``[OPT:...,blocks,rx]``);
   character counting keeps the bytes of unanswered lines within it;
 - a soft reset clears the ``G92`` offset and the tool length offset; the ``G54``..``G59`` work
-  offsets (``G10 L2``/``L20``) live in EEPROM and survive resets and power cycles. :meth:`Grbl.connect`
+  offsets (``G10 L2``/``L20``) live in EEPROM and survive resets and power cycles. `Grbl.connect`
   therefore does not reset a controller that reports ``Idle``, and reads ``$#`` so that the caller
   can refuse a ``G92`` zero instead of losing it;
-- numbers are read as at most 8 significant digits without exponents: :func:`gword` writes every
-  word with fixed decimals inside :data:`WORD_FORMAT`'s ranges, :func:`check_words` checks a line.
+- numbers are read as at most 8 significant digits without exponents: `gword` writes every
+  word with fixed decimals inside :data:`WORD_FORMAT`'s ranges, `check_words` checks a line.
 """
 
 from __future__ import annotations
@@ -81,7 +81,7 @@ def gword(letter: str, value: float) -> str:
 
 
 def check_words(line: str) -> None:
-    """Check that every word of a G-code line (comments allowed) is as :func:`gword` writes it.
+    """Check that every word of a G-code line (comments allowed) is as `gword` writes it.
 
     Commands `G`/`M` must be whole numbers jscratch uses; `X Y Z F S P` fixed decimals in range.
     **Raises:** `ValueError` naming the first bad word.
@@ -201,13 +201,13 @@ class Grbl:
     """A GRBL 1.1 controller on a serial port.
 
     Opening starts a reader thread that classifies every reply and a poller that sends `?` every
-    `poll_interval` s. Use :meth:`connect` (status, reset unless `Idle`, `$I`, alarm check, `$#`)
-    before :meth:`stream`.
+    `poll_interval` s. Use `connect` (status, reset unless `Idle`, `$I`, alarm check, `$#`)
+    before `stream`.
 
     **Arguments:** `port` device path; `baud` rate; `banner_timeout` s to wait for the banner;
     `stall_timeout` s without any byte from the device before it counts as lost; `idle_timeout` s a
     line may stay unanswered while every status report says `Idle` (plus the `P` of dwells in
-    flight) before :meth:`stream` raises :class:`Stalled`; `poll_interval` s between status polls;
+    flight) before `stream` raises `Stalled`; `poll_interval` s between status polls;
     `log` a callable taking a string (warnings, unknown lines).
     """
 
@@ -381,7 +381,7 @@ class Grbl:
         return dict(self.status)
 
     def command(self, line: str, timeout: float = 10.0) -> Reply:
-        """Send one line and wait for its `ok`/`error:N` (ALARM raises :class:`JobFault`)."""
+        """Send one line and wait for its `ok`/`error:N` (ALARM raises `JobFault`)."""
         self._write((line + "\n").encode("ascii"))
         self.lines_sent.append(line)
         while True:
@@ -435,8 +435,8 @@ class Grbl:
         offset, which the caller must see to refuse); any other state, or no report, gets a soft
         reset and must answer with the GRBL 1.1 banner. `$I` must report version 1.1.
 
-        **Raises:** :class:`NotGrblError` (nothing but `?`, wake bytes and a reset was sent),
-        :class:`AlarmLocked` when in Alarm and neither `home` nor `unlock` is set.
+        **Raises:** `NotGrblError` (nothing but `?`, wake bytes and a reset was sent),
+        `AlarmLocked` when in Alarm and neither `home` nor `unlock` is set.
         """
         time.sleep(0.05)
         self._drain()  # stale replies to an earlier session
@@ -479,7 +479,7 @@ class Grbl:
         return self
 
     def read_offsets(self) -> dict:
-        """Send `$#` and `$G`; fills :attr:`offsets` and :attr:`modes` and returns the offsets."""
+        """Send `$#` and `$G`; fills `offsets` and `modes` and returns the offsets."""
         self.messages.clear()
         r = self.command("$#")
         if r.kind != "ok":
@@ -507,13 +507,13 @@ class Grbl:
         `error` can never let a later scratch run).
 
         Watchdog: when lines are owed an answer and every status report for `idle_timeout` s (plus
-        the `P` seconds of owed `G4` dwells) has said `Idle`, the answer was lost: :class:`Stalled`.
+        the `P` seconds of owed `G4` dwells) has said `Idle`, the answer was lost: `Stalled`.
 
         **Arguments:** `items` G-code lines (no comments, no line endings); `barrier` per item;
         `counting` character counting; `on_ok(i)` called for each `ok`, in order.
 
-        **Raises:** :class:`JobFault` on `error:N`, `ALARM:N` or an unexpected reset;
-        :class:`Stalled`; :class:`DeviceLost`; `KeyboardInterrupt` passes through (the caller
+        **Raises:** `JobFault` on `error:N`, `ALARM:N` or an unexpected reset;
+        `Stalled`; `DeviceLost`; `KeyboardInterrupt` passes through (the caller
         holds and retracts).
         """
         cap = self.rx_size - 1
@@ -594,7 +594,7 @@ class Grbl:
     def check_mode(self, items: Sequence[str], *, counting: bool = False):
         """Run `items` through GRBL's `$C` check mode (parsed, not moved), then leave check mode.
 
-        **Raises:** :class:`JobFault` at the first `error:N` (check mode is left first).
+        **Raises:** `JobFault` at the first `error:N` (check mode is left first).
         """
         r = self.command("$C")
         if r.kind != "ok" or not any("Enabled" in m for m in self.messages[-3:]):
@@ -650,7 +650,7 @@ class Journal:
 
     @classmethod
     def check(cls, path, gcode_sha256: str, *, resume: bool) -> dict:
-        """Whether a session may start (before anything is sent); raises :class:`JournalError` if not.
+        """Whether a session may start (before anything is sent); raises `JournalError` if not.
 
         **Returns:** dict with `done` (scratches journalled), `n_scratches` and `work_zero` (that of the
         latest session, or None).

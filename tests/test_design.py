@@ -46,7 +46,7 @@ def _tiny_config(**kw):
     return DesignConfig(**base)
 
 
-def test_cli_end_to_end_resume_and_nan(tmp_path):
+def test_cli_end_to_end_resume_and_nan(tmp_path, capsys):
     # 1. The CLI on a tiny scene with the skimage.data defaults: every output, a decreasing loss.
     full = tmp_path / "full"
     assert main(TINY + ["--iterations", "4", "--out", str(full)]) == 0
@@ -78,6 +78,13 @@ def test_cli_end_to_end_resume_and_nan(tmp_path):
     assert ck_part.keys() == ck_full.keys()
     for k in ck_full:
         np.testing.assert_array_equal(ck_part[k], ck_full[k], err_msg=k)
+    # A checkpoint lacking a pair-list field (another version's) is refused in one line.
+    np.savez(part / "checkpoint.npz", meta=np.frombuffer(json.dumps(meta_part).encode(), np.uint8),
+             **{k: v for k, v in ck_part.items() if k != "pairs/bin_tol"})
+    capsys.readouterr()
+    assert main(["--resume", "--iterations", "5", "--out", str(part), "--quiet"]) != 0
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: checkpoint ") and "lacks bin_tol" in err and "\n" not in err
 
     # 3. A learning rate that blows up the width: stop, name iteration and parameter, keep the
     #    last good state in the checkpoint.
