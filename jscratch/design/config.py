@@ -62,6 +62,11 @@ class DesignConfig:
     - `checkpoint_every`: iterations between checkpoints (when a checkpoint path is given).
     - `chunk`: pairs per chunk in the renderer (memory knob).
     - `dtype`: ``"float32"`` (default) or ``"float64"`` (needs ``jax_enable_x64``).
+    - `groove`: ``"free"`` (default here: ``w, d`` optimised freely, as before issue 15) or
+      ``"carvable"`` (one plunge per scratch within the machine's range, mapped to ``(w, d)`` by
+      `jscratch.design.carvable`; the command line's default).
+    - `machine`: the machine profile as a dict (`jscratch.machine.MachineProfile.to_dict`), or
+      None for the shipped default; its cutter fixes the carvable grooves.
     """
 
     n_scratches: int = 20000
@@ -91,6 +96,8 @@ class DesignConfig:
     checkpoint_every: int = 10
     chunk: int = DEFAULT_CHUNK
     dtype: str = "float32"
+    groove: str = "free"
+    machine: dict | None = None
 
     def __post_init__(self):
         def bad(name, what):
@@ -135,6 +142,24 @@ class DesignConfig:
             bad("init_intensity", "'match_mean' or 'given'")
         if self.dtype not in ("float32", "float64"):
             bad("dtype", "'float32' or 'float64'")
+        from jscratch.design.carvable import GROOVE_MODES
+
+        if self.groove not in GROOVE_MODES:
+            bad("groove", f"one of {GROOVE_MODES}")
+        if self.machine is not None:
+            from jscratch.machine import MachineProfile
+
+            try:
+                prof = MachineProfile.from_dict(dict(self.machine), source="DesignConfig.machine")
+            except (TypeError, ValueError) as e:
+                raise DesignError(str(e)) from None
+            object.__setattr__(self, "machine", prof.to_dict())
+
+    def machine_profile(self):
+        """The `jscratch.machine.MachineProfile` of `machine` (the shipped default when None)."""
+        from jscratch.machine import MachineProfile
+
+        return MachineProfile.from_dict(self.machine or {})
 
     def learning_rates(self) -> dict[str, float]:
         """Per-group learning rate, 0 for frozen groups."""

@@ -120,8 +120,13 @@ def _setup(tnp, views, board, config):
     scratches = Scratches.random(
         jax.random.PRNGKey(config.seed), config.n_scratches, board, length=config.init_length,
         width=config.init_width, depth=config.init_depth, alpha=config.init_alpha, dtype=dt)
+    groove = None
+    if config.groove == "carvable":
+        from jscratch.design.carvable import groove_map_of
+
+        groove = groove_map_of(config.machine_profile())
     params = DesignParams.from_physical(scratches, np.asarray(views.intensity), board,
-                                        config.parameterisation)
+                                        config.parameterisation, groove)
     optimizer = make_adam(config.adam_b1, config.adam_b2, config.adam_eps)
     lrs = group_tree(params, {g: jnp.asarray(v, dt) for g, v in config.learning_rates().items()})
     cam = jnp.asarray(views.camera, dt)
