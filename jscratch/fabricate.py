@@ -432,6 +432,9 @@ def summarize(info: dict) -> str:
     if ac:
         out.append(f"as carved        SSIM vs the design render per view {[round(x, 3) for x in ac['ssim']]} "
                    f"(ball profile, brute force; from {ac.get('source', 'the design run')})")
+    elif "as_carved" in info:
+        out.append("as carved        not computed: run the design with --as-carved-samples 32 to "
+                   "preview the board the ball will cut")
     return "\n".join(out)
 
 
@@ -522,8 +525,8 @@ def _attach_as_carved(info: dict, design_path: str):
             ac = json.load(f).get("as_carved")
     except (OSError, ValueError):
         return
-    if ac and "ssim" in ac:
-        info["as_carved"] = {"ssim": ac["ssim"], "source": mpath}
+    # (None: a design run's metrics without it; the summary says how to get it)
+    info["as_carved"] = {"ssim": ac["ssim"], "source": mpath} if ac and "ssim" in ac else None
 
 
 def main(argv=None) -> int:

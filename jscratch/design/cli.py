@@ -81,9 +81,11 @@ def _parser() -> argparse.ArgumentParser:
                    help="carvable: one plunge per scratch within the machine's range, mapped to the "
                         "groove profile (every groove cuttable); free: width and depth optimised freely "
                         "(before issue 15)")
-    p.add_argument("--as-carved-samples", type=int, default=32,
-                   help="strata per pixel side of the brute-force 'as carved' render (0: skip it; ~50 s "
-                        "at 256 px, 20k scratches; 8 is too noisy to judge, see benchmarks/RESULTS.md)")
+    p.add_argument("--as-carved-samples", type=int, default=0,
+                   help="strata per pixel side of the brute-force 'as carved' render, the design with the "
+                        "ball's real arc (0: skip it, the default, so the main job stays fast; 32 is what "
+                        "the maker's path uses: ~35-50 s more at 256 px, 20k scratches; 8 is too noisy to "
+                        "judge, see benchmarks/RESULTS.md)")
     return p
 
 

@@ -131,11 +131,13 @@ def carving_estimate(design: designfile.Design, profile: MachineProfile, *, time
 
 
 def write_maker_outputs(result, out: str, profile: MachineProfile, *, as_carved_samples: int = 32,
-                        order_time: float = 5.0) -> dict:
+                        order_time: float = 1.0) -> dict:
     """After `jscratch.design.io.write_outputs`: rewrite ``design.npz`` with the machine profile and
     the plunges (carvable designs), add ``"machine"``, ``"as_carved"`` and ``"carving"`` to
-    ``metrics.json`` (and `result.metrics`), write ``view<j>_carved.png``. Returns the additions."""
-    from jscratch.design.io import _png
+    ``metrics.json`` (and `result.metrics`), write ``view<j>_carved.png`` (``as_carved_samples > 0``).
+    The carving estimate orders the toolpath with ``order_time`` s of 2-opt (the dry run orders
+    again with its own limit). Returns the additions."""
+    from jscratch.design.io import write_png
 
     s, v, b = result.scratches, result.views, result.board
     plunge = None
@@ -149,7 +151,7 @@ def write_maker_outputs(result, out: str, profile: MachineProfile, *, as_carved_
     if as_carved_samples > 0:
         ac = as_carved(d, profile, b.shape, result.display, samples=as_carved_samples)
         for j, img in enumerate(ac.pop("display")):
-            _png(os.path.join(out, f"view{j}_carved.png"), img)
+            write_png(os.path.join(out, f"view{j}_carved.png"), img)
         add["as_carved"] = ac
     add["carving"] = carving_estimate(d, profile, time_limit=order_time)
     result.metrics.update(add)
