@@ -11,7 +11,7 @@ A design is one ``.npz`` file holding
   string array holding its JSON, and ``plunge`` (``(N,)``, metres): the cutter plunge of each
   scratch of a carvable design (within the profile's ``[plunge_min_mm, plunge_max_mm]``).
 
-The ``.npz`` is the source of truth; :func:`write_svg` exports the same scratches for people and plotter
+The ``.npz`` is the source of truth; `write_svg` exports the same scratches for people and plotter
 tools. Loading checks shapes, finiteness, ranges and that every endpoint lies on the board, and names
 the first bad scratch and field.
 """
@@ -110,14 +110,14 @@ def _as_float_array(name, value, source):
 
 def validate_design(p0, p1, width, depth, alpha, board, camera=None, light=None, intensity=None,
                     machine=None, plunge=None, *, source="design") -> Design:
-    """Check a design against SPEC section 9 and return it as a float64 :class:`Design`.
+    """Check a design against SPEC section 9 and return it as a float64 `Design`.
 
     **Arguments:** the design arrays (anything `np.asarray` reads, e.g. jax arrays), see
-    :class:`Design`; `source` names the design in messages (a file name).
+    `Design`; `source` names the design in messages (a file name).
 
-    **Returns:** the :class:`Design`.
+    **Returns:** the `Design`.
 
-    **Raises:** :class:`DesignError` naming the array and the first bad scratch (or view) when a
+    **Raises:** `DesignError` naming the array and the first bad scratch (or view) when a
     shape is wrong, a value is not finite, `width`, `depth` or `alpha` is out of range
     (`w > 0`, `d > 0`, `0 < alpha < 1`: the rules of `jscratch.scene.check_scratches`, the same
     the renderer applies), or an endpoint lies off the board.
@@ -218,11 +218,11 @@ def save_design(path, p0, p1, width, depth, alpha, board, camera=None, light=Non
     """Validate and write a design to a `.npz` file (SPEC section 9), atomically.
 
     **Arguments:** `path` (the file; written as given, no suffix added), then the arrays of
-    :class:`Design` (numpy or jax, float32 or float64; stored as float64).
+    `Design` (numpy or jax, float32 or float64; stored as float64).
 
-    **Returns:** the validated :class:`Design`.
+    **Returns:** the validated `Design`.
 
-    **Raises:** :class:`DesignError` for an invalid design; nothing is written then.
+    **Raises:** `DesignError` for an invalid design; nothing is written then.
     """
     path = os.fspath(path)
     design = validate_design(p0, p1, width, depth, alpha, board, camera, light, intensity, machine, plunge,
@@ -253,9 +253,9 @@ def load_design(path) -> Design:
 
     **Arguments:** `path` to the file.
 
-    **Returns:** a :class:`Design` of float64 numpy arrays.
+    **Returns:** a `Design` of float64 numpy arrays.
 
-    **Raises:** `FileNotFoundError` for a missing file; :class:`DesignError` naming the array and
+    **Raises:** `FileNotFoundError` for a missing file; `DesignError` naming the array and
     the first bad scratch for a file that is not a valid design.
     """
     path = os.fspath(path)
@@ -292,7 +292,7 @@ def write_svg(path, design: Design, *, min_stroke_mm: float = 0.02) -> None:
     `y = Sy` at the top (SPEC section 1). Each line's stroke width is the groove width `2 x_max`
     (at least `min_stroke_mm`, to stay visible) and its `id` is `s<index>`.
 
-    **Arguments:** `path` of the SVG; `design` a :class:`Design`; `min_stroke_mm` the thinnest stroke.
+    **Arguments:** `path` of the SVG; `design` a `Design`; `min_stroke_mm` the thinnest stroke.
     """
     sx, sy = (1000.0 * design.board).tolist()
     stroke = np.maximum(2000.0 * groove_half_width(design.width, design.depth), min_stroke_mm)
@@ -326,7 +326,7 @@ def demo_design(n: int = 400, seed: int = 0, board=(0.3, 0.3)) -> Design:
 
     **Arguments:** `n` scratches (>= 1), `seed` for `numpy.random.default_rng`, `board` `(Sx, Sy)` m.
 
-    **Returns:** a :class:`Design` without views.
+    **Returns:** a `Design` without views.
     """
     if int(n) < 1:
         raise ValueError(f"n must be >= 1, got {n}")

@@ -4,15 +4,15 @@ A separate, imperative stage (SPEC section 8): it reads a design file (SPEC sect
 3-axis carver with a ball-end cutter for hours, so every step is checked before any motion and the
 progress survives crashes.
 
-- :class:`~jscratch.machine.MachineProfile` (also ``MachineConfig``): the machine profile, read
+- `jscratch.machine.MachineProfile` (also ``MachineConfig``): the machine profile, read
   from ``--machine FILE`` (TOML; ``--config`` is the older name) or recorded in the design file;
-  :func:`machine_for_design` reconciles the two (a different cutter is refused).
+  `machine_for_design` reconciles the two (a different cutter is refused).
 - Carvable designs (``plunge`` in the design file) are cut at their recorded plunges; other
   designs get a fitted plunge:
-- :func:`fit_plunge`: plunge depth of a ball-end cutter of radius `R` that best matches each
+- `fit_plunge`: plunge depth of a ball-end cutter of radius `R` that best matches each
   scratch's groove profile (least squares with optimistix), with the fit error.
-- :func:`make_program`: ordered G-code (mm, absolute) with a line map (line -> scratch).
-- :func:`carve`: stream a G-code file to GRBL over a serial port with a journal and resume.
+- `make_program`: ordered G-code (mm, absolute) with a line map (line -> scratch).
+- `carve`: stream a G-code file to GRBL over a serial port with a journal and resume.
 - ``python -m jscratch.fabricate --help``: the command line.
 
 G-code layout (preamble ``G21 G90 G94 G17 G54``, then, with a spindle, ``M3 S..`` and a
@@ -30,13 +30,13 @@ partly cut.
 
 Work zero: the board corner on its surface is the origin of the ``G54`` work system, set on the
 machine with ``G10 L20 P1 X0 Y0 Z0`` (stored in GRBL's EEPROM, kept across resets and power
-cycles). :func:`carve` refuses a ``G92`` offset or a tool length offset (GRBL clears both at every
+cycles). `carve` refuses a ``G92`` offset or a tool length offset (GRBL clears both at every
 reset, so a job relying on them would shift after a fault or on resume), journals the ``G54``
 offset and refuses to resume when it has changed (unless `rezeroed`).
 
-Numbers: every word is written by :func:`jscratch.grbl.gword` (fixed decimals, no exponent, within
-GRBL's 8-digit reader); :func:`make_program` re-reads each line with
-:func:`jscratch.grbl.check_words` and checks the bounds: every X/Y in ``[offset - margin, offset + S
+Numbers: every word is written by `jscratch.grbl.gword` (fixed decimals, no exponent, within
+GRBL's 8-digit reader); `make_program` re-reads each line with
+`jscratch.grbl.check_words` and checks the bounds: every X/Y in ``[offset - margin, offset + S
 + margin]`` mm (``margin_mm``, default 0: design endpoints within the load tolerance are clamped
 onto the board), every Z in ``[-max plunge, safe_z]``.
 """
@@ -139,7 +139,7 @@ def fit_plunge(width, depth, radius: float, *, mode: str = "per-scratch") -> Cut
 
     **Arguments:** `width`, `depth` `(N,)` metres; `radius` metres; `mode` `"per-scratch"` or `"global"`.
 
-    **Returns:** a :class:`CutterFit`.
+    **Returns:** a `CutterFit`.
     """
     import jax.numpy as jnp
 
@@ -243,7 +243,7 @@ def machine_for_design(design: Design, file_profile: MachineProfile | None, over
 
 
 def check_design_for_cutting(design: Design, cfg: MachineConfig):
-    """Scratches long enough to cut; raises :class:`DesignError` naming the first too-short scratch.
+    """Scratches long enough to cut; raises `DesignError` naming the first too-short scratch.
 
     **Returns:** `(N,)` bool mask of scratches to cut (all True unless `cfg.drop_short`).
     """
@@ -262,10 +262,10 @@ def make_program(design: Design, cfg: MachineConfig, *, improve: bool = True, ti
                  quiet: bool = True) -> Program:
     """Order the scratches, fit the plunge and write GRBL 1.1 G-code with its line map.
 
-    **Arguments:** `design` a :class:`~jscratch.designfile.Design`; `cfg` machine settings;
-    `improve`/`time_limit` for :func:`~jscratch.toolpath.order_scratches`; `quiet`.
+    **Arguments:** `design` a `jscratch.designfile.Design`; `cfg` machine settings;
+    `improve`/`time_limit` for `jscratch.toolpath.order_scratches`; `quiet`.
 
-    **Returns:** a :class:`Program`. **Raises:** `DesignError` for scratches too short to cut,
+    **Returns:** a `Program`. **Raises:** `DesignError` for scratches too short to cut,
     `ValueError` if a coordinate would leave the board (+ margin).
     """
     keep = check_design_for_cutting(design, cfg)
@@ -392,7 +392,7 @@ def write_preview(prog: Program, path, board_mm, offset_mm=(0.0, 0.0)):
 
 
 def summarize(info: dict) -> str:
-    """Human-readable summary of :attr:`Program.info`."""
+    """Human-readable summary of `Program.info`."""
     t = info["estimated_seconds"]
 
     def box(b):
@@ -499,7 +499,7 @@ def _parser():
 
 def _refuse_overwrite(gcode: str):
     """Refuse to write `gcode` while its journal exists: the program belongs to that job."""
-    from jscratch.grbl import Journal
+    from jscratch.journal import Journal
 
     jp = gcode + ".journal"
     if not os.path.exists(jp):

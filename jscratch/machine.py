@@ -1,6 +1,6 @@
 """The machine profile: one small TOML file that both the design and the fabrication read.
 
-A :class:`MachineProfile` (``MachineConfig`` is the same class, its older name) describes the carver:
+A `MachineProfile` (``MachineConfig`` is the same class, its older name) describes the carver:
 the cutter (a ball end of radius ``R`` on a spring holder, paper section 5), the plunge range it can
 cut well, the feeds, and the G-code settings. ``python -m jscratch.design --machine FILE`` designs
 grooves that this cutter can cut (`jscratch.design.carvable`) and records the profile in the design
@@ -18,7 +18,7 @@ The file is TOML, one ``[machine]`` table (or bare keys) named as the fields bel
 ``python -m jscratch.machine`` prints the shipped default (the paper's setup) as such a file.
 A bad value is a one-line `ValueError` naming the key (``machine.plunge_max_mm must ...``).
 
-Also here: :func:`carving_seconds`, the carving-time estimate from the profile's feeds and an
+Also here: `carving_seconds`, the carving-time estimate from the profile's feeds and an
 ordered toolpath (used by `jscratch.fabricate` and the design's ``metrics.json``).
 """
 

@@ -32,7 +32,7 @@ The fit (optimistix Levenberg-Marquardt, vmapped over a grid of plunges) runs on
 (`groove_map`, cached); the optimiser's width parameter is then the plunge logit
 ``z``: ``p = p_min + (p_max - p_min) sigmoid(z)``, and ``(w, d)`` follow from ``p`` by
 interpolating ``log(w / 2a - 1)`` on the grid. Every ``p`` lies in ``[p_min, p_max]`` whatever
-``z`` is, so every groove is carvable. See :class:`GrooveMap`.
+``z`` is, so every groove is carvable. See `GrooveMap`.
 """
 
 from __future__ import annotations

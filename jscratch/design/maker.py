@@ -1,16 +1,16 @@
 """What a maker needs from a design run: the machine profile and plunges in the design file, the
 "as carved" render and the carving-time estimate in ``metrics.json``.
 
-- :func:`plunges`: the plunge of every kept scratch (recorded for carvable designs; fitted by
+- `plunges`: the plunge of every kept scratch (recorded for carvable designs; fitted by
   height, as `jscratch.fabricate` would, for free ones).
-- :func:`as_carved`: render the design with the grooves the ball really cuts (`jscratch.brute`
+- `as_carved`: render the design with the grooves the ball really cuts (`jscratch.brute`
   with ``ball_radius``, an independent supersampling path) and compare it, per view, with the
   design's own render (SPEC section 7 SSIM: Gaussian sigma 1 px, then SSIM). The same samples
   also render the design's own profile, so the report separates the profile's effect from the
   sampling noise.
-- :func:`carving_estimate`: the ordered toolpath (`jscratch.toolpath.order_scratches`) and its
+- `carving_estimate`: the ordered toolpath (`jscratch.toolpath.order_scratches`) and its
   time with the profile's feeds (`jscratch.machine.carving_seconds`).
-- :func:`write_maker_outputs`: all of it for ``python -m jscratch.design``.
+- `write_maker_outputs`: all of it for ``python -m jscratch.design``.
 """
 
 from __future__ import annotations
