@@ -15,7 +15,7 @@ from scipy import integrate
 
 from jscratch import designfile
 from jscratch import fabricate
-from jscratch import render as R
+from jscratch import render
 from jscratch.design import DesignConfig
 from jscratch.design import main as design_main
 from jscratch.design.carvable import groove_map
@@ -169,8 +169,8 @@ def _tiny_optimisation():
         from jscratch.design.io import default_targets
         from jscratch.design.run import _bin, _setup
 
-        board = R.Board(shape=(SIZE, SIZE))
-        views = R.views_on_circle(2, math.radians(50), board=board)
+        board = render.Board(shape=(SIZE, SIZE))
+        views = render.views_on_circle(2, math.radians(50), board=board)
         targets, _ = default_targets(2, (SIZE, SIZE))
         # The round trip's scene and machine, so that the jitted step is compiled once for both.
         cfg = DesignConfig(n_scratches=150, iterations=1, groove="carvable", machine=_MINE)
@@ -221,9 +221,9 @@ def test_ball_brute_render_against_quadrature():
     from jscratch.brute import brute_sums
 
     Rb, p, alpha = 2e-3, 6e-4, 0.3
-    board = R.Board(shape=(1, 1), Sx=0.01, Sy=0.01)
-    views = R.Views(jnp.array([[0.004, 0.005, 0.05]]), jnp.array([[0.008, 0.005, 0.04]]), 1.0)
-    sc = R.Scratches(jnp.array([[0.005, 0.0]]), jnp.array([[0.005, 0.01]]), 1e-3, p, alpha)
+    board = render.Board(shape=(1, 1), Sx=0.01, Sy=0.01)
+    views = render.Views(jnp.array([[0.004, 0.005, 0.05]]), jnp.array([[0.008, 0.005, 0.04]]), 1.0)
+    sc = render.Scratches(jnp.array([[0.005, 0.0]]), jnp.array([[0.005, 0.01]]), 1e-3, p, alpha)
     D, c = brute_sums(sc, views, board, n=96, ball_radius=Rb)
     a = math.sqrt(2 * Rb * p - p * p)
     ctr = np.array([0.005, 0.005, 0.0])
@@ -261,7 +261,7 @@ def test_orbit_preview_on_a_tiny_design(tmp_path):
     from jscratch.preview import main, orbit_views
 
     d = designfile.demo_design(60)
-    views = R.views_on_circle(3, math.radians(50))
+    views = render.views_on_circle(3, math.radians(50))
     path = tmp_path / "tiny.npz"
     designfile.save_design(path, d.p0, d.p1, d.width, d.depth, d.alpha, d.board, np.asarray(views.camera),
                            np.asarray(views.light), np.array([1.0, 2.0, 3.0]))
