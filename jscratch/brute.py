@@ -17,6 +17,11 @@ area, exactly the additive superposition of the analytic model (``D_P = sum_i D_
 Shading is re-implemented here from SPEC section 4 (in algebraically different but equivalent forms)
 so that it checks `render.shade` too. Nothing here imports `jscratch.ndf`.
 
+**As carved** (``ball_radius=R``): each scratch's groove is instead the circular arc a ball-end
+cutter of radius ``R`` cuts at plunge ``p``, the scratch's ``depth`` field (``z(x) = R - p -
+sqrt(R^2 - x^2)`` over ``|x| < sqrt(2Rp - p^2)``, normal ``(-x, 0, sqrt(R^2 - x^2)) / R``);
+``width`` is then unused. Used by `jscratch.design.maker` to render what the machine will carve.
+
 Cost: ``M * n^2`` point evaluations per (pixel, scratch) pair. The unbiased estimate's error falls
 like ``n^-1.5`` for a smooth groove edge crossing a pixel (stratified sampling of a discontinuous
 integrand) and is much larger when the groove is thinner than the sample spacing.
@@ -70,7 +75,7 @@ def _ggx_cos(c, a):
     return jnp.where(c > 0, a * a / (jnp.pi * den * den), 0.0)
 
 
-def _pair_samples(key, n, xe, ye, W, P, pixel, p0, p1, width, depth, alpha, h_views):
+def _pair_samples(key, n, xe, ye, W, P, ball_radius, pixel, p0, p1, width, depth, alpha, h_views):
     """Sample-mean ``D`` per view ``(M,)`` and coverage of one scratch over one pixel footprint."""
     dt = width.dtype
     q_pix = pixel % P
@@ -89,10 +94,17 @@ def _pair_samples(key, n, xe, ye, W, P, pixel, p0, p1, width, depth, alpha, h_vi
     b = jnp.stack([t[1], -t[0]])
     lx = (qx - p0[0]) * b[0] + (qy - p0[1]) * b[1]
     ly = (qx - p0[0]) * t[0] + (qy - p0[1]) * t[1]
-    xm = groove_half_width(width, depth)
+    if ball_radius is None:
+        xm = groove_half_width(width, depth)
+    else:  # the ball's cut at plunge `depth`
+        R = jnp.asarray(ball_radius, dt)
+        xm = jnp.sqrt(jnp.maximum(2.0 * R * depth - depth * depth, 0.0))
     inside = ok & (jnp.abs(lx) < xm) & (ly >= 0) & (ly <= length)
     lx_safe = jnp.where(inside, lx, 0.0)
-    slope = height_profile_slope(lx_safe, width, depth)
+    if ball_radius is None:
+        slope = height_profile_slope(lx_safe, width, depth)
+    else:
+        slope = lx_safe / jnp.sqrt(R * R - lx_safe * lx_safe)
     nrm = jnp.stack([-slope, jnp.zeros_like(slope), jnp.ones_like(slope)], -1)
     nrm = nrm / jnp.sqrt(1.0 + slope * slope)[..., None]  # (n, n, 3), local frame
     h_loc = jnp.stack([h_views[:, :2] @ b, h_views[:, :2] @ t, h_views[:, 2]], -1)  # (M, 3)
@@ -114,7 +126,7 @@ def _half_vectors(views, board, dtype):
 
 
 def brute_sums(scratches, views, board, *, n: int = 16, key=None, pairs=None,
-               batch: int = 256) -> tuple[Float[Array, "m p"], Float[Array, " p"]]:
+               batch: int = 256, ball_radius: float | None = None) -> tuple[Float[Array, "m p"], Float[Array, " p"]]:
     """Supersampled patch NDF ``D_P`` ``(M, H*W)`` (1/sr) and coverage ``c`` ``(H*W,)``.
 
     **Arguments:**
@@ -127,6 +139,8 @@ def brute_sums(scratches, views, board, *, n: int = 16, key=None, pairs=None,
     - `pairs`: optional `bvh.Pairs` ``(L,)`` restricting which scratches are tested against which
       pixel (for speed); default: every scratch against every pixel (fully independent of binning).
     - `batch`: pairs per `lax.map` step (memory ``batch * n^2 * M``).
+    - `ball_radius`: None (the SPEC section 2 profile) or ``R`` (m): the grooves are a ball's cut
+      at plunge ``depth`` (module docstring).
     """
     dt = scratches.dtype
     key = jax.random.PRNGKey(0) if key is None else key
@@ -142,7 +156,7 @@ def brute_sums(scratches, views, board, *, n: int = 16, key=None, pairs=None,
         valid = jnp.asarray(pairs.valid).reshape(-1)
     h = jnp.swapaxes(_half_vectors(views, board, dt)[2], 0, 1)  # (P, M, 3)
     s = scratches
-    one = functools.partial(_pair_samples, key, n, xe, ye, board.W, P)
+    one = functools.partial(_pair_samples, key, n, xe, ye, board.W, P, ball_radius)
 
     def pair(args):
         p, i, ok = args
@@ -179,10 +193,11 @@ def brute_shade(D_P, coverage, views, board) -> Float[Array, "m p"]:
 
 
 def brute_render(scratches, views, board, *, n: int = 16, key=None, pairs=None,
-                 batch: int = 256) -> Float[Array, "m h w"]:
+                 batch: int = 256, ball_radius: float | None = None) -> Float[Array, "m h w"]:
     """Brute-force radiance ``(M, H, W)`` (W/(sr m^2)): `brute_sums` then `brute_shade`.
     Arguments as in `brute_sums`."""
-    D_P, c = brute_sums(scratches, views, board, n=n, key=key, pairs=pairs, batch=batch)
+    D_P, c = brute_sums(scratches, views, board, n=n, key=key, pairs=pairs, batch=batch,
+                        ball_radius=ball_radius)
     return brute_shade(D_P, c[None], views, board).reshape(views.m, board.H, board.W)
 
 

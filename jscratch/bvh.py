@@ -1,9 +1,9 @@
 """Binning scratches to pixels: a flat padded pair list at fixed capacity, with overflow and culling.
 
 The paper finds pixel/scratch pairs with an OptiX BVH. We use a uniform grid (the image itself) and
-the jax-md neighbour-list pattern instead: a host-side [`allocate`][] measures the capacities a
-scene needs (times a margin), a jitted [`update`][] rebins at those fixed capacities and raises an
-`overflow` flag instead of dropping pairs, and the host driver [`build_pairs`][] re-allocates and
+the jax-md neighbour-list pattern instead: a host-side `allocate` measures the capacities a
+scene needs (times a margin), a jitted `update` rebins at those fixed capacities and raises an
+`overflow` flag instead of dropping pairs, and the host driver `build_pairs` re-allocates and
 recomputes on overflow, so it never hands back an incomplete list.
 
 **Which pairs.** Pixel `(r, c)` has the closed axis-aligned footprint of SPEC section 1; scratch `i`
@@ -26,18 +26,18 @@ square, four axes) and the survivors are compacted, in scratch order, into the f
 per pixel vary a lot (K must cover the busiest pixel); see `benchmarks/results/bvh.md`.
 
 **Rebinning only when needed (skin).** With `skin > 0` the binning uses grooves inflated by `skin`
-across and at both ends. [`needs_rebin`][] checks, inside jit and in O(N), whether every current
+across and at both ends. `needs_rebin` checks, inside jit and in O(N), whether every current
 groove still lies inside the inflated groove it was binned with (exact containment of the 4
 corners); while it does, the old list still holds every pair (the extra pairs contribute zero), and
-[`maybe_update`][] skips the rebin. A pure translation by less than `skin` along and across never
+`maybe_update` skips the rebin. A pure translation by less than `skin` along and across never
 needs a rebin.
 
 **Culling** (the rigorous per-pair bound, per-view culled lists at fixed capacities) lives in
-`jscratch.cull`, built on these lists and [`compact`][].
+`jscratch.cull`, built on these lists and `compact`.
 
-**Host layout for the renderer.** [`bin_pairs`][] (the compacted list of a `scene.Scratches` on a
+**Host layout for the renderer.** `bin_pairs` (the compacted list of a `scene.Scratches` on a
 `scene.Board`) packs the valid pairs into ``shards`` equal segments by pixel block
-([`pixels_per_shard`][], [`layout`][]), the layout `render.render_pairs` needs with a mesh, each
+(`pixels_per_shard`, `layout`), the layout `render.render_pairs` needs with a mesh, each
 segment's length rounded so that similar scenes share a compilation (`cull.cull_pairs` does the
 same per view).
 
@@ -95,9 +95,9 @@ class GridSpec(eqx.Module):
     - `strip_capacity`: slots in the flat strip list (one strip = one scratch crossing one image
       column or row).
     - `rows_per_strip`: candidate cells per strip.
-    - `pair_capacity`: slots `L` in the returned [`Pairs`][].
-    - `skin`: metres by which grooves are inflated for binning (see [`needs_rebin`][]).
-    - `margin`: capacity multiplier used by [`allocate`][] (kept for re-allocation).
+    - `pair_capacity`: slots `L` in the returned `Pairs`.
+    - `skin`: metres by which grooves are inflated for binning (see `needs_rebin`).
+    - `margin`: capacity multiplier used by `allocate` (kept for re-allocation).
     """
 
     board: tuple[float, float] = eqx.field(static=True)
@@ -131,16 +131,16 @@ class Pairs(eqx.Module):
       scratches).
     - `valid`: `(L,)` bool, true for real pairs.
     - `overflow`: `()` bool, true when the capacities were too small: the list is then incomplete
-      and must not be used (re-allocate; [`build_pairs`][] does).
+      and must not be used (re-allocate; `build_pairs` does).
     - `bin_p0`, `bin_p1`: `(N, 2)` endpoints the list was binned with (metres), or `None`.
     - `bin_half_width`: `(N,)` half-width of the binned (inflated) grooves, `x_max + skin` (metres),
       or `None`.
     - `bin_extend`: `()` how far the binned grooves were extended past each end (`skin`, metres),
       or `None`.
-    - `bin_tol`: `()` slack of the pair test the list was built with ([`pair_tolerance`][],
+    - `bin_tol`: `()` slack of the pair test the list was built with (`pair_tolerance`,
       metres), or `None`.
 
-    The `bin_*` fields are what [`needs_rebin`][] compares against; a list built elsewhere (e.g. a
+    The `bin_*` fields are what `needs_rebin` compares against; a list built elsewhere (e.g. a
     per-pixel `(P, K)` layout flattened with `pixel = repeat(arange(P), K)`) may leave them `None`.
     Pairs are in scratch order (then along the scratch); a pixel's pairs are not contiguous.
     """
@@ -239,8 +239,34 @@ _frame = local_frame
 # Binning
 
 
-def _strip_setup(p0, p1, width, depth, board, shape, skin):
-    """Per-scratch binning quantities (all (N,) or (N, 2)); shared by update and allocate."""
+class _StripSetup(eqx.Module):
+    """Per-scratch binning quantities (`_strip_setup`), shared by `_bin` and `_measure`. Grid
+    units: a cell is a unit square; ``u`` runs along the strips (columns where `col_major`),
+    ``v`` across them. Arrays ``(N,)`` unless noted."""
+
+    t: Array  # (N, 2) unit vector along the scratch
+    b: Array  # (N, 2) unit vector across it
+    half_w: Array  # groove half-width + skin, m
+    half_l: Array  # half the length + skin, m
+    centre: Array  # (N, 2) midpoint, m
+    col_major: Array  # bool: strips are columns
+    tu: Array  # t and b in grid units, (u, v) components
+    tv: Array
+    bu: Array
+    bv: Array
+    mu: Array  # the midpoint in grid units
+    mv: Array
+    n_v: Array  # cells per strip
+    k_lo: Array  # first strip
+    n_strips: Array  # int32: strips the groove's candidate range covers
+    rows_bound: Array  # int32: bound on cells per strip (for allocate)
+    length: Array  # m
+    tol: float  # slack of the exact pair test, m
+    tolg: float  # slack of candidate generation, grid units (twice `tol`)
+
+
+def _strip_setup(p0, p1, width, depth, board, shape, skin) -> _StripSetup:
+    """Per-scratch binning quantities (`_StripSetup`); shared by update and allocate."""
     dtype = p0.dtype
     sx_m, sy_m = (float(s) for s in board)
     h_px, w_px = (int(n) for n in shape)
@@ -279,11 +305,8 @@ def _strip_setup(p0, p1, width, depth, board, shape, skin):
     v_ext = jnp.abs(tv) * tau_len + 2 * half_w * jnp.abs(bv) + 2 * tolg
     rows_bound = jnp.where(active, jnp.floor(v_ext * (1 + 1e-6) + 1e-6) + 2, 0)
     rows_bound = jnp.minimum(rows_bound, n_v).astype(jnp.int32)
-    return dict(
-        t=t, b=b, half_w=half_w, half_l=half_l, centre=centre, col_major=col_major,
-        tu=tu, tv=tv, bu=bu, bv=bv, mu=mu, mv=mv, n_v=n_v, k_lo=k_lo, n_strips=n_strips,
-        rows_bound=rows_bound, tol=tol, tolg=tolg, length=length,
-    )  # fmt: skip
+    return _StripSetup(t, b, half_w, half_l, centre, col_major, tu, tv, bu, bv, mu, mv, n_v, k_lo,
+                       n_strips, rows_bound, length, tol, tolg)
 
 
 def _floor_index(g, n):
@@ -298,10 +321,10 @@ def _bin(p0, p1, width, depth, *, board, shape, skin, strip_capacity, rows, pair
     sx_m, sy_m = (float(s) for s in board)
     h_px, w_px = (int(v) for v in shape)
     g = _strip_setup(p0, p1, width, depth, board, shape, skin)
-    tol, tolg = g["tol"], g["tolg"]
+    tol, tolg = g.tol, g.tolg
 
     # Flat strip list: slot s belongs to scratch owner[s] (scatter the start offsets, then cummax).
-    n_strips = g["n_strips"]
+    n_strips = g.n_strips
     offsets = jnp.cumsum(n_strips) - n_strips
     strips_needed = jnp.sum(n_strips)
     slot = jnp.arange(strip_capacity, dtype=jnp.int32)
@@ -312,14 +335,14 @@ def _bin(p0, p1, width, depth, *, board, shape, skin, strip_capacity, rows, pair
     strip_ok = slot < strips_needed
     # One gather of everything a strip needs (floats stacked, then the ints/bools).
     fl = jnp.stack(
-        [g["tu"], g["tv"], g["bu"], g["bv"], g["mu"], g["mv"], g["half_w"], g["half_l"],
-         g["centre"][:, 0], g["centre"][:, 1], g["t"][:, 0], g["t"][:, 1]],
+        [g.tu, g.tv, g.bu, g.bv, g.mu, g.mv, g.half_w, g.half_l,
+         g.centre[:, 0], g.centre[:, 1], g.t[:, 0], g.t[:, 1]],
         axis=-1,
     )[owner]  # fmt: skip
     tu, tv, bu, bv, mu, mv, half_w, half_l, cx_m, cy_m, tx, ty = (fl[:, j] for j in range(12))
-    k = g["k_lo"][owner] + slot - offsets[owner]
-    col_major = g["col_major"][owner]
-    n_v = g["n_v"][owner]
+    k = g.k_lo[owner] + slot - offsets[owner]
+    col_major = g.col_major[owner]
+    n_v = g.n_v[owner]
 
     # Along-scratch parameter range whose cross-section can reach the strip [k, k + 1].
     lo = (k.astype(dtype) - mu) - half_w * jnp.abs(bu) - tolg
@@ -378,7 +401,7 @@ def _bin(p0, p1, width, depth, *, board, shape, skin, strip_capacity, rows, pair
         overflow=overflow,
         bin_p0=p0,
         bin_p1=p1,
-        bin_half_width=g["half_w"],
+        bin_half_width=g.half_w,
         bin_extend=jnp.asarray(skin, dtype),
         bin_tol=jnp.asarray(tol, dtype),
     )
@@ -397,14 +420,14 @@ def update(
 
     **Arguments:**
 
-    - `spec`: a [`GridSpec`][] from [`allocate`][] (board, image shape, capacities, skin).
+    - `spec`: a `GridSpec` from `allocate` (board, image shape, capacities, skin).
     - `p0`, `p1`: `(N, 2)` scratch endpoints, board metres.
     - `width`, `depth`: `(N,)` or scalar, metres (`width > 0`, `depth >= 0`).
 
     **Returns:**
 
-    [`Pairs`][] with `pair_capacity` slots. If any capacity was too small, `overflow` is true and
-    the list is incomplete: re-allocate (or use [`build_pairs`][]). Floats follow the inputs'
+    `Pairs` with `pair_capacity` slots. If any capacity was too small, `overflow` is true and
+    the list is incomplete: re-allocate (or use `build_pairs`). Floats follow the inputs'
     dtype; gradients are stopped (binning is piecewise constant).
     """
     p0, p1, width, depth = checked_scratches(p0, p1, width, depth)
@@ -425,7 +448,7 @@ _update_jit = update  # already jitted; the name marks host-driver calls
 def _setup_counts(p0, p1, width, depth, board, shape, skin):
     p0, p1, width, depth = checked_scratches(p0, p1, width, depth)
     g = _strip_setup(p0, p1, width, depth, board, shape, skin)
-    return jnp.sum(g["n_strips"]), jnp.max(g["rows_bound"], initial=1)
+    return jnp.sum(g.n_strips), jnp.max(g.rows_bound, initial=1)
 
 
 @eqx.filter_jit
@@ -466,11 +489,11 @@ def allocate(
     - `board`: `(Sx, Sy)` metres. `shape`: `(H, W)` pixels.
     - `margin`: capacity multiplier, `>= 1`.
     - `skin`: metres by which grooves are inflated (across and at both ends) for binning, so that
-      moves that keep each groove inside its inflated one need no rebin ([`needs_rebin`][]).
+      moves that keep each groove inside its inflated one need no rebin (`needs_rebin`).
 
     **Returns:**
 
-    A [`GridSpec`][].
+    A `GridSpec`.
     """
     _check_board_shape(board, shape)
     board = (float(board[0]), float(board[1]))
@@ -516,12 +539,12 @@ def build_pairs(
 ) -> tuple[Pairs, GridSpec]:
     """Host driver: bin with `spec` (allocating one if `None`), re-allocating on overflow.
 
-    **Arguments:** as [`allocate`][], plus `spec` to reuse (its board and shape must match;
+    **Arguments:** as `allocate`, plus `spec` to reuse (its board and shape must match;
     `margin` and `skin` are then taken from it).
 
     **Returns:**
 
-    `(pairs, spec)`: a complete [`Pairs`][] (`overflow` false) and the spec it was built with
+    `(pairs, spec)`: a complete `Pairs` (`overflow` false) and the spec it was built with
     (a new one if the old one overflowed; keep it for the next call).
     """
     _check_board_shape(board, shape)
@@ -564,7 +587,7 @@ def needs_rebin(
     and `pairs` did not overflow. Then every pair of the current scene is in `pairs`. With
     `skin = 0` any change that grows a groove beyond its old rectangle asks for a rebin.
 
-    **Arguments:** `pairs` from [`update`][] (with its `bin_*` fields); current `p0`, `p1`
+    **Arguments:** `pairs` from `update` (with its `bin_*` fields); current `p0`, `p1`
     `(N, 2)` and `width`, `depth` (`(N,)` or scalar), metres.
 
     **Returns:** `()` bool.
@@ -612,8 +635,8 @@ def maybe_update(
     width: Float[ArrayLike, "N"],
     depth: Float[ArrayLike, "N"],
 ) -> Pairs:
-    """`update(spec, ...)` if [`needs_rebin`][] says so, else `pairs` unchanged (jittable,
-    `lax.cond`). Check `overflow` of the result outside jit, as for [`update`][]."""
+    """`update(spec, ...)` if `needs_rebin` says so, else `pairs` unchanged (jittable,
+    `lax.cond`). Check `overflow` of the result outside jit, as for `update`."""
     p0, p1, width, depth = checked_scratches(p0, p1, width, depth)
     return jax.lax.cond(
         needs_rebin(pairs, p0, p1, width, depth),
@@ -633,7 +656,7 @@ def compact(pairs: Pairs, capacity: int) -> Pairs:
     **Arguments:** `pairs`; `capacity` (static int >= 1), e.g. the largest count of valid pairs
     over the views times a margin.
 
-    **Returns:** [`Pairs`][] with `capacity` slots; `overflow` is set (or kept) when more than
+    **Returns:** `Pairs` with `capacity` slots; `overflow` is set (or kept) when more than
     `capacity` pairs are valid. Padding slots get pixel 0 and the sentinel scratch index taken
     from the padding of `pairs` (or `N` from `bin_p0` when `pairs` has no padding).
     """
@@ -714,7 +737,7 @@ def layout(pix: np.ndarray, scr: np.ndarray, keeps, n: int, board: Board, shards
 
 
 def pairs_of(pix, scr, val):
-    """A [`Pairs`][] from host arrays (pixel, scratch, valid), no overflow, no bin record."""
+    """A `Pairs` from host arrays (pixel, scratch, valid), no overflow, no bin record."""
     return Pairs(pixel=jnp.asarray(pix), scratch=jnp.asarray(scr), valid=jnp.asarray(val),
                      overflow=jnp.asarray(False))
 

@@ -1,10 +1,10 @@
 """Carving: stream a G-code program written by `jscratch.fabricate` to a GRBL 1.1 controller over a
 serial port, journalling every confirmed scratch so that a job survives a fault, a lost device or an
-interrupt and resumes where it stopped (`carve`, `CarveError`). The journal and the protocol are
-`jscratch.grbl`'s (`Journal`, `Grbl`); see `jscratch.fabricate`'s docstring for the program's roles
-and the work-zero rules.
+interrupt and resumes where it stopped (`carve`, `CarveError`). The journal is
+`jscratch.journal`'s (`Journal`), the protocol `jscratch.grbl`'s (`Grbl`); see
+`jscratch.fabricate`'s docstring for the program's roles and the work-zero rules.
 
-Imports: `jscratch.grbl`, `jscratch.gcode` (the `Program` it reads).
+Imports: `jscratch.grbl`, `jscratch.journal`, `jscratch.gcode` (the `Program` it reads).
 """
 
 from __future__ import annotations
@@ -77,7 +77,7 @@ def carve(gcode_path, port: str, *, baud: int = 115200, resume: bool = False, co
 
     On `error:N`, a lost `ok` (no answer for `idle_timeout` s while the controller reports `Idle`)
     or Ctrl-C: feed hold, soft reset, retract to the program's safe Z. On `ALARM:N` or a lost
-    device: stop. Each raises :class:`CarveError` (one line; `KeyboardInterrupt` after Ctrl-C) naming
+    device: stop. Each raises `CarveError` (one line; `KeyboardInterrupt` after Ctrl-C) naming
     the G-code line and scratch and how to resume.
 
     **Arguments:** `gcode_path`; `port`; `baud`; `resume`; `counting` (character counting instead of
@@ -88,7 +88,8 @@ def carve(gcode_path, port: str, *, baud: int = 115200, resume: bool = False, co
 
     **Returns:** dict with `done`, `total`, `sent_lines`.
     """
-    from jscratch.grbl import DeviceLost, Grbl, GrblError, JobFault, Journal, Stalled, sha256_file
+    from jscratch.grbl import DeviceLost, Grbl, GrblError, JobFault, Stalled
+    from jscratch.journal import Journal, sha256_file
 
     prog = read_program(gcode_path)
     digest = sha256_file(gcode_path)

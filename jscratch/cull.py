@@ -22,8 +22,8 @@ the GGX `D(c) = chi+(c) alpha^2 / (pi (c^2 (alpha^2 - 1) + 1)^2)` increases on `
 
 (`rho = 0` when `c_max <= 0`: chi+ zeroes every wall; for `alpha >= 1` GGX peaks at `c -> 0+` and
 `rho = alpha^4` bounds it). `rho` is in `[0, 1]`: the fraction of the most the pair could ever
-contribute. `c_max` gets 4 ulps added so that the bound survives rounding. [`cull_ratio`][] computes
-`rho` per pair in O(1) (no integral); [`cull`][] drops the pair when `rho < eps`. `eps = 0` keeps all.
+contribute. `c_max` gets 4 ulps added so that the bound survives rounding. `cull_ratio` computes
+`rho` per pair in O(1) (no integral); `cull` drops the pair when `rho < eps`. `eps = 0` keeps all.
 
 **View culling: the rendered error.** Per pixel the dropped pairs lower `D_P = sum_i D_hat_i / S_P`
 (never raise it) by
@@ -36,13 +36,13 @@ unchanged and the radiance error is the same bound times the shading factor:
 `0 <= radiance - radiance_culled < eps * (I wi_z / r^2) G F / (4 wi_z wo_z) * sum_dropped A_i /
 (pi alpha_i^2 S_P)`, i.e. at most `eps` times the radiance the pixel would have if every groove in
 it were a mirror at its GGX peak. `tests/test_bvh.py` checks the per-pixel bound by independent
-quadrature on random scenes. [`compact`][] re-packs a culled list into fewer slots so that the
-culling saves shading time. The default [`DEFAULT_EPS`][] comes from the time-against-error table
+quadrature on random scenes. `compact` re-packs a culled list into fewer slots so that the
+culling saves shading time. The default `DEFAULT_EPS` comes from the time-against-error table
 in `benchmarks/results/bvh.md`.
 
 **Coverage culling.** The coverage enters shading only through the board term
 `max(0, 1 - c) D_S(h)` (SPEC 4, `D_S` the flat board's GGX at the pixel's half vector), so a pair
-left out of the coverage sum raises `D` by at most `D_S(h) A_i / S_P`. [`cull_coverage`][] keeps a
+left out of the coverage sum raises `D` by at most `D_S(h) A_i / S_P`. `cull_coverage` keeps a
 pair for the coverage pass only where `D_S(h) > eps / (pi alpha_i^2)` in some view, which bounds that
 error by the same `eps A_i / (pi alpha_i^2 S_P)` as view culling (the two errors have opposite
 signs and each stays within its bound). Away from the board's mirror direction `D_S` is tiny and
@@ -180,15 +180,15 @@ def cull(
 ) -> Pairs:
     """Clear `valid` of pairs whose `D_hat` bound is below `eps * A / (pi alpha^2)` (jittable).
 
-    A pair is dropped when `rho < eps` ([`cull_ratio`][]); `eps = 0` keeps every pair. Per pixel
+    A pair is dropped when `rho < eps` (`cull_ratio`); `eps = 0` keeps every pair. Per pixel
     the dropped pairs change `D_P` by at most `(1/S_P) sum_dropped rho_i A_i / (pi alpha_i^2)
     < eps (1/S_P) sum_dropped A_i / (pi alpha_i^2)` (and never increase it). The coverage `c` of
     SPEC 4 must still come from the unculled list, else the board term adds its own error (module
-    docstring). Use [`compact`][] to turn the dropped slots into saved time.
+    docstring). Use `compact` to turn the dropped slots into saved time.
 
-    **Arguments:** as [`cull_ratio`][], plus `eps >= 0` (scalar; may be traced).
+    **Arguments:** as `cull_ratio`, plus `eps >= 0` (scalar; may be traced).
 
-    **Returns:** [`Pairs`][] of the same capacity with fewer valid slots.
+    **Returns:** `Pairs` of the same capacity with fewer valid slots.
     """
     rho = cull_ratio(pairs, p0, p1, width, depth, alpha, h_pixel)
     eps = _checked_eps(eps, rho.dtype)
@@ -208,12 +208,12 @@ def cull_coverage(
     A pair is kept when `board_ndf[pixel] * pi * alpha^2 > eps`, with `board_ndf` the flat
     board's GGX `D_S(h)` at each pixel's half vector, largest over the views (1/sr). Leaving a pair
     out of the coverage sum changes `D` by at most `D_S A / S_P <= eps A / (pi alpha^2 S_P)`, the
-    bound of [`cull`][] (module docstring). `eps = 0` keeps every pair.
+    bound of `cull` (module docstring). `eps = 0` keeps every pair.
 
     **Arguments:** `pairs` (the unculled list); `alpha` `(N,)` or scalar; `board_ndf` `(P,)`
     (e.g. ``render.board_ndf(views, board).max(0)``); `eps >= 0`.
 
-    **Returns:** [`Pairs`][] of the same capacity with fewer valid slots.
+    **Returns:** `Pairs` of the same capacity with fewer valid slots.
     """
     board_ndf = jnp.asarray(board_ndf)
     if board_ndf.ndim != 1:
@@ -242,9 +242,9 @@ class ViewPairs(eqx.Module):
 
     **Fields:**
 
-    - `views`: ``M`` [`Pairs`][] lists, view ``j`` culled by [`cull`][] and compacted to
+    - `views`: ``M`` `Pairs` lists, view ``j`` culled by `cull` and compacted to
       ``caps[j]`` slots (their `overflow` flags are cleared: overflow is read from `counts`).
-    - `coverage`: the coverage list: culled by [`cull_coverage`][] and compacted to ``caps[M]``
+    - `coverage`: the coverage list: culled by `cull_coverage` and compacted to ``caps[M]``
       when ``coverage_eps > 0``, else the shared list itself.
     - `counts`: ``(M + 1,)`` int, pairs kept per list before compaction (views, then coverage).
     - `caps`: the ``M + 1`` capacities (static).
@@ -265,8 +265,8 @@ class ViewPairs(eqx.Module):
 
 def cull_views(pairs: Pairs, p0, p1, width, depth, alpha, h_views, eps: float,
                board_ndf=None, coverage_eps: float = 0.0) -> list[Pairs]:
-    """The ``M`` per-view culled lists ([`cull`][] with ``h_views[j]``, same capacity as
-    `pairs`) and the coverage list ([`cull_coverage`][] with `board_ndf` when
+    """The ``M`` per-view culled lists (`cull` with ``h_views[j]``, same capacity as
+    `pairs`) and the coverage list (`cull_coverage` with `board_ndf` when
     ``coverage_eps > 0``, else `pairs` itself): ``M + 1`` lists (jittable)."""
     culled = [cull(pairs, p0, p1, width, depth, alpha, h_views[j], eps)
               for j in range(h_views.shape[0])]
@@ -277,8 +277,8 @@ def cull_views(pairs: Pairs, p0, p1, width, depth, alpha, h_views, eps: float,
 
 def update_views(pairs: Pairs, p0, p1, width, depth, alpha, h_views, eps: float, caps,
                  board_ndf=None, coverage_eps: float = 0.0) -> ViewPairs:
-    """[`cull_views`][] compacted to the capacities `caps` (``M + 1`` static ints, from
-    [`allocate_views`][]): a [`ViewPairs`][] (jittable). An overflowing list is incomplete: the
+    """`cull_views` compacted to the capacities `caps` (``M + 1`` static ints, from
+    `allocate_views`): a `ViewPairs` (jittable). An overflowing list is incomplete: the
     caller checks `ViewPairs.overflow` (or ``counts > caps``) and retries with larger capacities;
     the lists' own flags are cleared so that a renderer's overflow check does not fire first."""
     culled = cull_views(pairs, p0, p1, width, depth, alpha, h_views, eps, board_ndf, coverage_eps)
@@ -312,7 +312,7 @@ def _view_counts(pairs, p0, p1, width, depth, alpha, h_views, eps, board_ndf, co
 def allocate_views(pairs: Pairs, p0, p1, width, depth, alpha, h_views, eps: float,
                    board_ndf=None, coverage_eps: float = 0.0,
                    margin: float = DEFAULT_MARGIN) -> tuple[int, ...]:
-    """The ``M + 1`` capacities of [`update_views`][]: the culled pair counts times `margin`,
+    """The ``M + 1`` capacities of `update_views`: the culled pair counts times `margin`,
     rounded up to `VIEW_CAP_ROUND` (host code; one jitted count)."""
     counts = _view_counts(pairs, p0, p1, width, depth, alpha, h_views, float(eps), board_ndf,
                           float(coverage_eps))

@@ -6,9 +6,12 @@ A design is one ``.npz`` file holding
 - ``width``, ``depth``, ``alpha``: ``(N,)`` profile width ``w``, depth ``d`` (metres) and GGX roughness;
 - ``board``: ``(2,)`` board size ``(Sx, Sy)``, metres;
 - optionally ``camera``, ``light`` (``(M, 3)``, metres, above the board) and ``intensity`` (``(M,)``, W/sr),
-  when the design came from an optimisation.
+  when the design came from an optimisation;
+- optionally ``machine``: the machine profile it was designed for (`jscratch.machine`), a 0-d
+  string array holding its JSON, and ``plunge`` (``(N,)``, metres): the cutter plunge of each
+  scratch of a carvable design (within the profile's ``[plunge_min_mm, plunge_max_mm]``).
 
-The ``.npz`` is the source of truth; :func:`write_svg` exports the same scratches for people and plotter
+The ``.npz`` is the source of truth; `write_svg` exports the same scratches for people and plotter
 tools. Loading checks shapes, finiteness, ranges and that every endpoint lies on the board, and names
 the first bad scratch and field.
 """
@@ -38,6 +41,7 @@ __all__ = [
 
 _REQUIRED = ("p0", "p1", "width", "depth", "alpha", "board")
 _VIEWS = ("camera", "light", "intensity")
+_MAKER = ("machine", "plunge")
 
 
 class DesignError(ValueError):
@@ -56,6 +60,9 @@ class Design(NamedTuple):
     - `board`: `(2,)` board size `(Sx, Sy)`, metres.
     - `camera`, `light`: `(M, 3)` view positions, metres, or `None`.
     - `intensity`: `(M,)` light intensities, W/sr, or `None`.
+    - `machine`: the machine profile (a dict, `jscratch.machine.MachineProfile.to_dict`) the
+      design was made for, or `None`.
+    - `plunge`: `(N,)` cutter plunge per scratch, metres (carvable designs), or `None`.
     """
 
     p0: np.ndarray
@@ -67,6 +74,8 @@ class Design(NamedTuple):
     camera: np.ndarray | None = None
     light: np.ndarray | None = None
     intensity: np.ndarray | None = None
+    machine: dict | None = None
+    plunge: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -100,15 +109,15 @@ def _as_float_array(name, value, source):
 
 
 def validate_design(p0, p1, width, depth, alpha, board, camera=None, light=None, intensity=None,
-                    *, source="design") -> Design:
-    """Check a design against SPEC section 9 and return it as a float64 :class:`Design`.
+                    machine=None, plunge=None, *, source="design") -> Design:
+    """Check a design against SPEC section 9 and return it as a float64 `Design`.
 
     **Arguments:** the design arrays (anything `np.asarray` reads, e.g. jax arrays), see
-    :class:`Design`; `source` names the design in messages (a file name).
+    `Design`; `source` names the design in messages (a file name).
 
-    **Returns:** the :class:`Design`.
+    **Returns:** the `Design`.
 
-    **Raises:** :class:`DesignError` naming the array and the first bad scratch (or view) when a
+    **Raises:** `DesignError` naming the array and the first bad scratch (or view) when a
     shape is wrong, a value is not finite, `width`, `depth` or `alpha` is out of range
     (`w > 0`, `d > 0`, `0 < alpha < 1`: the rules of `jscratch.scene.check_scratches`, the same
     the renderer applies), or an endpoint lies off the board.
@@ -159,7 +168,42 @@ def validate_design(p0, p1, width, depth, alpha, board, camera=None, light=None,
         views = {"camera": cam, "light": lig, "intensity": inten}
     else:
         views = {"camera": None, "light": None, "intensity": None}
-    return Design(**arrays, **views)
+    return Design(**arrays, **views, **_check_maker(machine, plunge, n, source))
+
+
+def _check_maker(machine, plunge, n, source):
+    """The checked ``machine`` (dict) and ``plunge`` (``(N,)`` metres in the profile's range)."""
+    from jscratch.machine import MachineProfile
+
+    prof = None
+    if machine is not None:
+        if isinstance(machine, np.ndarray):
+            machine = machine.item() if machine.shape == () else None
+        if isinstance(machine, (str, bytes)):
+            import json
+
+            try:
+                machine = json.loads(machine)
+            except ValueError as exc:
+                raise DesignError(f"{source}: machine is not a JSON machine profile ({error_line(exc)})") from None
+        try:
+            prof = MachineProfile.from_dict(machine, source=f"{source}: machine")
+        except (TypeError, ValueError) as exc:
+            raise DesignError(str(exc)) from None
+    if plunge is not None:
+        pl = _as_float_array("plunge", plunge, source)
+        if pl.shape != (n,):
+            raise DesignError(f"{source}: plunge must have shape ({n},) to match p0, got {pl.shape}")
+        bad = ~np.isfinite(pl) | (pl <= 0)
+        if prof is not None:
+            lo, hi = prof.plunge_range
+            bad |= (pl < lo * (1 - 1e-6)) | (pl > hi * (1 + 1e-6))
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            rng = "" if prof is None else f" within the machine's [{prof.plunge_min_mm}, {prof.plunge_max_mm}] mm"
+            raise DesignError(f"{source}: plunge of scratch {i} is {pl[i]!r} m; must be finite, > 0{rng}")
+        plunge = pl
+    return {"machine": None if prof is None else prof.to_dict(), "plunge": plunge}
 
 
 def _umask() -> int:
@@ -169,19 +213,25 @@ def _umask() -> int:
     return mask
 
 
-def save_design(path, p0, p1, width, depth, alpha, board, camera=None, light=None, intensity=None) -> Design:
+def save_design(path, p0, p1, width, depth, alpha, board, camera=None, light=None, intensity=None,
+                machine=None, plunge=None) -> Design:
     """Validate and write a design to a `.npz` file (SPEC section 9), atomically.
 
     **Arguments:** `path` (the file; written as given, no suffix added), then the arrays of
-    :class:`Design` (numpy or jax, float32 or float64; stored as float64).
+    `Design` (numpy or jax, float32 or float64; stored as float64).
 
-    **Returns:** the validated :class:`Design`.
+    **Returns:** the validated `Design`.
 
-    **Raises:** :class:`DesignError` for an invalid design; nothing is written then.
+    **Raises:** `DesignError` for an invalid design; nothing is written then.
     """
     path = os.fspath(path)
-    design = validate_design(p0, p1, width, depth, alpha, board, camera, light, intensity, source=path)
+    design = validate_design(p0, p1, width, depth, alpha, board, camera, light, intensity, machine, plunge,
+                             source=path)
     payload = {k: v for k, v in design._asdict().items() if v is not None}
+    if design.machine is not None:
+        import json
+
+        payload["machine"] = np.array(json.dumps(design.machine, sort_keys=True))
     directory = os.path.dirname(os.path.abspath(path))
     fd, tmp = tempfile.mkstemp(prefix=".design-", suffix=".npz.tmp", dir=directory)
     try:
@@ -203,9 +253,9 @@ def load_design(path) -> Design:
 
     **Arguments:** `path` to the file.
 
-    **Returns:** a :class:`Design` of float64 numpy arrays.
+    **Returns:** a `Design` of float64 numpy arrays.
 
-    **Raises:** `FileNotFoundError` for a missing file; :class:`DesignError` naming the array and
+    **Raises:** `FileNotFoundError` for a missing file; `DesignError` naming the array and
     the first bad scratch for a file that is not a valid design.
     """
     path = os.fspath(path)
@@ -222,7 +272,7 @@ def load_design(path) -> Design:
         if missing:
             raise DesignError(f"{path}: missing array(s) {missing}; a design holds {list(_REQUIRED)}")
         try:
-            arrays = {k: npz[k] for k in _REQUIRED + _VIEWS if k in npz.files}
+            arrays = {k: npz[k] for k in _REQUIRED + _VIEWS + _MAKER if k in npz.files}
         except Exception as exc:
             raise DesignError(f"{path}: cannot read arrays ({error_line(exc)})") from None
     return validate_design(**arrays, source=path)
@@ -242,7 +292,7 @@ def write_svg(path, design: Design, *, min_stroke_mm: float = 0.02) -> None:
     `y = Sy` at the top (SPEC section 1). Each line's stroke width is the groove width `2 x_max`
     (at least `min_stroke_mm`, to stay visible) and its `id` is `s<index>`.
 
-    **Arguments:** `path` of the SVG; `design` a :class:`Design`; `min_stroke_mm` the thinnest stroke.
+    **Arguments:** `path` of the SVG; `design` a `Design`; `min_stroke_mm` the thinnest stroke.
     """
     sx, sy = (1000.0 * design.board).tolist()
     stroke = np.maximum(2000.0 * groove_half_width(design.width, design.depth), min_stroke_mm)
@@ -276,7 +326,7 @@ def demo_design(n: int = 400, seed: int = 0, board=(0.3, 0.3)) -> Design:
 
     **Arguments:** `n` scratches (>= 1), `seed` for `numpy.random.default_rng`, `board` `(Sx, Sy)` m.
 
-    **Returns:** a :class:`Design` without views.
+    **Returns:** a `Design` without views.
     """
     if int(n) < 1:
         raise ValueError(f"n must be >= 1, got {n}")

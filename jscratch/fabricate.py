@@ -4,10 +4,15 @@ A separate, imperative stage (SPEC section 8): it reads a design file (SPEC sect
 3-axis carver with a ball-end cutter for hours, so every step is checked before any motion and the
 progress survives crashes.
 
-- :func:`fit_plunge`: plunge depth of a ball-end cutter of radius `R` that best matches each
+- `jscratch.machine.MachineProfile` (also ``MachineConfig``): the machine profile, read
+  from ``--machine FILE`` (TOML; ``--config`` is the older name) or recorded in the design file;
+  `machine_for_design` reconciles the two (a different cutter is refused).
+- Carvable designs (``plunge`` in the design file) are cut at their recorded plunges; other
+  designs get a fitted plunge:
+- `fit_plunge`: plunge depth of a ball-end cutter of radius `R` that best matches each
   scratch's groove profile (least squares with optimistix), with the fit error.
-- :func:`make_program`: ordered G-code (mm, absolute) with a line map (line -> scratch).
-- :func:`carve`: stream a G-code file to GRBL over a serial port with a journal and resume.
+- `make_program`: ordered G-code (mm, absolute) with a line map (line -> scratch).
+- `carve`: stream a G-code file to GRBL over a serial port with a journal and resume.
 - ``python -m jscratch.fabricate --help``: the command line.
 
 G-code layout (preamble ``G21 G90 G94 G17 G54``, then, with a spindle, ``M3 S..`` and a
@@ -25,13 +30,13 @@ partly cut.
 
 Work zero: the board corner on its surface is the origin of the ``G54`` work system, set on the
 machine with ``G10 L20 P1 X0 Y0 Z0`` (stored in GRBL's EEPROM, kept across resets and power
-cycles). :func:`carve` refuses a ``G92`` offset or a tool length offset (GRBL clears both at every
+cycles). `carve` refuses a ``G92`` offset or a tool length offset (GRBL clears both at every
 reset, so a job relying on them would shift after a fault or on resume), journals the ``G54``
 offset and refuses to resume when it has changed (unless `rezeroed`).
 
-Numbers: every word is written by :func:`jscratch.grbl.gword` (fixed decimals, no exponent, within
-GRBL's 8-digit reader); :func:`make_program` re-reads each line with
-:func:`jscratch.grbl.check_words` and checks the bounds: every X/Y in ``[offset - margin, offset + S
+Numbers: every word is written by `jscratch.grbl.gword` (fixed decimals, no exponent, within
+GRBL's 8-digit reader); `make_program` re-reads each line with
+`jscratch.grbl.check_words` and checks the bounds: every X/Y in ``[offset - margin, offset + S
 + margin]`` mm (``margin_mm``, default 0: design endpoints within the load tolerance are clamped
 onto the board), every Z in ``[-max plunge, safe_z]``.
 """
@@ -52,85 +57,13 @@ from jscratch.designfile import Design, DesignError, demo_design, groove_half_wi
 from jscratch.grbl import clip, gword
 from jscratch.carve import CarveError, carve
 from jscratch.gcode import Program, check_program_lines, read_program, write_program
+from jscratch.machine import CUT_KEYS, MachineConfig, MachineProfile, carving_seconds
 from jscratch.toolpath import order_scratches
 
 __all__ = [
-    "MachineConfig", "CutterFit", "fit_plunge", "Program", "make_program", "write_program",
+    "MachineConfig", "MachineProfile", "machine_for_design", "CutterFit", "fit_plunge", "Program", "make_program", "write_program",
     "read_program", "write_preview", "summarize", "carve", "CarveError", "main",
 ]
-
-
-@dataclasses.dataclass
-class MachineConfig:
-    """Machine settings (millimetres, mm/min). All can come from options or a TOML config file.
-
-    - `feed_mm_min`: cutting feed (paper: 1.5 cm/s = 900 mm/min).
-    - `plunge_mm_min`: plunge feed.
-    - `rapid_mm_min`: rapid rate, for time estimates only (GRBL uses its `$110`.. max rates).
-    - `safe_z_mm`: travel height above the board surface (Z = 0 on the surface).
-    - `cutter_radius_mm`: ball-end radius `R`.
-    - `plunge_mm`: fixed plunge depth for every scratch, or None to fit it (see `fit`).
-    - `fit`: `"per-scratch"` or `"global"` plunge fit.
-    - `board_offset_mm`: work coordinates of the board corner `(0, 0)`.
-    - `margin_mm`: how far outside the board a coordinate may be (design endpoints are clamped).
-    - `min_length_mm`: shorter scratches are an error (or dropped with `drop_short`).
-    - `spindle_rpm`: 0 for no spindle commands, else `M3 S..` / `M5`.
-    - `spinup_s`: dwell after `M3` for the spindle to reach speed, seconds (also sent on resume).
-    - `overhead_s`: per-scratch acceleration and settling time, for the estimate.
-    """
-
-    feed_mm_min: float = 900.0
-    plunge_mm_min: float = 300.0
-    rapid_mm_min: float = 3000.0
-    safe_z_mm: float = 1.0
-    cutter_radius_mm: float = 0.125
-    plunge_mm: float | None = None
-    fit: str = "per-scratch"
-    board_offset_mm: tuple = (0.0, 0.0)
-    margin_mm: float = 0.0
-    min_length_mm: float = 0.01
-    drop_short: bool = False
-    spindle_rpm: float = 0.0
-    spinup_s: float = 3.0
-    overhead_s: float = 0.2
-
-    def __post_init__(self):
-        for name in ("feed_mm_min", "plunge_mm_min", "rapid_mm_min", "safe_z_mm", "cutter_radius_mm"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"machine setting {name} must be a finite number > 0, got {v!r}")
-        for name in ("margin_mm", "min_length_mm", "spindle_rpm", "spinup_s", "overhead_s"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-                raise ValueError(f"machine setting {name} must be a finite number >= 0, got {v!r}")
-        if self.plunge_mm is not None and not (math.isfinite(self.plunge_mm) and 0 < self.plunge_mm <= self.cutter_radius_mm):
-            raise ValueError(f"plunge_mm must lie in (0, cutter_radius_mm = {self.cutter_radius_mm}], got {self.plunge_mm!r}")
-        if self.fit not in ("per-scratch", "global"):
-            raise ValueError(f"fit must be 'per-scratch' or 'global', got {self.fit!r}")
-        off = tuple(float(v) for v in self.board_offset_mm)
-        if len(off) != 2 or not all(math.isfinite(v) for v in off):
-            raise ValueError(f"board_offset_mm must be two finite numbers, got {self.board_offset_mm!r}")
-        self.board_offset_mm = off
-        for name, letter in (("feed_mm_min", "F"), ("plunge_mm_min", "F"), ("safe_z_mm", "Z"),
-                             ("spindle_rpm", "S"), ("spinup_s", "P")):
-            try:
-                gword(letter, getattr(self, name))
-            except ValueError as exc:
-                raise ValueError(f"machine setting {name} = {getattr(self, name)!r} does not fit GRBL: {exc}") from None
-
-    @classmethod
-    def from_toml(cls, path, **overrides):
-        """Read settings from a TOML file (keys as the field names), then apply `overrides` (not None)."""
-        import tomllib
-
-        with open(path, "rb") as f:
-            data = tomllib.load(f)
-        data = data.get("machine", data)
-        unknown = set(data) - {f.name for f in dataclasses.fields(cls)}
-        if unknown:
-            raise ValueError(f"{path}: unknown machine setting(s) {sorted(unknown)}")
-        data.update({k: v for k, v in overrides.items() if v is not None})
-        return cls(**data)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -206,7 +139,7 @@ def fit_plunge(width, depth, radius: float, *, mode: str = "per-scratch") -> Cut
 
     **Arguments:** `width`, `depth` `(N,)` metres; `radius` metres; `mode` `"per-scratch"` or `"global"`.
 
-    **Returns:** a :class:`CutterFit`.
+    **Returns:** a `CutterFit`.
     """
     import jax.numpy as jnp
 
@@ -253,12 +186,64 @@ def fit_plunge(width, depth, radius: float, *, mode: str = "per-scratch") -> Cut
     return CutterFit(plunge, rms_m, rel, 2.0 * xm_all, cut_w, unreachable)
 
 
+def _design_fit(design: Design, idx, cfg: MachineProfile) -> dict:
+    """The fit report of a carvable design's recorded plunges: the groove map's wall-angle error,
+    the cut width against the design groove width, and the plunges outside the cutter's range."""
+    from jscratch.design.carvable import groove_map_of
+
+    gmap = groove_map_of(cfg)
+    R = cfg.cutter_radius_mm
+    p = 1000.0 * design.plunge[idx]
+    cut_w = 2.0 * np.sqrt(np.maximum(2.0 * R * p - p * p, 0.0))
+    groove_w = 2000.0 * groove_half_width(design.width[idx], design.depth[idx])
+    out = (p < cfg.plunge_min_mm * (1 - 1e-6)) | (p > cfg.plunge_max_mm * (1 + 1e-6))
+    return {
+        "mode": "design",
+        "slope_rms_deg_max": gmap.rms_deg,
+        "width_rel_err_max": float(np.max(np.abs(cut_w / groove_w - 1.0))) if len(p) else 0.0,
+        "groove_width_mm": [float(groove_w.min()), float(groove_w.max())] if len(p) else [0.0, 0.0],
+        "cut_width_mm": [float(cut_w.min()), float(cut_w.max())] if len(p) else [0.0, 0.0],
+        "unreachable": int(out.sum()),
+    }
+
+
+def machine_for_design(design: Design, file_profile: MachineProfile | None, overrides: dict, *,
+                       override: bool = False, warn=None) -> MachineProfile:
+    """The profile to fabricate `design` with.
+
+    A design that records its machine (SPEC section 9) is cut with that profile. A `file_profile`
+    (``--machine``) or `overrides` (options) that change the cutter (`jscratch.machine.CUT_KEYS`)
+    are refused, since the grooves would not be the designed ones, unless `override`; other
+    differences (feeds, offsets: the machine on the day) are taken from the file and options, with
+    a `warn` line. Without a recorded machine: `file_profile` (or the default) plus `overrides`.
+
+    **Raises:** `ValueError`, one line naming the keys that differ.
+    """
+    if design.machine is None:
+        base = file_profile.to_dict() if file_profile is not None else {}
+        return MachineProfile.from_dict(base, **overrides)
+    rec = MachineProfile.from_dict(design.machine, source="the design's recorded machine")
+    want = (file_profile.to_dict() if file_profile is not None else rec.to_dict())
+    want.update({k: v for k, v in overrides.items() if v is not None})
+    new = MachineProfile.from_dict(want)
+    cut = rec.cut_mismatch(new)
+    if cut and not override:
+        diffs = ", ".join(f"{k} {getattr(rec, k)!r} (design) vs {getattr(new, k)!r}" for k in cut)
+        raise ValueError(f"machine mismatch: the design was made for another cutter: {diffs}; use the "
+                         "design's profile (drop --machine), re-design with this one, or pass --override-machine")
+    other = [k for k in rec.to_dict() if k not in CUT_KEYS and getattr(rec, k) != getattr(new, k)]
+    if (cut or other) and warn is not None:
+        warn(f"warning: machine settings differ from the design's recorded profile {rec.name!r}: "
+             f"{', '.join(cut + other)}; using " + ("the given values (--override-machine)" if cut else "the given values"))
+    return new
+
+
 # ----------------------------------------------------------------------------------------------
 # G-code.
 
 
 def check_design_for_cutting(design: Design, cfg: MachineConfig):
-    """Scratches long enough to cut; raises :class:`DesignError` naming the first too-short scratch.
+    """Scratches long enough to cut; raises `DesignError` naming the first too-short scratch.
 
     **Returns:** `(N,)` bool mask of scratches to cut (all True unless `cfg.drop_short`).
     """
@@ -277,10 +262,10 @@ def make_program(design: Design, cfg: MachineConfig, *, improve: bool = True, ti
                  quiet: bool = True) -> Program:
     """Order the scratches, fit the plunge and write GRBL 1.1 G-code with its line map.
 
-    **Arguments:** `design` a :class:`~jscratch.designfile.Design`; `cfg` machine settings;
-    `improve`/`time_limit` for :func:`~jscratch.toolpath.order_scratches`; `quiet`.
+    **Arguments:** `design` a `jscratch.designfile.Design`; `cfg` machine settings;
+    `improve`/`time_limit` for `jscratch.toolpath.order_scratches`; `quiet`.
 
-    **Returns:** a :class:`Program`. **Raises:** `DesignError` for scratches too short to cut,
+    **Returns:** a `Program`. **Raises:** `DesignError` for scratches too short to cut,
     `ValueError` if a coordinate would leave the board (+ margin).
     """
     keep = check_design_for_cutting(design, cfg)
@@ -289,9 +274,14 @@ def make_program(design: Design, cfg: MachineConfig, *, improve: bool = True, ti
     p0 = np.clip(1000.0 * design.p0[idx], 0.0, board_mm)
     p1 = np.clip(1000.0 * design.p1[idx], 0.0, board_mm)
     ordering = order_scratches(p0, p1, (0.0, 0.0), improve=improve, time_limit=time_limit)
+    design_fit = None
     if cfg.plunge_mm is not None:
         plunge = np.full(len(idx), cfg.plunge_mm)
         fit = None
+    elif design.plunge is not None:
+        plunge = 1000.0 * design.plunge[idx]
+        fit = None
+        design_fit = _design_fit(design, idx, cfg)
     else:
         fit = fit_plunge(design.width[idx], design.depth[idx], cfg.cutter_radius_mm / 1000.0, mode=cfg.fit)
         plunge = 1000.0 * fit.plunge
@@ -333,9 +323,7 @@ def make_program(design: Design, cfg: MachineConfig, *, improve: bool = True, ti
     hi = (ox + board_mm[0] + cfg.margin_mm, oy + board_mm[1] + cfg.margin_mm, safe)
     ext = check_program_lines(lines, lo, hi)
     cut_len = float(np.hypot(*(p1 - p0).T).sum())
-    est = (ordering.travel / cfg.rapid_mm_min + cut_len / cfg.feed_mm_min
-           + float(plunge.sum()) / cfg.plunge_mm_min + n * 2 * safe / cfg.rapid_mm_min
-           + n * safe / cfg.plunge_mm_min) * 60.0 + n * cfg.overhead_s + (cfg.spinup_s if cfg.spindle_rpm > 0 else 0.0)
+    est = carving_seconds(cfg, n=n, cut_mm=cut_len, travel_mm=ordering.travel, plunge_mm_total=float(plunge.sum()))
     info = {
         "scratches": n,
         "dropped_short": int((~keep).sum()),
@@ -360,6 +348,10 @@ def make_program(design: Design, cfg: MachineConfig, *, improve: bool = True, ti
             "cut_width_mm": [1e3 * float(fit.cut_width.min()), 1e3 * float(fit.cut_width.max())],
             "unreachable": int(fit.unreachable.sum()),
         }
+    if design_fit is not None:
+        info["fit"] = design_fit
+    if design.machine is not None:
+        info["machine"] = design.machine.get("name", "?")
     return Program(lines, np.asarray(ks), np.asarray(ss), roles, info)
 
 
@@ -400,7 +392,7 @@ def write_preview(prog: Program, path, board_mm, offset_mm=(0.0, 0.0)):
 
 
 def summarize(info: dict) -> str:
-    """Human-readable summary of :attr:`Program.info`."""
+    """Human-readable summary of `Program.info`."""
     t = info["estimated_seconds"]
 
     def box(b):
@@ -419,7 +411,15 @@ def summarize(info: dict) -> str:
     if info.get("limits_mm"):
         out.insert(5, f"limits (mm)      {box(info['limits_mm'])}  (allowed: board + margin, -max plunge to safe Z)")
     f = info.get("fit")
-    if f:
+    if f and f.get("mode") == "design":
+        out.append(
+            f"cutter fit       carvable design ({info.get('machine', '?')}): recorded plunges, 0 fitted; "
+            f"wall-slope RMS error of the groove map <= {f['slope_rms_deg_max']:.2f} deg; "
+            f"cut width {f['cut_width_mm'][0]:.4f}-{f['cut_width_mm'][1]:.4f} mm "
+            f"(groove width error {100 * f['width_rel_err_max']:.4f}%); {f['unreachable']} unreachable grooves")
+        if f["unreachable"]:
+            out.append(f"WARNING          {f['unreachable']} recorded plunges lie outside the cutter's range")
+    elif f:
         out.append(
             f"cutter fit       {f['mode']}: RMS error <= {f['rms_um_max']:.2f} um ({100 * f['rel_rms_max']:.1f}% of depth); "
             f"groove width {f['groove_width_mm'][0]:.4f}-{f['groove_width_mm'][1]:.4f} mm, "
@@ -428,6 +428,13 @@ def summarize(info: dict) -> str:
         if f["unreachable"]:
             out.append(f"WARNING          {f['unreachable']} grooves are unreachable with this cutter "
                        "(fit error > 25% of depth or plunge at the ball's radius); consider a smaller ball")
+    ac = info.get("as_carved")
+    if ac:
+        out.append(f"as carved        SSIM vs the design render per view {[round(x, 3) for x in ac['ssim']]} "
+                   f"(ball profile, brute force; from {ac.get('source', 'the design run')})")
+    elif "as_carved" in info:
+        out.append("as carved        not computed: run the design with --as-carved-samples 32 to "
+                   "preview the board the ball will cut")
     return "\n".join(out)
 
 
@@ -446,7 +453,12 @@ def _parser():
     p.add_argument("--out", help="output prefix (default: the design path without .npz, or ./jscratch_demo); "
                                  "writes PREFIX.gcode, PREFIX.gcode.map.csv, PREFIX.preview.png, PREFIX.summary.json")
     p.add_argument("--gcode", help="stream this existing G-code file (with its .map.csv) instead of generating one")
-    p.add_argument("--config", help="TOML file of machine settings (keys as the options below, underscores)")
+    p.add_argument("--machine", "--config", dest="machine",
+                   help="machine profile, TOML (keys as the options below, underscores; see python -m "
+                        "jscratch.machine); a design that records its profile is cut with that one, and a "
+                        "different cutter here is refused (--config is the older name)")
+    p.add_argument("--override-machine", action="store_true",
+                   help="cut even when --machine or the options change the cutter the design was made for")
     p.add_argument("--demo-n", type=int, default=400, help="scratches in the demo design (default 400)")
     m = p.add_argument_group("machine (defaults from MachineConfig)")
     m.add_argument("--feed", dest="feed_mm_min", type=float, help="cutting feed, mm/min (default 900 = 1.5 cm/s)")
@@ -487,7 +499,7 @@ def _parser():
 
 def _refuse_overwrite(gcode: str):
     """Refuse to write `gcode` while its journal exists: the program belongs to that job."""
-    from jscratch.grbl import Journal
+    from jscratch.journal import Journal
 
     jp = gcode + ".journal"
     if not os.path.exists(jp):
@@ -505,6 +517,18 @@ def _refuse_overwrite(gcode: str):
                      "--resume, or move the G-code and its journal away to start a new one; nothing was written")
 
 
+def _attach_as_carved(info: dict, design_path: str):
+    """Copy the design run's "as carved" SSIM (``metrics.json`` next to the design) into `info`."""
+    mpath = os.path.join(os.path.dirname(os.path.abspath(design_path)), "metrics.json")
+    try:
+        with open(mpath) as f:
+            ac = json.load(f).get("as_carved")
+    except (OSError, ValueError):
+        return
+    # (None: a design run's metrics without it; the summary says how to get it)
+    info["as_carved"] = {"ssim": ac["ssim"], "source": mpath} if ac and "ssim" in ac else None
+
+
 def main(argv=None) -> int:
     """Command line entry point; returns the exit status (0 ok, 1 error, 130 interrupted)."""
     args = _parser().parse_args(argv)
@@ -514,13 +538,16 @@ def main(argv=None) -> int:
         print("error: --dry-run never opens a port; drop --port or --dry-run", file=sys.stderr)
         return 1
     try:
-        cfg = MachineConfig.from_toml(args.config, **over) if args.config else MachineConfig(**over)
+        file_prof = MachineProfile.from_toml(args.machine) if args.machine else None
+        cfg = MachineProfile.from_dict(file_prof.to_dict() if file_prof else {}, **over)
         if args.gcode:
             gcode = args.gcode
         else:
             if args.design:
                 design = load_design(args.design)
                 prefix = args.out or os.path.splitext(args.design)[0]
+                warn = None if args.quiet else (lambda m: print(m, file=sys.stderr))
+                cfg = machine_for_design(design, file_prof, over, override=args.override_machine, warn=warn)
             else:
                 design = demo_design(args.demo_n)
                 prefix = args.out or "jscratch_demo"
@@ -534,6 +561,8 @@ def main(argv=None) -> int:
                 if folder:  # `--out NEWDIR/job`: the folder is made, as the design command does
                     os.makedirs(folder, exist_ok=True)
                 prog = make_program(design, cfg, improve=not args.no_improve, time_limit=args.order_time)
+                if args.design:
+                    _attach_as_carved(prog.info, args.design)
                 write_program(prog, gcode)
                 write_preview(prog, prefix + ".preview.png", 1000.0 * design.board, cfg.board_offset_mm)
                 with open(prefix + ".summary.json", "w") as f:

@@ -26,7 +26,7 @@ class Program(NamedTuple):
       preamble and postamble.
     - `scratch`: `(L,)` int, design index of that scratch, -1 outside scratches.
     - `role`: `(L,)` str: `comment`, `pre`, `travel`, `plunge`, `cut`, `retract`, `sync`, `post`.
-    - `info`: dict of summary numbers (see :func:`summarize`).
+    - `info`: dict of summary numbers (see `summarize`).
     """
 
     lines: list
@@ -37,7 +37,7 @@ class Program(NamedTuple):
 
 
 def check_program_lines(lines, lo, hi) -> dict:
-    """The dry run's checker: line length, strict words (:func:`~jscratch.grbl.check_words`), bounds.
+    """The dry run's checker: line length, strict words (`jscratch.grbl.check_words`), bounds.
 
     **Arguments:** `lines` G-code text lines; `lo`, `hi` the allowed `(x, y, z)` limits in mm.
 
@@ -83,7 +83,7 @@ def write_program(prog: Program, gcode_path) -> str:
 
 
 def read_program(gcode_path) -> Program:
-    """Read a G-code file and its line map (as written by :func:`write_program`); checks they agree."""
+    """Read a G-code file and its line map (as written by `write_program`); checks they agree."""
     gcode_path = os.fspath(gcode_path)
     if not os.path.exists(gcode_path):
         raise FileNotFoundError(f"G-code file {gcode_path!r} does not exist")

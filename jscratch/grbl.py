@@ -1,4 +1,5 @@
-"""GRBL 1.1 serial protocol: reply grammar, a streaming client over pyserial, and the carve journal.
+"""GRBL 1.1 serial protocol: reply grammar and a streaming client over pyserial (the carve
+journal is `jscratch.journal`).
 
 pyserial is imported here (lazily, when a port is opened), never at ``import jscratch``.
 
@@ -12,17 +13,15 @@ Protocol notes (GRBL 1.1 interface documentation):
 - the receive buffer holds ``rx_size - 1`` bytes (``rx_size`` from ``$I``'s ``[OPT:...,blocks,rx]``);
   character counting keeps the bytes of unanswered lines within it;
 - a soft reset clears the ``G92`` offset and the tool length offset; the ``G54``..``G59`` work
-  offsets (``G10 L2``/``L20``) live in EEPROM and survive resets and power cycles. :meth:`Grbl.connect`
+  offsets (``G10 L2``/``L20``) live in EEPROM and survive resets and power cycles. `Grbl.connect`
   therefore does not reset a controller that reports ``Idle``, and reads ``$#`` so that the caller
   can refuse a ``G92`` zero instead of losing it;
-- numbers are read as at most 8 significant digits without exponents: :func:`gword` writes every
-  word with fixed decimals inside :data:`WORD_FORMAT`'s ranges, :func:`check_words` checks a line.
+- numbers are read as at most 8 significant digits without exponents: `gword` writes every
+  word with fixed decimals inside `WORD_FORMAT`'s ranges, `check_words` checks a line.
 """
 
 from __future__ import annotations
 
-import hashlib
-import json
 import math
 import os
 import queue
@@ -34,7 +33,7 @@ from typing import Callable, NamedTuple, Sequence
 
 __all__ = [
     "Reply", "classify", "GrblError", "PortError", "NotGrblError", "AlarmLocked", "DeviceLost",
-    "JobFault", "Stalled", "Grbl", "Journal", "JournalError", "sha256_file", "gword", "check_words",
+    "JobFault", "Stalled", "Grbl", "gword", "check_words",
     "WORD_FORMAT", "clip",
 ]
 
@@ -66,7 +65,7 @@ _COMMANDS = {"G": {0, 1, 4, 17, 21, 49, 54, 55, 56, 57, 58, 59, 90, 94}, "M": {2
 def gword(letter: str, value: float) -> str:
     """One G-code word, e.g. `gword("F", 900) == "F900.0"`: fixed decimals, no exponent, in range.
 
-    **Raises:** `ValueError` naming the word when `value` is not finite or outside :data:`WORD_FORMAT`.
+    **Raises:** `ValueError` naming the word when `value` is not finite or outside `WORD_FORMAT`.
     """
     dec, lo, hi = WORD_FORMAT[letter]
     v = float(value)
@@ -81,7 +80,7 @@ def gword(letter: str, value: float) -> str:
 
 
 def check_words(line: str) -> None:
-    """Check that every word of a G-code line (comments allowed) is as :func:`gword` writes it.
+    """Check that every word of a G-code line (comments allowed) is as `gword` writes it.
 
     Commands `G`/`M` must be whole numbers jscratch uses; `X Y Z F S P` fixed decimals in range.
     **Raises:** `ValueError` naming the first bad word.
@@ -201,13 +200,13 @@ class Grbl:
     """A GRBL 1.1 controller on a serial port.
 
     Opening starts a reader thread that classifies every reply and a poller that sends `?` every
-    `poll_interval` s. Use :meth:`connect` (status, reset unless `Idle`, `$I`, alarm check, `$#`)
-    before :meth:`stream`.
+    `poll_interval` s. Use `connect` (status, reset unless `Idle`, `$I`, alarm check, `$#`)
+    before `stream`.
 
     **Arguments:** `port` device path; `baud` rate; `banner_timeout` s to wait for the banner;
     `stall_timeout` s without any byte from the device before it counts as lost; `idle_timeout` s a
     line may stay unanswered while every status report says `Idle` (plus the `P` of dwells in
-    flight) before :meth:`stream` raises :class:`Stalled`; `poll_interval` s between status polls;
+    flight) before `stream` raises `Stalled`; `poll_interval` s between status polls;
     `log` a callable taking a string (warnings, unknown lines).
     """
 
@@ -381,7 +380,7 @@ class Grbl:
         return dict(self.status)
 
     def command(self, line: str, timeout: float = 10.0) -> Reply:
-        """Send one line and wait for its `ok`/`error:N` (ALARM raises :class:`JobFault`)."""
+        """Send one line and wait for its `ok`/`error:N` (ALARM raises `JobFault`)."""
         self._write((line + "\n").encode("ascii"))
         self.lines_sent.append(line)
         while True:
@@ -435,8 +434,8 @@ class Grbl:
         offset, which the caller must see to refuse); any other state, or no report, gets a soft
         reset and must answer with the GRBL 1.1 banner. `$I` must report version 1.1.
 
-        **Raises:** :class:`NotGrblError` (nothing but `?`, wake bytes and a reset was sent),
-        :class:`AlarmLocked` when in Alarm and neither `home` nor `unlock` is set.
+        **Raises:** `NotGrblError` (nothing but `?`, wake bytes and a reset was sent),
+        `AlarmLocked` when in Alarm and neither `home` nor `unlock` is set.
         """
         time.sleep(0.05)
         self._drain()  # stale replies to an earlier session
@@ -479,7 +478,7 @@ class Grbl:
         return self
 
     def read_offsets(self) -> dict:
-        """Send `$#` and `$G`; fills :attr:`offsets` and :attr:`modes` and returns the offsets."""
+        """Send `$#` and `$G`; fills `offsets` and `modes` and returns the offsets."""
         self.messages.clear()
         r = self.command("$#")
         if r.kind != "ok":
@@ -507,13 +506,13 @@ class Grbl:
         `error` can never let a later scratch run).
 
         Watchdog: when lines are owed an answer and every status report for `idle_timeout` s (plus
-        the `P` seconds of owed `G4` dwells) has said `Idle`, the answer was lost: :class:`Stalled`.
+        the `P` seconds of owed `G4` dwells) has said `Idle`, the answer was lost: `Stalled`.
 
         **Arguments:** `items` G-code lines (no comments, no line endings); `barrier` per item;
         `counting` character counting; `on_ok(i)` called for each `ok`, in order.
 
-        **Raises:** :class:`JobFault` on `error:N`, `ALARM:N` or an unexpected reset;
-        :class:`Stalled`; :class:`DeviceLost`; `KeyboardInterrupt` passes through (the caller
+        **Raises:** `JobFault` on `error:N`, `ALARM:N` or an unexpected reset;
+        `Stalled`; `DeviceLost`; `KeyboardInterrupt` passes through (the caller
         holds and retracts).
         """
         cap = self.rx_size - 1
@@ -594,7 +593,7 @@ class Grbl:
     def check_mode(self, items: Sequence[str], *, counting: bool = False):
         """Run `items` through GRBL's `$C` check mode (parsed, not moved), then leave check mode.
 
-        **Raises:** :class:`JobFault` at the first `error:N` (check mode is left first).
+        **Raises:** `JobFault` at the first `error:N` (check mode is left first).
         """
         r = self.command("$C")
         if r.kind != "ok" or not any("Enabled" in m for m in self.messages[-3:]):
@@ -611,122 +610,3 @@ class Grbl:
         self._drain()
         if fault is not None:
             raise fault
-
-
-def sha256_file(path) -> str:
-    """Hex SHA-256 of a file's bytes."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
-class JournalError(RuntimeError):
-    """A journal that does not belong to this G-code, or cannot be continued."""
-
-
-class Journal:
-    """Append-only record of scratches confirmed carved, keyed to the G-code's SHA-256.
-
-    One JSON object per line: a `header` (`gcode_sha256`, `n_scratches`, `work_zero`), then `done`
-    records (`k` the position in the cutting order, `scratch` the design index) and `event` records
-    (a `start` event per session, with its `work_zero`). Each record is flushed and fsynced before
-    the call returns. A torn last line (power lost mid-write) is ignored on reading. The carver
-    creates a journal only once motion is about to be sent.
-
-    **Arguments:** `path`; `gcode_sha256`; `n_scratches`; `resume`: continue an existing journal
-    (it must exist and match); otherwise there must be no journal, or only a header (a leftover
-    of a session that never started: it is replaced); `header`: extra header fields.
-    """
-
-    def __init__(self, path, gcode_sha256: str, n_scratches: int, *, resume: bool, header: dict | None = None):
-        self.path = os.fspath(path)
-        self.done = self.check(self.path, gcode_sha256, resume=resume)["done"]
-        self._f = open(self.path, "a" if resume else "w", encoding="utf-8")
-        if not resume:
-            self._append({"type": "header", "gcode_sha256": gcode_sha256, "n_scratches": int(n_scratches),
-                          "time": time.time(), **(header or {})})
-
-    @classmethod
-    def check(cls, path, gcode_sha256: str, *, resume: bool) -> dict:
-        """Whether a session may start (before anything is sent); raises :class:`JournalError` if not.
-
-        **Returns:** dict with `done` (scratches journalled), `n_scratches` and `work_zero` (that of the
-        latest session, or None).
-        """
-        path = os.fspath(path)
-        exists = os.path.exists(path) and os.path.getsize(path) > 0
-        if not exists:
-            if resume:
-                raise JournalError(f"--resume: journal {path!r} does not exist; nothing to resume")
-            return {"done": 0, "n_scratches": None, "work_zero": None}
-        recs = cls.records(path)
-        header, done = recs[0], cls._count(path, recs)
-        starts = [r for r in recs if r.get("type") == "event" and r.get("event") == "start"]
-        if resume and header.get("gcode_sha256") != gcode_sha256:
-            raise JournalError(
-                f"journal {path!r} belongs to G-code {str(header.get('gcode_sha256', '?'))[:12]}..., not to "
-                f"this G-code ({gcode_sha256[:12]}...); refusing to resume a different job"
-            )
-        if not resume and (starts or done):
-            raise JournalError(
-                f"journal {path!r} already exists ({done} of {header.get('n_scratches', '?')} scratches done); "
-                "pass --resume to continue that job, or move the journal away to start again"
-            )
-        zero = next((r["work_zero"] for r in reversed(starts) if r.get("work_zero")), header.get("work_zero"))
-        return {"done": done if resume else 0, "n_scratches": header.get("n_scratches"), "work_zero": zero}
-
-    @staticmethod
-    def records(path) -> list:
-        """All records of a journal (a torn final line dropped); the first is the header."""
-        with open(path, encoding="utf-8") as f:
-            lines = f.read().split("\n")
-        recs = []
-        for n, line in enumerate(lines):
-            if not line.strip():
-                continue
-            try:
-                recs.append(json.loads(line))
-            except json.JSONDecodeError:
-                if any(x.strip() for x in lines[n + 1:]):
-                    raise JournalError(f"journal {path!r}: line {n + 1} is corrupt") from None
-                break  # torn final record
-        if not recs or recs[0].get("type") != "header":
-            raise JournalError(f"journal {path!r} has no header record")
-        return recs
-
-    @staticmethod
-    def _count(path, recs) -> int:
-        done = 0
-        for r in recs[1:]:
-            if r.get("type") == "done":
-                if r.get("k") != done:
-                    raise JournalError(f"journal {path!r}: done record k={r.get('k')} out of order (expected {done})")
-                done += 1
-        return done
-
-    @classmethod
-    def read(cls, path):
-        """Parse a journal: returns `(header dict, number of consecutive done records from k = 0)`."""
-        recs = cls.records(path)
-        return recs[0], cls._count(path, recs)
-
-    def _append(self, rec):
-        self._f.write(json.dumps(rec) + "\n")
-        self._f.flush()
-        os.fsync(self._f.fileno())
-
-    def confirm(self, k: int, scratch: int):
-        """Record that order position `k` (design scratch `scratch`) is carved."""
-        if k != self.done:
-            raise JournalError(f"confirming scratch position {k} but {self.done} is next")
-        self._append({"type": "done", "k": int(k), "scratch": int(scratch), "time": time.time()})
-        self.done += 1
-
-    def event(self, kind: str, **info):
-        """Record a session event (start, fault, interrupt)."""
-        self._append({"type": "event", "event": kind, "time": time.time(), **info})
-
-    def close(self):
-        self._f.close()

@@ -422,7 +422,7 @@ def best_directions(p0, p1, order, start=(0.0, 0.0)):
 
     **Arguments:** `p0`, `p1` `(N, 2)`; `order` `(N,)`; `start` `(2,)`.
 
-    **Returns:** `(N,)` bool by scratch, True when cut `p1 -> p0`; minimises :func:`path_travel`.
+    **Returns:** `(N,)` bool by scratch, True when cut `p1 -> p0`; minimises `path_travel`.
     """
     p0 = np.asarray(p0, np.float64)
     p1 = np.asarray(p1, np.float64)
@@ -466,7 +466,7 @@ def order_scratches(p0, p1, start=(0.0, 0.0), *, improve: bool = True, k: int = 
     position before the first scratch; `improve` runs the local search; `k` neighbours per endpoint;
     `time_limit` seconds for the local search (None: to a local optimum).
 
-    **Returns:** an :class:`Ordering`.
+    **Returns:** an `Ordering`.
     """
     t0 = time.perf_counter()
     p0 = np.asarray(p0, np.float64)

@@ -570,22 +570,22 @@ def test_cull_coverage_bound_through_the_renderer():
     # eps * sum_dropped A_i / (pi alpha_i^2 S_P) times the pixel's shading factor.
     import math
 
-    from jscratch import render as R
+    from jscratch import render
 
-    board = R.Board(shape=(32, 32))
-    s = R.Scratches.random(jax.random.PRNGKey(3), 300, board, dtype=jnp.float64)
+    board = render.Board(shape=(32, 32))
+    s = render.Scratches.random(jax.random.PRNGKey(3), 300, board, dtype=jnp.float64)
     s = eqx.tree_at(lambda q: q.alpha, s, jnp.asarray(np.random.default_rng(2).uniform(
         0.02, 0.1, 300)))
-    views = R.views_on_circle(3, math.radians(50), board=board, dtype=jnp.float64)
-    pairs = R.bin_pairs(s, board)
-    hs = R.half_vectors(views, board, jnp.float64)
-    board_ndf = jnp.max(R.board_ndf(views, board, jnp.float64), axis=0)
-    full = np.asarray(R.render_pairs(s, views, board, pairs))
+    views = render.views_on_circle(3, math.radians(50), board=board, dtype=jnp.float64)
+    pairs = render.bin_pairs(s, board)
+    hs = render.half_vectors(views, board, jnp.float64)
+    board_ndf = jnp.max(render.board_ndf(views, board, jnp.float64), axis=0)
+    full = np.asarray(render.render_pairs(s, views, board, pairs))
     ones = jnp.ones((3, board.n_pixels), jnp.float64)
-    k = np.asarray(R.shade(ones, ones, views, board)).reshape(3, -1)  # radiance per unit D
+    k = np.asarray(render.shade(ones, ones, views, board)).reshape(3, -1)  # radiance per unit D
     from jscratch import ndf
 
-    fps = R.pixel_footprints(board, jnp.float64)
+    fps = render.pixel_footprints(board, jnp.float64)
     pix, scr = np.asarray(pairs.pixel), np.minimum(np.asarray(pairs.scratch), s.n - 1)
     _, area = jax.vmap(ndf.pair_integral)(hs[0, pix], fps[pix], s.p0[scr], s.p1[scr],
                                           s.width[scr], s.depth[scr], s.alpha[scr])
@@ -597,7 +597,7 @@ def test_cull_coverage_bound_through_the_renderer():
         dropped = np.asarray(pairs.valid) & ~kept
         assert dropped.any()
         n_kept_any += int(kept.sum())
-        culled = np.asarray(R.render_pairs(s, views, board, pairs, cov))
+        culled = np.asarray(render.render_pairs(s, views, board, pairs, cov))
         a_max = np.where(dropped, area / (np.pi * np.asarray(s.alpha)[scr] ** 2), 0.0)
         bound = eps * np.bincount(pix, a_max, minlength=board.n_pixels) / board.pixel_area
         err = np.abs(culled - full).reshape(3, -1)

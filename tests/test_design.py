@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from jscratch import designfile
-from jscratch import render as R
+from jscratch import render
 from jscratch.design import (
     DesignConfig,
     DesignError,
@@ -46,7 +46,7 @@ def _tiny_config(**kw):
     return DesignConfig(**base)
 
 
-def test_cli_end_to_end_resume_and_nan(tmp_path):
+def test_cli_end_to_end_resume_and_nan(tmp_path, capsys):
     # 1. The CLI on a tiny scene with the skimage.data defaults: every output, a decreasing loss.
     full = tmp_path / "full"
     assert main(TINY + ["--iterations", "4", "--out", str(full)]) == 0
@@ -78,12 +78,19 @@ def test_cli_end_to_end_resume_and_nan(tmp_path):
     assert ck_part.keys() == ck_full.keys()
     for k in ck_full:
         np.testing.assert_array_equal(ck_part[k], ck_full[k], err_msg=k)
+    # A checkpoint lacking a pair-list field (another version's) is refused in one line.
+    np.savez(part / "checkpoint.npz", meta=np.frombuffer(json.dumps(meta_part).encode(), np.uint8),
+             **{k: v for k, v in ck_part.items() if k != "pairs/bin_tol"})
+    capsys.readouterr()
+    assert main(["--resume", "--iterations", "5", "--out", str(part), "--quiet"]) != 0
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: checkpoint ") and "lacks bin_tol" in err and "\n" not in err
 
     # 3. A learning rate that blows up the width: stop, name iteration and parameter, keep the
     #    last good state in the checkpoint.
     targets, _ = default_targets(2, (SIZE, SIZE))
-    board = R.Board(shape=(SIZE, SIZE))
-    views = R.views_on_circle(2, math.radians(50), board=board)
+    board = render.Board(shape=(SIZE, SIZE))
+    views = render.views_on_circle(2, math.radians(50), board=board)
     ck = tmp_path / "nan" / "checkpoint.npz"
     with pytest.raises(NonFiniteError, match=r"updated width at iteration 0 \(first bad scratch"):
         design(targets, views, board, _tiny_config(lr_width=1e4), checkpoint=ck)
@@ -93,8 +100,8 @@ def test_cli_end_to_end_resume_and_nan(tmp_path):
 
 
 def test_params_round_trip_and_maps():
-    board = R.Board(shape=(16, 16))
-    s = R.Scratches.random(jax.random.PRNGKey(3), 50, board, dtype=jnp.float64)
+    board = render.Board(shape=(16, 16))
+    s = render.Scratches.random(jax.random.PRNGKey(3), 50, board, dtype=jnp.float64)
     for kind in ("endpoints", "midpoint"):
         p = DesignParams.from_physical(s, np.array([2.0, 3.0]), board, kind)
         back = p.scratches()
@@ -120,8 +127,8 @@ def test_params_round_trip_and_maps():
 
 
 def test_config_and_input_errors(tmp_path):
-    board = R.Board(shape=(SIZE, SIZE))
-    views = R.views_on_circle(2, math.radians(50), board=board)
+    board = render.Board(shape=(SIZE, SIZE))
+    views = render.views_on_circle(2, math.radians(50), board=board)
     targets = np.full((2, SIZE, SIZE), 0.5)
     with pytest.raises(DesignError, match="got 3 target images for 2 views"):
         design(np.full((3, SIZE, SIZE), 0.5), views, board)
@@ -130,12 +137,12 @@ def test_config_and_input_errors(tmp_path):
     with pytest.raises(DesignError, match="integer images"):
         design(np.zeros((2, SIZE, SIZE), np.uint8), views, board)
     with pytest.raises(DesignError, match=r"targets are 32x32 px but the board's image shape is \(16, 16\)"):
-        design(targets, views, R.Board(shape=(16, 16)))
+        design(targets, views, render.Board(shape=(16, 16)))
     # A camera at the light's mirror direction (azimuth 180 deg from the light, same polar angle).
     cam = np.array([[0.15 - 0.5, 0.15, 0.8], [0.15, 0.15 + 0.5, 0.8]])
     light = np.array([[0.15 + 0.5, 0.15, 0.8]] * 2)
     with pytest.raises(DesignError, match="view 0: the camera is at the light's mirror direction"):
-        design(targets, R.Views(cam, light), board)
+        design(targets, render.Views(cam, light), board)
     with pytest.raises(DesignError, match="freeze"):
         DesignConfig(freeze=("colour",))
     with pytest.raises(DesignError, match="parameterisation"):
@@ -186,13 +193,13 @@ def test_view_lists_report_overflow_without_aborting():
     from jscratch.design.params import group_tree
     from jscratch.design.solver import Context, view_lists
 
-    board = R.Board(shape=(16, 16))
-    views = R.views_on_circle(2, math.radians(50), board=board)
-    s = R.Scratches.random(jax.random.PRNGKey(1), 60, board, width=2.5e-4, depth=1.28e-4,
+    board = render.Board(shape=(16, 16))
+    views = render.views_on_circle(2, math.radians(50), board=board)
+    s = render.Scratches.random(jax.random.PRNGKey(1), 60, board, width=2.5e-4, depth=1.28e-4,
                            dtype=jnp.float32)
     p = DesignParams.from_physical(s, np.ones(2), board)
     pairs, _ = bvh.build_pairs(s.p0, s.p1, s.width, s.depth, board=(0.3, 0.3), shape=(16, 16))
-    hs = R.half_vectors(views, board, jnp.float32)
+    hs = render.half_vectors(views, board, jnp.float32)
     bound = loss.make_loss(loss.LossConfig(kind="l2")).bind(jnp.zeros((2, 16, 16), jnp.float32))
     lrs = group_tree(p, {g: jnp.float32(0) for g in ("endpoints", "width", "depth", "alpha",
                                                        "intensity")})
@@ -214,8 +221,8 @@ def test_culled_path_matches_unculled_at_tiny_eps():
     term is too dim for the coverage list to move the loss; what `cull_coverage` keeps is checked
     by `test_view_lists_report_overflow_without_aborting` and its error bound in test_bvh.)"""
     targets, _ = default_targets(2, (SIZE, SIZE))
-    board = R.Board(shape=(SIZE, SIZE))
-    views = R.views_on_circle(2, math.radians(50), board=board)
+    board = render.Board(shape=(SIZE, SIZE))
+    views = render.views_on_circle(2, math.radians(50), board=board)
     runs = {}
     for name, eps in (("unculled", 0.0), ("culled", 1e-12)):
         cfg = _tiny_config(iterations=3, discard=False, cull_eps=eps, coverage_eps=eps)

@@ -20,7 +20,8 @@ from jscratch.designfile import DesignError, demo_design, save_design  # noqa: E
 from jscratch.fabricate import (  # noqa: E402
     CarveError, MachineConfig, carve, fit_plunge, main, make_program, read_program, summarize, write_program,
 )
-from jscratch.grbl import Grbl, Journal, JournalError, check_words, classify, sha256_file  # noqa: E402
+from jscratch.grbl import Grbl, check_words, classify  # noqa: E402
+from jscratch.journal import Journal, JournalError, sha256_file  # noqa: E402
 from jscratch.toolpath import (  # noqa: E402
     best_directions, greedy_order, improve_order, knn_grid, order_scratches, path_travel,
 )

@@ -45,7 +45,8 @@ def test_round_moves_lowest_scratches_consistently():
     targets, views, board = _scene()
     cfg = _config()
     params, opt, ctx = _setup(targets, views, board, cfg)
-    st = _initial_state(params, opt, ctx, targets, cfg)
+    st, warm = _initial_state(params, opt, ctx, targets, cfg)
+    warm.join()
     # one real step so that the Adam moments are non-zero
     new, opt_state, *_ = solver.step(st.params, st.opt_state, st.pairs, ctx, st.caps, opt)
     sc = prune.scores(new, st.pairs, ctx, st.caps)

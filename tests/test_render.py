@@ -19,9 +19,9 @@ import numpy as np
 import pytest
 
 from jscratch import brute, bvh, ndf
-from jscratch import render as R
+from jscratch import render
 
-BOARD = R.Board(shape=(10, 10), Sx=0.01, Sy=0.01)  # 1 mm pixels
+BOARD = render.Board(shape=(10, 10), Sx=0.01, Sy=0.01)  # 1 mm pixels
 
 
 def _scene(dtype=jnp.float64, seed=4):
@@ -38,9 +38,9 @@ def _scene(dtype=jnp.float64, seed=4):
     width = rng.uniform(1.5e-4, 4e-4, n)
     depth = rng.uniform(0.5e-4, 2e-4, n)
     alpha = rng.uniform(0.05, 0.5, n)
-    s = R.Scratches(jnp.asarray(p0, dtype), jnp.asarray(p1, dtype), jnp.asarray(width, dtype),
+    s = render.Scratches(jnp.asarray(p0, dtype), jnp.asarray(p1, dtype), jnp.asarray(width, dtype),
                     jnp.asarray(depth, dtype), jnp.asarray(alpha, dtype))
-    v = R.views_on_circle(3, 0.6, 0.05, board=BOARD, intensity=jnp.asarray([1.0, 1.5, 0.7]),
+    v = render.views_on_circle(3, 0.6, 0.05, board=BOARD, intensity=jnp.asarray([1.0, 1.5, 0.7]),
                           dtype=dtype)
     return s, v
 
@@ -54,8 +54,8 @@ FAST = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes"
 # `test_gradient_tests_run_several_piece_budgets`), so every kernel variant is checked.
 CHUNK = 32
 
-_ref = jax.jit(lambda s, v: R.render_reference(s, v, BOARD), compiler_options=FAST)
-_fwd = jax.jit(lambda s, v, pairs: R.render_pairs(s, v, BOARD, pairs, chunk=CHUNK),
+_ref = jax.jit(lambda s, v: render.render_reference(s, v, BOARD), compiler_options=FAST)
+_fwd = jax.jit(lambda s, v, pairs: render.render_pairs(s, v, BOARD, pairs, chunk=CHUNK),
                compiler_options=FAST)
 
 
@@ -112,12 +112,12 @@ def test_culled_per_view_lists_within_cull_bound():
     s, v = _scene()
     eps = 0.05
     full = _fwd(s, v, _pairs(s))
-    out, pairs, cov_pairs = R.render(s, v, BOARD, eps=eps, return_pairs=True)
+    out, pairs, cov_pairs = render.render(s, v, BOARD, eps=eps, return_pairs=True)
     n_full = int(np.asarray(cov_pairs.valid).sum())
     n_kept = np.asarray(pairs.valid).sum(-1)
     assert np.all(n_kept < n_full)  # the culling removed pairs in every view
     # D_P drops by at most eps * sum_i A_i / (pi alpha_i^2 S_P); shading is linear in D_P.
-    fps = R.pixel_footprints(BOARD)
+    fps = render.pixel_footprints(BOARD)
     pix = np.asarray(cov_pairs.pixel)[np.asarray(cov_pairs.valid)]
     scr = np.asarray(cov_pairs.scratch)[np.asarray(cov_pairs.valid)]
     _, A = jax.vmap(lambda f, i: ndf.pair_integral(jnp.asarray([0.0, 0.0, 1.0]), f, s.p0[i],
@@ -127,8 +127,8 @@ def test_culled_per_view_lists_within_cull_bound():
     np.add.at(bound, pix, eps * np.asarray(A) / (np.pi * np.asarray(s.alpha)[scr] ** 2))
     bound /= BOARD.pixel_area
     cov = np.zeros((1, BOARD.n_pixels))
-    per_D = np.asarray(R.shade(jnp.ones((3, BOARD.n_pixels)), jnp.asarray(cov), v, BOARD)
-                       - R.shade(jnp.zeros((3, BOARD.n_pixels)), jnp.asarray(cov), v, BOARD))
+    per_D = np.asarray(render.shade(jnp.ones((3, BOARD.n_pixels)), jnp.asarray(cov), v, BOARD)
+                       - render.shade(jnp.zeros((3, BOARD.n_pixels)), jnp.asarray(cov), v, BOARD))
     diff = np.asarray(full - out).reshape(3, -1)
     rounding = 1e-12 * np.abs(np.asarray(full)).reshape(3, -1)
     assert np.all(diff >= -rounding)
@@ -164,7 +164,7 @@ def test_shade_matches_independent_brute_shade():
     key = jax.random.PRNGKey(1)
     D = jax.random.uniform(key, (3, BOARD.n_pixels), jnp.float64, 0, 50)
     c = jax.random.uniform(jax.random.fold_in(key, 1), (BOARD.n_pixels,), jnp.float64, 0, 1.3)
-    a = R.shade(D, c[None], v, BOARD)
+    a = render.shade(D, c[None], v, BOARD)
     b = brute.brute_shade(D, c[None], v, BOARD)
     np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12)
 
@@ -179,7 +179,7 @@ def _loss_weights(dtype):
 
 def _objective(sv, pairs, weights, mesh=None):
     s, v = sv
-    rad = R.render_pairs(s, v, BOARD, pairs, chunk=CHUNK, mesh=mesh)
+    rad = render.render_pairs(s, v, BOARD, pairs, chunk=CHUNK, mesh=mesh)
     return jnp.sum(weights * rad) / rad.size, rad
 
 
@@ -202,10 +202,10 @@ def _stress_scene(dtype):
     width = np.array([2e-4, 2e-4, 2e-4, 3e-4, 1e-4, 1e-3, 5e-5, 2e-4, 2e-4, 2e-4, 2e-4, 2e-4])
     depth = np.array([1e-4, 1e-4, 1e-4, 2e-4, 1e-4, 1e-6, 5e-4, 1e-4, 1e-4, 1e-4, 1e-4, 1e-4])
     alpha = np.array([0.04, 1e-4, 0.3, 0.04, 0.999, 0.04, 0.04, 1e-3, 0.9, 0.04, 0.04, 0.04])
-    s = R.Scratches(*(jnp.asarray(x, dtype) for x in (p0, p1, width, depth, alpha)))
+    s = render.Scratches(*(jnp.asarray(x, dtype) for x in (p0, p1, width, depth, alpha)))
     camera = np.array([[0.005, -1.0, 0.02], [0.005, 0.005, 0.5], [0.8, 0.005, 0.3]])
     light = np.array([[-1.0, 0.005, 0.3], [0.005, 1.0, 0.01], [0.005, -0.8, 0.4]])
-    v = R.Views(jnp.asarray(camera, dtype), jnp.asarray(light, dtype), jnp.asarray(1.0, dtype))
+    v = render.Views(jnp.asarray(camera, dtype), jnp.asarray(light, dtype), jnp.asarray(1.0, dtype))
     return s, v
 
 
@@ -267,7 +267,7 @@ def test_sharded_equals_single_device_and_f64_stress_gradients_finite():
     (val, rad), (gs, gv) = _vg((s, v), pairs, wts)
     assert len(jax.devices()) >= 4
     mesh = jax.sharding.Mesh(np.asarray(jax.devices()[:4]), ("d",))
-    pairs4 = R.bin_pairs(s, BOARD, shards=4, chunk=64)
+    pairs4 = render.bin_pairs(s, BOARD, shards=4, chunk=64)
     (val4, rad4), g4 = _vg((s, v), pairs4, wts, mesh)
     np.testing.assert_allclose(np.asarray(rad4), np.asarray(rad), rtol=1e-12)
     for a, b in zip(jax.tree_util.tree_leaves(g4), jax.tree_util.tree_leaves((gs, gv))):
@@ -282,13 +282,13 @@ def test_sharded_per_view_lists_and_layout_check():
     mesh's pixel blocks is refused with an error that says how to build one (NaN under jit)."""
     s, v = _scene()
     mesh = jax.sharding.Mesh(np.asarray(jax.devices()[:4]).reshape(2, 2), ("a", "b"))
-    full1 = R.bin_pairs(s, BOARD, chunk=64)
-    full4 = R.bin_pairs(s, BOARD, chunk=64, shards=4)
-    cull1 = R.cull_pairs(full1, s, v, BOARD, 1e-2, chunk=64)
-    cull4 = R.cull_pairs(full4, s, v, BOARD, 1e-2, chunk=64, shards=4)
+    full1 = render.bin_pairs(s, BOARD, chunk=64)
+    full4 = render.bin_pairs(s, BOARD, chunk=64, shards=4)
+    cull1 = render.cull_pairs(full1, s, v, BOARD, 1e-2, chunk=64)
+    cull4 = render.cull_pairs(full4, s, v, BOARD, 1e-2, chunk=64, shards=4)
     # culling removed pairs in some view, so this is not the shared-list path again
     assert int(cull1.valid.sum()) < 3 * int(full1.valid.sum())
-    f = jax.jit(lambda s, v, p, c, mesh=None: R.render_pairs(s, v, BOARD, p, c, chunk=64,
+    f = jax.jit(lambda s, v, p, c, mesh=None: render.render_pairs(s, v, BOARD, p, c, chunk=64,
                                                             mesh=mesh),
                 static_argnames="mesh", compiler_options=FAST)
     rad1 = f(s, v, cull1, full1)
@@ -296,17 +296,17 @@ def test_sharded_per_view_lists_and_layout_check():
     np.testing.assert_allclose(np.asarray(rad4), np.asarray(rad1), rtol=1e-12)
     # Over 2 devices (5 rows each) the radiance comes back split into row strips.
     mesh2 = jax.sharding.Mesh(np.asarray(jax.devices()[:2]), ("d",))
-    rad2 = f(s, v, R.cull_pairs(full1, s, v, BOARD, 1e-2, chunk=64, shards=2),
-             R.bin_pairs(s, BOARD, chunk=64, shards=2), mesh=mesh2)
+    rad2 = f(s, v, render.cull_pairs(full1, s, v, BOARD, 1e-2, chunk=64, shards=2),
+             render.bin_pairs(s, BOARD, chunk=64, shards=2), mesh=mesh2)
     np.testing.assert_allclose(np.asarray(rad2), np.asarray(rad1), rtol=1e-12)
     assert sorted(x.data.shape for x in rad2.addressable_shards) == [(3, 5, 10)] * 2
     # A list not laid out for the mesh: eagerly a ValueError; under jit NaN radiance (a runtime
     # error on one device of a multi-device program would hang the others).
     with pytest.raises(ValueError, match=r"not laid out for 4 pixel shards.*shards=4"):
-        R.render_pairs(s, v, BOARD, cull1, full4, chunk=64, mesh=mesh)
+        render.render_pairs(s, v, BOARD, cull1, full4, chunk=64, mesh=mesh)
     assert bool(jnp.all(jnp.isnan(f(s, v, cull1, full4, mesh=mesh))))
     with pytest.raises(ValueError, match="not a multiple of the 4"):
-        R.render_pairs(s, v, BOARD, bvh.Pairs(full1.pixel[:-1], full1.scratch[:-1],
+        render.render_pairs(s, v, BOARD, bvh.Pairs(full1.pixel[:-1], full1.scratch[:-1],
                                               full1.valid[:-1], full1.overflow), mesh=mesh)
 
 
@@ -316,11 +316,11 @@ def test_gradient_tests_run_chunks_with_several_piece_budgets():
     chunks of `CHUNK` with the smallest budget and chunks with a larger one."""
     s, v = _scene()
     pairs = _pairs(s)
-    cfg = R._Cfg(BOARD.H, BOARD.W, BOARD.Sx, BOARD.Sy, CHUNK, None, (), BOARD.n_pixels, False,
+    cfg = render._Cfg(BOARD.H, BOARD.W, BOARD.Sx, BOARD.Sy, CHUNK, None, (), BOARD.n_pixels, False,
                  True, True)
     params = (s.p0, s.p1, s.width, s.depth, s.alpha)
-    klass = R._pair_classes(cfg, params, pairs.pixel, pairs.scratch, pairs.valid)
-    _, _, valid = R._sort_pairs(pairs.pixel, pairs.scratch, pairs.valid, klass, 1)
+    klass = render._pair_classes(cfg, params, pairs.pixel, pairs.scratch, pairs.valid)
+    _, _, valid = render._sort_pairs(pairs.pixel, pairs.scratch, pairs.valid, klass, 1)
     klass = np.sort(np.asarray(klass))  # the sorted order: classes 1, 2, 3, then padding (0)
     klass = np.concatenate([klass[klass > 0], klass[klass == 0]])
     assert np.array_equal(klass > 0, np.asarray(valid))
@@ -364,8 +364,8 @@ def test_gradient_memory_does_not_grow_with_pairs(monkeypatch):
             z = jnp.sin(z) * a + jnp.exp(-z * z)
         return jnp.where(valid[None], z, 0)
 
-    monkeypatch.setattr(R, "_chunk_geometry", geometry)
-    monkeypatch.setattr(R, "_chunk_lit", lit)
+    monkeypatch.setattr(render, "_chunk_geometry", geometry)
+    monkeypatch.setattr(render, "_chunk_lit", lit)
     s, v = _scene(jnp.float32)
     wts = _loss_weights(jnp.float32)
 
@@ -399,21 +399,21 @@ def test_gradient_memory_does_not_grow_with_pairs(monkeypatch):
 
 
 def test_display_is_c1_gamma_with_finite_slope():
-    k, g = R.DISPLAY_KNEE, 1 / R.DISPLAY_GAMMA
+    k, g = render.DISPLAY_KNEE, 1 / render.DISPLAY_GAMMA
     x = jnp.asarray([2e-4, 0.01, 0.5, 1.0, 7.0])
-    np.testing.assert_allclose(np.asarray(R.display(x)), np.asarray(x) ** g, rtol=1e-12)
-    d = jax.vmap(jax.grad(R.display))
+    np.testing.assert_allclose(np.asarray(render.display(x)), np.asarray(x) ** g, rtol=1e-12)
+    d = jax.vmap(jax.grad(render.display))
     lo, hi = jnp.asarray([k * (1 - 1e-9)]), jnp.asarray([k * (1 + 1e-9)])
-    np.testing.assert_allclose(np.asarray(R.display(lo)), np.asarray(R.display(hi)), rtol=1e-7)
+    np.testing.assert_allclose(np.asarray(render.display(lo)), np.asarray(render.display(hi)), rtol=1e-7)
     np.testing.assert_allclose(np.asarray(d(lo)), np.asarray(d(hi)), rtol=1e-6)
     s0 = float(d(jnp.zeros(1))[0])
     assert math.isfinite(s0) and abs(s0 - (2 - g) * k ** (g - 1)) < 1e-9 * s0
     xs = jnp.linspace(0, 3 * k, 301)
-    assert bool(jnp.all(jnp.diff(R.display(xs)) > 0))
+    assert bool(jnp.all(jnp.diff(render.display(xs)) > 0))
 
 
 def test_views_on_circle_layout():
-    v = R.views_on_circle(5, math.radians(40), 1.0)
+    v = render.views_on_circle(5, math.radians(40), 1.0)
     c = np.asarray(v.camera) - [0.15, 0.15, 0]
     np.testing.assert_allclose(np.linalg.norm(c, axis=-1), 1.0, rtol=1e-12)
     np.testing.assert_allclose(np.arccos(c[:, 2]), math.radians(40), rtol=1e-12)
@@ -423,22 +423,22 @@ def test_views_on_circle_layout():
     assert np.min(np.abs(az - np.pi)) > np.pi / 5 - 1e-9
     assert np.all(np.asarray(v.light) == np.asarray(v.light)[0]) and v.intensity.shape == (5,)
     with pytest.raises(ValueError, match="sees the light mirrored"):
-        R.views_on_circle(4, math.radians(40), offset=math.pi)
+        render.views_on_circle(4, math.radians(40), offset=math.pi)
     with pytest.raises(ValueError, match="radians: did you mean"):
-        R.views_on_circle(4, 40.0)
+        render.views_on_circle(4, 40.0)
 
 
 def test_errors_name_the_argument():
     with pytest.raises(ValueError, match="`p1` must have shape"):
-        R.Scratches(jnp.zeros((3, 2)), jnp.zeros((3, 3)))
+        render.Scratches(jnp.zeros((3, 2)), jnp.zeros((3, 3)))
     with pytest.raises(ValueError, match=r"Scratches: scratch 1: alpha = 1.0 must lie in \(0, 1\)"):
-        R.Scratches(jnp.zeros((2, 2)), jnp.ones((2, 2)), alpha=jnp.asarray([0.1, 1.0]))
+        render.Scratches(jnp.zeros((2, 2)), jnp.ones((2, 2)), alpha=jnp.asarray([0.1, 1.0]))
     with pytest.raises(ValueError, match="Scratches: scratch 1: width = nan is not finite"):
-        R.Scratches(jnp.zeros((2, 2)), jnp.ones((2, 2)), width=jnp.asarray([1e-4, jnp.nan]))
+        render.Scratches(jnp.zeros((2, 2)), jnp.ones((2, 2)), width=jnp.asarray([1e-4, jnp.nan]))
     with pytest.raises(ValueError, match="Views: view 0: camera is at z"):
-        R.Views(jnp.asarray([[0.0, 0.0, -1.0]]), jnp.asarray([[0.0, 0.0, 1.0]]))
+        render.Views(jnp.asarray([[0.0, 0.0, -1.0]]), jnp.asarray([[0.0, 0.0, 1.0]]))
     with pytest.raises(ValueError, match="`shape` must be"):
-        R.Board(shape=(0, 4))
+        render.Board(shape=(0, 4))
     s, v = _scene()
     bad = eqx.tree_at(lambda p: p.overflow, _pairs(s), jnp.asarray(True))
     with pytest.raises(Exception, match="overflowed its capacity"):

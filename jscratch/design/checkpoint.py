@@ -32,12 +32,10 @@ def save_npz(path: str, arrays: dict[str, np.ndarray]) -> None:
         raise
 
 
-_PAIR_FIELDS = ("pixel", "scratch", "valid", "overflow", "bin_p0", "bin_p1", "bin_half_width",
-                "bin_extend", "bin_tol")
-
-
-_SPEC_FIELDS = ("board", "shape", "strip_capacity", "rows_per_strip", "pair_capacity", "skin",
-                "margin")
+def _fields(module_type) -> tuple[str, ...]:
+    """The field names of an equinox Module (a dataclass): what a checkpoint saves of it, so a
+    field added to `bvh.Pairs` or `bvh.GridSpec` is saved without a list to keep in step."""
+    return tuple(f.name for f in dataclasses.fields(module_type))
 
 
 @dataclasses.dataclass
@@ -60,11 +58,11 @@ def save_checkpoint(path: str, state: State, config: DesignConfig, thash: str) -
         arrays[f"params/{i}"] = np.asarray(leaf)
     for i, leaf in enumerate(jax.tree_util.tree_leaves(state.opt_state)):
         arrays[f"opt/{i}"] = np.asarray(leaf)
-    for f in _PAIR_FIELDS:
+    for f in _fields(bvh.Pairs):
         arrays[f"pairs/{f}"] = np.asarray(getattr(state.pairs, f))
     meta = {
         "iteration": state.iteration,
-        "spec": {f: getattr(state.spec, f) for f in _SPEC_FIELDS},
+        "spec": {f: getattr(state.spec, f) for f in _fields(bvh.GridSpec)},
         "caps": list(state.caps),
         "history": state.history,
         "rebins": state.rebins,
@@ -103,10 +101,14 @@ def load_checkpoint(path: str, like: State, config: DesignConfig, thash: str) ->
 
     params = restore(like.params, "params")
     opt_state = restore(like.opt_state, "opt")
-    pairs = bvh.Pairs(**{f: jnp.asarray(data[f"pairs/{f}"]) for f in _PAIR_FIELDS})
-    sp = meta["spec"]
-    spec = bvh.GridSpec(board=tuple(sp["board"]), shape=tuple(sp["shape"]),
-                        strip_capacity=sp["strip_capacity"], rows_per_strip=sp["rows_per_strip"],
-                        pair_capacity=sp["pair_capacity"], skin=sp["skin"], margin=sp["margin"])
+    missing = [f for f in _fields(bvh.Pairs) if f"pairs/{f}" not in data]
+    missing += [f for f in _fields(bvh.GridSpec) if f not in meta["spec"]]
+    if missing:
+        raise DesignError(f"checkpoint {path!r} lacks {', '.join(missing)}: it was written by"
+                          " another version of jscratch")
+    pairs = bvh.Pairs(**{f: jnp.asarray(data[f"pairs/{f}"]) for f in _fields(bvh.Pairs)})
+    # (JSON turns tuples into lists; the spec is static and hashed by jit, so tuples again)
+    spec = bvh.GridSpec(**{f: tuple(v) if isinstance(v, list) else v
+                           for f, v in meta["spec"].items()})
     return State(meta["iteration"], params, opt_state, pairs, spec, tuple(meta["caps"]),
                   meta["history"], meta["rebins"])

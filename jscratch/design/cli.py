@@ -74,6 +74,18 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true",
                    help="continue from OUT/checkpoint.npz with OUT/config.json (other options ignored except --iterations, --quiet)")
     p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    p.add_argument("--machine", default=None,
+                   help="machine profile TOML (python -m jscratch.machine prints the default, the paper's "
+                        "ball-end cutter); recorded in design.npz for python -m jscratch.fabricate")
+    p.add_argument("--groove", choices=("carvable", "free"), default="carvable",
+                   help="carvable: one plunge per scratch within the machine's range, mapped to the "
+                        "groove profile (every groove cuttable); free: width and depth optimised freely "
+                        "(before issue 15)")
+    p.add_argument("--as-carved-samples", type=int, default=0,
+                   help="strata per pixel side of the brute-force 'as carved' render, the design with the "
+                        "ball's real arc (0: skip it, the default, so the main job stays fast; 32 is what "
+                        "the maker's path uses: ~35-50 s more at 256 px, 20k scratches; 8 is too noisy to "
+                        "judge, see benchmarks/RESULTS.md)")
     # issue 17: quality per scratch
     p.add_argument("--lambda-x", type=float, default=d.loss.lambda_x,
                    help="weight of the cross-view ghosting term E_x (sum over view pairs of the SSIM "
@@ -115,7 +127,8 @@ def _run_cli(args) -> int:
             discard_tol=args.discard_tol, checkpoint_every=args.checkpoint_every, dtype=args.dtype,
             loss=loss_mod.LossConfig(kind=args.loss, lambda_p=args.lambda_p, lambda_g=args.lambda_g,
                                      vgg_weights=args.vgg_weights),
-            **{f"lr_{g}": getattr(args, f"lr_{g}") for g in GROUPS})
+            **{f"lr_{g}": getattr(args, f"lr_{g}") for g in GROUPS},
+            groove=args.groove, machine=_machine_dict(args.machine))
         config = dataclasses.replace(  # issue 17's options
             config, prune_every=args.prune_every, prune_fraction=args.prune_fraction,
             prune_until=args.prune_until,
@@ -153,12 +166,29 @@ def _run_cli(args) -> int:
     result = design(targets, views, board, config, checkpoint=os.path.join(out, "checkpoint.npz"),
                     resume=args.resume, progress=not args.quiet)
     write_outputs(result, out, {"cli": cli, "targets": names})
+    from jscratch.design.maker import write_maker_outputs
+
+    maker = write_maker_outputs(result, out, config.machine_profile(),
+                                as_carved_samples=args.as_carved_samples)
     if not args.quiet:
         mt = result.metrics
         print(f"wrote {out}: {mt['kept']} scratches ({mt['discarded']} discarded), loss "
               f"{mt['loss']:.5g}, SSIM {[round(x, 3) for x in mt['ssim']]}, PSNR "
               f"{[round(x, 2) for x in mt['psnr']]} dB, {mt['time_total']:.1f} s")
+        ac, cv = maker.get("as_carved"), maker["carving"]
+        print(f"machine {config.machine_profile().name!r}, {maker['groove']} grooves: "
+              + (f"as-carved SSIM {[round(x, 3) for x in ac['ssim']]}, " if ac else "")
+              + f"carving ~{cv['estimated_hours']:.2f} h")
     return 0
+
+
+def _machine_dict(path):
+    """The profile in TOML file `path` as a dict (None: the shipped default)."""
+    if path is None:
+        return None
+    from jscratch.machine import MachineProfile
+
+    return MachineProfile.from_toml(path).to_dict()
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -63,6 +63,11 @@ class DesignConfig:
     - `checkpoint_every`: iterations between checkpoints (when a checkpoint path is given).
     - `chunk`: pairs per chunk in the renderer (memory knob).
     - `dtype`: ``"float32"`` (default) or ``"float64"`` (needs ``jax_enable_x64``).
+    - `groove`: ``"free"`` (default here: ``w, d`` optimised freely, as before issue 15) or
+      ``"carvable"`` (one plunge per scratch within the machine's range, mapped to ``(w, d)`` by
+      `jscratch.design.carvable`; the command line's default).
+    - `machine`: the machine profile as a dict (`jscratch.machine.MachineProfile.to_dict`), or
+      None for the shipped default; its cutter fixes the carvable grooves.
     - `prune_every` [iterations]: every this many iterations, move the least useful scratches
       to where the image is most too dark (`design.prune`); 0 never. Default 10: at 128 px / 5k
       scratches (E_p) every 10 with 5 % raised mean SSIM 0.739 -> 0.768 (every 20 with 10 %:
@@ -99,6 +104,8 @@ class DesignConfig:
     checkpoint_every: int = 10
     chunk: int = DEFAULT_CHUNK
     dtype: str = "float32"
+    groove: str = "free"
+    machine: dict | None = None
     prune_every: int = 10
     prune_fraction: float = 0.05
     prune_until: float = 0.6
@@ -146,11 +153,29 @@ class DesignConfig:
             bad("init_intensity", "'match_mean' or 'given'")
         if self.dtype not in ("float32", "float64"):
             bad("dtype", "'float32' or 'float64'")
+        from jscratch.design.carvable import GROOVE_MODES
+
+        if self.groove not in GROOVE_MODES:
+            bad("groove", f"one of {GROOVE_MODES}")
+        if self.machine is not None:
+            from jscratch.machine import MachineProfile
+
+            try:
+                prof = MachineProfile.from_dict(dict(self.machine), source="DesignConfig.machine")
+            except (TypeError, ValueError) as e:
+                raise DesignError(str(e)) from None
+            object.__setattr__(self, "machine", prof.to_dict())
         if not (isinstance(self.prune_every, (int, np.integer)) and self.prune_every >= 0):
             bad("prune_every", "an int >= 0 (iterations; 0 = never)")
         for name in ("prune_fraction", "prune_until"):
             if not (math.isfinite(getattr(self, name)) and 0 <= getattr(self, name) <= 1):
                 bad(name, "in [0, 1]")
+
+    def machine_profile(self):
+        """The `jscratch.machine.MachineProfile` of `machine` (the shipped default when None)."""
+        from jscratch.machine import MachineProfile
+
+        return MachineProfile.from_dict(self.machine or {})
 
     def learning_rates(self) -> dict[str, float]:
         """Per-group learning rate, 0 for frozen groups."""

@@ -128,7 +128,8 @@ def default_targets(m: int, shape: tuple[int, int]) -> tuple[np.ndarray, list[st
     return np.stack(imgs), [f"skimage.data.{n}" for n in names]
 
 
-def _png(path: str, img: np.ndarray) -> None:
+def write_png(path: str, img: np.ndarray) -> None:
+    """Display values ``(H, W)`` in [0, 1] as an 8-bit grayscale PNG."""
     from skimage import io
 
     io.imsave(path, (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8), check_contrast=False)
@@ -153,8 +154,8 @@ def write_outputs(result: DesignResult, out: str | os.PathLike, extra_config: di
     designfile.write_svg(os.path.join(out, "design.svg"), d)
     m = result.targets.shape[0]
     for j in range(m):
-        _png(os.path.join(out, f"view{j}_render.png"), result.display[j])
-        _png(os.path.join(out, f"view{j}_target.png"), result.targets[j])
+        write_png(os.path.join(out, f"view{j}_render.png"), result.display[j])
+        write_png(os.path.join(out, f"view{j}_target.png"), result.targets[j])
     fig, axes = plt.subplots(2, m, figsize=(3 * m, 6.4), squeeze=False)
     for j in range(m):
         axes[0, j].imshow(result.targets[j], cmap="gray", vmin=0, vmax=1)

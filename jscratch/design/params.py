@@ -35,6 +35,9 @@ class DesignParams(eqx.Module):
     - `log_width`, `log_depth` ``(N,)`` (log m); `logit_alpha` ``(N,)``;
       `log_intensity` ``(M,)`` (log W/sr).
     - `parameterisation` (static) and `board_size` ``(Sx, Sy)`` m (static).
+    - `groove` (static): None (free ``w, d``) or a `jscratch.design.carvable.GrooveMap`; then
+      `log_width` holds the plunge logit ``z`` (``p = p_min + (p_max - p_min) sigmoid(z)``),
+      ``(w, d)`` follow from ``p`` and `log_depth` is unused (its gradient is zero).
     """
 
     geom: Float[Array, "n 4"]
@@ -44,14 +47,16 @@ class DesignParams(eqx.Module):
     log_intensity: Float[Array, " m"]
     parameterisation: str = eqx.field(static=True, default="endpoints")
     board_size: tuple[float, float] = eqx.field(static=True, default=(0.3, 0.3))
+    groove: Any = eqx.field(static=True, default=None)
 
     @staticmethod
     def from_physical(scratches: Scratches, intensity: ArrayLike, board: Board,
-                      parameterisation: str = "endpoints") -> "DesignParams":
+                      parameterisation: str = "endpoints", groove=None) -> "DesignParams":
         """Unconstrained coordinates of concrete scratches and intensities (host side).
 
         Endpoints are first moved ``1e-6`` board widths inside the board (the sigmoid never
-        reaches its ends). Returns arrays in ``scratches.dtype``.
+        reaches its ends). Returns arrays in ``scratches.dtype``. With a `groove` map the
+        plunge is the one whose cut has the scratch's groove width (clipped to the range).
         """
         dt = scratches.dtype
         size = np.array([board.Sx, board.Sy])
@@ -71,14 +76,20 @@ class DesignParams(eqx.Module):
             raise DesignError(f"parameterisation must be one of {PARAMETERISATIONS}, got {parameterisation!r}")
         a = np.asarray(scratches.alpha, np.float64)
         inten = np.broadcast_to(np.asarray(intensity, np.float64), np.shape(intensity) or (1,))
+        log_w = np.log(np.asarray(scratches.width, np.float64))
+        log_d = np.log(np.asarray(scratches.depth, np.float64))
+        if groove is not None:
+            log_w = groove.z_of_plunge(groove.plunge_of_profile(np.exp(log_w), np.exp(log_d)))
+            log_d = np.zeros_like(log_w)
         return DesignParams(
             geom=jnp.asarray(geom, dt),
-            log_width=jnp.asarray(np.log(np.asarray(scratches.width, np.float64)), dt),
-            log_depth=jnp.asarray(np.log(np.asarray(scratches.depth, np.float64)), dt),
+            log_width=jnp.asarray(log_w, dt),
+            log_depth=jnp.asarray(log_d, dt),
             logit_alpha=jnp.asarray(_logit(a), dt),
             log_intensity=jnp.asarray(np.log(np.maximum(inten, 1e-300)), dt),
             parameterisation=parameterisation,
             board_size=(float(board.Sx), float(board.Sy)),
+            groove=groove,
         )
 
     def endpoints(self) -> tuple[Array, Array]:
@@ -95,8 +106,15 @@ class DesignParams(eqx.Module):
     def scratches(self) -> Scratches:
         """The physical `render.Scratches` (jittable)."""
         p0, p1 = self.endpoints()
+        if self.groove is not None:
+            w, d = self.groove.profile(self.log_width)
+            return Scratches(p0, p1, w, d, jax.nn.sigmoid(self.logit_alpha))
         return Scratches(p0, p1, jnp.exp(self.log_width), jnp.exp(self.log_depth),
                            jax.nn.sigmoid(self.logit_alpha))
+
+    def plunge(self) -> Array | None:
+        """Per-scratch plunge ``(N,)`` (m) with a `groove` map, else None."""
+        return None if self.groove is None else self.groove.plunge(self.log_width)
 
     def intensity(self) -> Array:
         """Light intensities ``(M,)`` (W/sr)."""
@@ -111,4 +129,5 @@ class DesignParams(eqx.Module):
 def group_tree(params: DesignParams, values: dict[str, Any]) -> DesignParams:
     """A `DesignParams`-shaped pytree with ``values[group]`` at each group's leaf."""
     return DesignParams(values["endpoints"], values["width"], values["depth"], values["alpha"],
-                        values["intensity"], params.parameterisation, params.board_size)
+                        values["intensity"], params.parameterisation, params.board_size,
+                        params.groove)

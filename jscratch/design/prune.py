@@ -125,7 +125,8 @@ def prune_reseed(params, opt_state, pairs, caps, ctx, config, iteration: int):
     dt = params.geom.dtype
     s = Scratches(jnp.asarray(p0, dt), jnp.asarray(p1, dt), jnp.full((k,), config.init_width, dt),
                   jnp.full((k,), config.init_depth, dt), jnp.full((k,), config.init_alpha, dt))
-    fresh = DesignParams.from_physical(s, np.ones(1), ctx.board, params.parameterisation)
+    fresh = DesignParams.from_physical(s, np.ones(1), ctx.board, params.parameterisation,
+                                       params.groove)
     jidx = jnp.asarray(idx)
     params = _put(params, jidx, {name: getattr(fresh, name) for name in _SCRATCH_LEAVES})
     return params, reset_moments(opt_state, jidx), idx

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import threading
 import time
 
 import equinox as eqx
@@ -27,6 +28,7 @@ from jscratch.design.params import DesignParams, group_tree
 from jscratch.design.result import DesignResult
 from jscratch.design.solver import (
     Context,
+    compile_step,
     evaluate,
     make_adam,
     measure_caps,
@@ -74,11 +76,14 @@ def design(
     checkpoint = None if checkpoint is None else os.fspath(checkpoint)
     thash = targets_hash(tnp)
     params, optimizer, ctx = _setup(tnp, views, board, config)
+    warm = None
     if resume:
         like = State(0, params, optimizer.init(params), None, None, (1,) * views.m, {}, 0)
         state = load_checkpoint(checkpoint, like, config, thash)
     else:
-        state = _initial_state(params, optimizer, ctx, tnp, config)
+        state, warm = _initial_state(params, optimizer, ctx, tnp, config)
+    if warm is not None:
+        warm.join()
     n_iter = config.iterations if stop_after is None else min(config.iterations, stop_after)
     state, step_times = _iterate(state, optimizer, ctx, config, n_iter, checkpoint, thash, progress)
     result = _finish(state, ctx, tnp, config, discard_now=config.discard and stop_after is None)
@@ -116,8 +121,13 @@ def _setup(tnp, views, board, config):
     scratches = Scratches.random(
         jax.random.PRNGKey(config.seed), config.n_scratches, board, length=config.init_length,
         width=config.init_width, depth=config.init_depth, alpha=config.init_alpha, dtype=dt)
+    groove = None
+    if config.groove == "carvable":
+        from jscratch.design.carvable import groove_map_of
+
+        groove = groove_map_of(config.machine_profile())
     params = DesignParams.from_physical(scratches, np.asarray(views.intensity), board,
-                                        config.parameterisation)
+                                        config.parameterisation, groove)
     optimizer = make_adam(config.adam_b1, config.adam_b2, config.adam_eps)
     lrs = group_tree(params, {g: jnp.asarray(v, dt) for g, v in config.learning_rates().items()})
     cam = jnp.asarray(views.camera, dt)
@@ -139,10 +149,12 @@ def _bin(params, spec, board, config):
 
 def _initial_state(params, optimizer, ctx, tnp, config):
     """Iteration 0: the pair list, the per-view capacities and (``init_intensity ==
-    "match_mean"``) the closed-form light intensities."""
+    "match_mean"``) the closed-form light intensities; and the thread compiling the step
+    meanwhile (`_compile_step_meanwhile`)."""
     m, dt = tnp.shape[0], params.geom.dtype
     pairs, spec = _bin(params, None, ctx.board, config)
     caps = measure_caps(params, pairs, ctx, m)
+    warm = _compile_step_meanwhile(params, optimizer, pairs, ctx, caps)
     if config.init_intensity == "match_mean":
         unit = eqx.tree_at(lambda p: p.log_intensity, params, jnp.zeros((m,), dt))
         all_keep = jnp.ones((config.n_scratches,), bool)
@@ -155,7 +167,22 @@ def _initial_state(params, optimizer, ctx, tnp, config):
         log_i = DISPLAY_GAMMA * (np.log(np.maximum(tmean, 1e-6)) - np.log(mean_disp))
         params = eqx.tree_at(lambda p: p.log_intensity, params, jnp.asarray(log_i, dt))
     history = {"total": [], "terms": {}}
-    return State(0, params, optimizer.init(params), pairs, spec, caps, history, 0)
+    return State(0, params, optimizer.init(params), pairs, spec, caps, history, 0), warm
+
+
+def _compile_step_meanwhile(params, optimizer, pairs, ctx, caps) -> threading.Thread:
+    """Start compiling the Adam step (`compile_step`, the largest compilation of a design) on a
+    second thread, so that it overlaps the setup's own render. Only shapes matter, so the
+    intensities set meanwhile do not. A failure here is left to the first real step to report."""
+    def work():
+        try:
+            compile_step(params, optimizer.init(params), pairs, ctx, caps, optimizer)
+        except Exception:  # the first `step` call compiles again and raises it properly
+            pass
+
+    thread = threading.Thread(target=work, name="jscratch-compile-step", daemon=True)
+    thread.start()
+    return thread
 
 
 def _check_health(health, state, config, checkpoint, thash):

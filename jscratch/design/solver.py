@@ -115,6 +115,13 @@ def step(params: DesignParams, opt_state, pairs: bvh.Pairs, ctx: Context, caps, 
     return _jitted_step()(params, opt_state, pairs, ctx, caps, adam)
 
 
+def compile_step(params: DesignParams, opt_state, pairs: bvh.Pairs, ctx: Context, caps, adam):
+    """Compile `step` for these arguments' shapes without running it: the jit cache is then warm
+    and the first `step` call only runs. The design calls it on a second thread while the setup
+    renders (XLA compiles without holding the GIL), so the two compilations overlap."""
+    _jitted_step().lower(params, opt_state, pairs, ctx, caps, adam).compile()
+
+
 @functools.lru_cache(maxsize=None)
 def _jitted_step():
     return eqx.filter_jit(_step_impl, compiler_options=grad_compiler_options())

@@ -1,0 +1,209 @@
+"""Orbit preview: the board as a visitor walking around it sees it.
+
+``python -m jscratch.preview DESIGN.npz|RUN_DIR`` renders the design (`jscratch.render.render`) with
+the light fixed where the design put it and the camera circling the board centre at the design
+views' polar angle and distance, and writes
+
+- ``PREFIX.orbit.gif``: an animated GIF, one frame per camera azimuth (design views framed in
+  orange and labelled);
+- ``PREFIX.orbit_sheet.png``: a still contact sheet of the same frames.
+
+The frames are ``--frames`` azimuths evenly spaced from design view 0's, with the frame nearest each
+design view moved onto that view's exact azimuth. A single light has one intensity: the frames use
+the geometric mean of the design's per-view intensities (`--intensity` overrides it), so a
+design view whose intensity was optimised higher looks a little darker here than in its render.
+Where the camera passes the light's mirror direction, the flat board's own highlight floods the
+frame: that is what the visitor sees there too.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import time
+
+import numpy as np
+
+__all__ = ["orbit_views", "render_orbit", "write_gif", "write_sheet", "main"]
+
+
+def _load(path):
+    from jscratch.designfile import DesignError, load_design
+
+    if os.path.isdir(path):
+        path = os.path.join(path, "design.npz")
+    d = load_design(path)
+    if d.camera is None:
+        raise DesignError(f"{path}: the design has no views (camera, light, intensity) to orbit")
+    return d, path
+
+
+def orbit_views(design, frames: int):
+    """Camera positions ``(F, 3)``, the light ``(3,)``, the azimuths ``(F,)`` (rad) and, per frame,
+    the design view it shows (or -1), for an orbit at the views' polar angle and distance."""
+    centre = np.array([design.board[0] / 2, design.board[1] / 2, 0.0])
+    rel = design.camera - centre
+    dist = np.linalg.norm(rel, axis=1)
+    polar = np.arccos(rel[:, 2] / dist)
+    az_views = np.arctan2(rel[:, 1], rel[:, 0])
+    az = az_views[0] + 2 * np.pi * np.arange(frames) / frames
+    marks = np.full(frames, -1)
+    for j, a in enumerate(az_views):
+        k = int(np.argmin(np.abs(np.angle(np.exp(1j * (az - a))))))
+        if marks[k] == -1:
+            az[k], marks[k] = a, j
+    th, r = float(np.mean(polar)), float(np.mean(dist))
+    cams = centre + r * np.stack([np.sin(th) * np.cos(az), np.sin(th) * np.sin(az),
+                                  np.full(frames, np.cos(th))], 1)
+    return cams, design.light[0], az, marks
+
+
+def render_orbit(design, *, frames: int = 36, size: int = 128, batch: int = 6,
+                 intensity: float | None = None, progress: bool = True):
+    """Display images ``(F, size, size)`` of the orbit, with `orbit_views`' azimuths and marks.
+
+    Frames are rendered `batch` at a time (one compilation: the last batch is padded)."""
+    import jax.numpy as jnp
+    from jscratch.render import render
+    from jscratch.scene import Board, Scratches, Views
+    from jscratch.shading import display
+
+    cams, light, az, marks = orbit_views(design, frames)
+    board = Board(shape=(size, size), Sx=float(design.board[0]), Sy=float(design.board[1]))
+    inten = float(np.exp(np.mean(np.log(design.intensity)))) if intensity is None else float(intensity)
+    f32 = np.float32
+    sc = Scratches(design.p0.astype(f32), design.p1.astype(f32), design.width.astype(f32),
+                   design.depth.astype(f32), design.alpha.astype(f32))
+    out = []
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=frames, desc="orbit", unit="frame", dynamic_ncols=True)
+    try:
+        for a in range(0, frames, batch):
+            c = cams[a:a + batch]
+            n = len(c)
+            c = np.concatenate([c, np.repeat(c[-1:], batch - n, 0)])
+            views = Views(jnp.asarray(c, f32), jnp.asarray(np.repeat(light[None], batch, 0), f32),
+                          jnp.full((batch,), inten, f32))
+            out.append(np.asarray(display(render(sc, views, board)))[:n])
+            if bar is not None:
+                bar.update(n)
+    finally:
+        if bar is not None:
+            bar.close()
+    return np.clip(np.concatenate(out), 0.0, 1.0), az, marks
+
+
+def _frame_rgb(img, mark):
+    """uint8 RGB frame; a design view gets an orange border."""
+    g = (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)
+    rgb = np.repeat(g[..., None], 3, -1)
+    if mark >= 0:
+        b = max(2, img.shape[0] // 40)
+        for sl in ((slice(0, b), slice(None)), (slice(-b, None), slice(None)),
+                   (slice(None), slice(0, b)), (slice(None), slice(-b, None))):
+            rgb[sl] = (255, 140, 0)
+    return rgb
+
+
+def write_gif(path, frames, marks, az, *, fps: float = 8.0):
+    """Animated GIF (Pillow), looping; design views framed in orange and labelled."""
+    from PIL import Image, ImageDraw
+
+    ims = []
+    for img, m, a in zip(frames, marks, az):
+        im = Image.fromarray(_frame_rgb(img, m))
+        d = ImageDraw.Draw(im)
+        label = f"{round(math.degrees(a), 1) % 360:5.1f} deg" + (f"  view {m}" if m >= 0 else "")
+        d.text((4, 2), label, fill=(255, 140, 0) if m >= 0 else (80, 160, 255))
+        ims.append(im)
+    ims[0].save(os.fspath(path), save_all=True, append_images=ims[1:], duration=int(1000 / fps), loop=0)
+
+
+def write_sheet(path, frames, marks, az, title=""):
+    """Contact sheet PNG of the frames (matplotlib), design views framed in orange."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    f = len(frames)
+    cols = min(f, 9)
+    rows = math.ceil(f / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(1.4 * cols, 1.55 * rows + 0.3), squeeze=False)
+    for k, ax in enumerate(axes.flat):
+        ax.axis("off")
+        if k >= f:
+            continue
+        ax.imshow(_frame_rgb(frames[k], marks[k]))
+        lab = f"{round(math.degrees(az[k])) % 360}°" + (f" view {marks[k]}" if marks[k] >= 0 else "")
+        ax.set_title(lab, fontsize=7, color="#d46a00" if marks[k] >= 0 else "black")
+    if title:
+        fig.suptitle(title, fontsize=8)
+    fig.tight_layout()
+    fig.savefig(os.fspath(path), dpi=80)
+    plt.close(fig)
+
+
+def _parser():
+    p = argparse.ArgumentParser(
+        prog="python -m jscratch.preview",
+        description="Orbit preview of a design: an animated GIF and a contact sheet PNG of the board as the "
+                    "camera circles it at the design views' polar angle, the light fixed, design views marked.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("design", help="design .npz, or a design run's output folder (holding design.npz)")
+    p.add_argument("--out", default=None,
+                   help="output prefix (default: the design path without .npz); writes PREFIX.orbit.gif and "
+                        "PREFIX.orbit_sheet.png")
+    p.add_argument("--frames", type=int, default=36, help="camera azimuths around the full circle")
+    p.add_argument("--size", type=int, default=128, help="frame size in pixels per side")
+    p.add_argument("--fps", type=float, default=8.0, help="GIF frames per second")
+    p.add_argument("--batch", type=int, default=6, help="frames rendered together (memory knob)")
+    p.add_argument("--intensity", type=float, default=None,
+                   help="light intensity, W/sr (default: geometric mean of the design's per-view intensities)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    return p
+
+
+def main(argv=None) -> int:
+    """Command line entry point; returns the exit status (0 ok, 1 error)."""
+    from jscratch.designfile import DesignError
+
+    args = _parser().parse_args(argv)
+    try:
+        if args.frames < 2:
+            raise ValueError(f"--frames must be at least 2, got {args.frames}")
+        if args.size < 8:
+            raise ValueError(f"--size must be at least 8 px, got {args.size}")
+        if args.batch < 1:
+            raise ValueError(f"--batch must be at least 1, got {args.batch}")
+        if args.fps <= 0:
+            raise ValueError(f"--fps must be > 0, got {args.fps}")
+        t0 = time.perf_counter()
+        design, path = _load(args.design)
+        prefix = args.out or os.path.splitext(path)[0]
+        folder = os.path.dirname(prefix)
+        if folder:
+            os.makedirs(folder, exist_ok=True)
+        frames, az, marks = render_orbit(design, frames=args.frames, size=args.size, batch=args.batch,
+                                         intensity=args.intensity, progress=not args.quiet)
+        write_gif(prefix + ".orbit.gif", frames, marks, az, fps=args.fps)
+        write_sheet(prefix + ".orbit_sheet.png", frames, marks, az,
+                    title=f"{os.path.basename(path)}: {design.n} scratches, light fixed, camera orbiting")
+        if not args.quiet:
+            print(f"wrote {prefix}.orbit.gif and {prefix}.orbit_sheet.png ({args.frames} frames, "
+                  f"{args.size} px, {time.perf_counter() - t0:.1f} s)")
+    except KeyboardInterrupt:
+        return 130
+    except (DesignError, FileNotFoundError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
