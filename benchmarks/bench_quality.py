@@ -137,7 +137,9 @@ def suite(name: str, lx=(0.003, 0.01, 0.03), prune=((10, 0.05), (20, 0.1)), lg_n
             ("E_p + 20 E_g", {**ep, "loss": {"kind": "perceptual+gram", "lambda_g": 20.0}}),
             (f"E_p + {x} E_x (ghosting term)", {**ep, "loss": {**ep["loss"], "lambda_x": x}}),
             (f"E_p + prune every {pe}, {pf:.0%}", {**ep, "prune_every": pe, "prune_fraction": pf}),
-            ("new defaults", {}),
+            ("proposed defaults (E_p + 20 E_g, prune every 10, 5%)",
+             {"loss": {"kind": "perceptual+gram", "lambda_g": 20.0, "lambda_x": 0.0},
+              "prune_every": 10, "prune_fraction": 0.05}),
         ]
     raise SystemExit(f"unknown suite {name!r}")
 
