@@ -12,7 +12,7 @@ distance (`metrics.texture_distance`), scratches kept, the ghosting in excess of
 
 Suites: ``lambda`` (the ``lambda_g`` sweep), ``ghost`` (``lambda_x``), ``prune`` (re-seed
 rounds), ``pieces`` (today's defaults, each new piece alone,
-the new defaults). ``--sets`` picks target sets (``default``: camera/astronaut/chelsea; ``other``:
+the proposed defaults). ``--sets`` picks target sets (``default``: camera/astronaut/chelsea; ``other``:
 coins/clock/line art; ``other2``: text/brick/page).
 """
 
