@@ -245,7 +245,8 @@ def test_make_loss_kinds_and_bind():
     assert float(eqx.filter_jit(lambda f, a, b: f(a, b))(loss, i, t)) == pytest.approx(
         expected, rel=1e-12
     )
-    assert set(dataclasses.asdict(L.LossConfig())) == {"kind", "lambda_p", "lambda_g", "vgg_weights"}
+    assert set(dataclasses.asdict(L.LossConfig())) == {"kind", "lambda_p", "lambda_g", "vgg_weights",
+                                                      "lambda_x"}
 
 
 def test_calibrate_lambda_g():

@@ -86,6 +86,17 @@ def _parser() -> argparse.ArgumentParser:
                         "ball's real arc (0: skip it, the default, so the main job stays fast; 32 is what "
                         "the maker's path uses: ~35-50 s more at 256 px, 20k scratches; 8 is too noisy to "
                         "judge, see benchmarks/RESULTS.md)")
+    # issue 17: quality per scratch
+    p.add_argument("--lambda-x", type=float, default=d.loss.lambda_x,
+                   help="weight of the cross-view ghosting term E_x (sum over view pairs of the SSIM "
+                        "of a render with another view's target beyond the targets' own; 0: off)")
+    p.add_argument("--prune-every", type=int, default=d.prune_every,
+                   help="iterations between prune/re-seed rounds that move the least useful "
+                        "scratches to where a view is too dark (0: never)")
+    p.add_argument("--prune-fraction", type=float, default=d.prune_fraction,
+                   help="fraction of the scratches moved per prune/re-seed round")
+    p.add_argument("--prune-until", type=float, default=d.prune_until,
+                   help="last prune/re-seed round at this fraction of the iterations")
     return p
 
 
@@ -118,6 +129,10 @@ def _run_cli(args) -> int:
                                      vgg_weights=args.vgg_weights),
             **{f"lr_{g}": getattr(args, f"lr_{g}") for g in GROUPS},
             groove=args.groove, machine=_machine_dict(args.machine))
+        config = dataclasses.replace(  # issue 17's options
+            config, prune_every=args.prune_every, prune_fraction=args.prune_fraction,
+            prune_until=args.prune_until,
+            loss=dataclasses.replace(config.loss, lambda_x=args.lambda_x))
     if config.dtype == "float64":
         jax.config.update("jax_enable_x64", True)
     size = int(cli["size"])

@@ -22,6 +22,7 @@ from jscratch.shading import DISPLAY_GAMMA, board_ndf, display, half_vectors
 from jscratch.design.checkpoint import State, load_checkpoint, save_checkpoint
 from jscratch.design.config import DesignConfig, NonFiniteError
 from jscratch.design.discard import discard
+from jscratch.design import prune as prune_mod
 from jscratch.design.io import check_design_views, check_targets, targets_hash
 from jscratch.design.params import DesignParams, group_tree
 from jscratch.design.result import DesignResult
@@ -212,6 +213,9 @@ def _iterate(state, optimizer, ctx, config, n_iter, checkpoint, thash, progress)
     try:
         while state.iteration < n_iter:
             t0 = time.perf_counter()
+            if prune_mod.due(state.iteration, config) and not any(
+                    r[0] == state.iteration for r in state.history.get("prune", [])):
+                state = _prune(state, ctx, config)
             new, opt_state, terms, rebin, counts, health = step(
                 state.params, state.opt_state, state.pairs, ctx, state.caps, optimizer)
             counts = np.asarray(counts)
@@ -242,6 +246,21 @@ def _iterate(state, optimizer, ctx, config, n_iter, checkpoint, thash, progress)
         if bar is not None:
             bar.close()
     return state, step_times
+
+
+def _prune(state, ctx, config):
+    """A `prune.prune_reseed` round at ``state.iteration``: new parameters and Adam moments, the
+    pair list rebuilt, the capacities re-measured (culled runs), ``history["prune"]`` appended with
+    ``[iteration, moved]``."""
+    params, opt_state, idx = prune_mod.prune_reseed(state.params, state.opt_state, state.pairs,
+                                                    state.caps, ctx, config, state.iteration)
+    pairs, spec = _bin(params, state.spec, ctx.board, config)
+    caps = state.caps
+    if ctx.cull_eps > 0:
+        caps = tuple(max(a, b) for a, b in zip(caps, measure_caps(params, pairs, ctx, len(caps))))
+    hist = state.history
+    hist.setdefault("prune", []).append([state.iteration, int(len(idx))])
+    return State(state.iteration, params, opt_state, pairs, spec, caps, hist, state.rebins + 1)
 
 
 def _finish(state, ctx, tnp, config, *, discard_now: bool) -> DesignResult:
@@ -288,6 +307,7 @@ def _finish(state, ctx, tnp, config, *, discard_now: bool) -> DesignResult:
         "time_step_median": None,
         "time_discard": t_discard,
         "intensity": [float(x) for x in inten],
+        "prune": state.history.get("prune", []),
     })
     return DesignResult(result_scratches, result_views, ctx.board, params, keep, rad, disp, tnp,
                         state.history, mets, config)
