@@ -167,15 +167,15 @@ def _tiny_optimisation():
     """A tiny carvable design problem, built once (the jitted step compiles once)."""
     if not _OPT:
         from jscratch.design.io import default_targets
-        from jscratch.design.run import _bin, _setup
+        from jscratch.design.run import bin_pairs, setup
 
         board = render.Board(shape=(SIZE, SIZE))
         views = render.views_on_circle(2, math.radians(50), board=board)
         targets, _ = default_targets(2, (SIZE, SIZE))
         # The round trip's scene and machine, so that the jitted step is compiled once for both.
         cfg = DesignConfig(n_scratches=150, iterations=1, groove="carvable", machine=_MINE)
-        params, opt, ctx = _setup(targets, views, board, cfg)
-        pairs, _ = _bin(params, None, board, cfg)  # unculled: capacities (1, 1)
+        params, opt, ctx = setup(targets, views, board, cfg)
+        pairs, _ = bin_pairs(params, None, board, cfg)  # unculled: capacities (1, 1)
         _OPT.update(params=params, pairs=pairs, opt=opt, ctx=ctx)
     return _OPT["params"], _OPT["pairs"], _OPT["opt"], _OPT["ctx"]
 

@@ -16,7 +16,7 @@ import numpy as np
 from jscratch import render as R
 from jscratch.design import DesignConfig, default_targets, design
 from jscratch.design import prune, solver
-from jscratch.design.run import _bin, _initial_state, _setup
+from jscratch.design.run import bin_pairs, initial_state, setup
 
 SIZE = 32
 
@@ -44,8 +44,8 @@ def _ckpt(path):
 def test_round_moves_lowest_scratches_consistently():
     targets, views, board = _scene()
     cfg = _config()
-    params, opt, ctx = _setup(targets, views, board, cfg)
-    st, warm = _initial_state(params, opt, ctx, targets, cfg)
+    params, opt, ctx = setup(targets, views, board, cfg)
+    st, warm = initial_state(params, opt, ctx, targets, cfg)
     warm.join()
     # one real step so that the Adam moments are non-zero
     new, opt_state, *_ = solver.step(st.params, st.opt_state, st.pairs, ctx, st.caps, opt)
@@ -75,7 +75,7 @@ def test_round_moves_lowest_scratches_consistently():
     np.testing.assert_array_equal(np.asarray(mu.geom)[others], np.asarray(mu0.geom)[others])
     np.testing.assert_array_equal(o2.count, opt_state.count)
     # the rebuilt pair list covers the moved scratches and a step runs on it
-    pairs, _ = _bin(p2, st.spec, board, cfg)
+    pairs, _ = bin_pairs(p2, st.spec, board, cfg)
     assert not bool(pairs.overflow)
     moved_pairs = np.isin(np.asarray(pairs.scratch)[np.asarray(pairs.valid)], idx)
     assert moved_pairs.sum() > 0
@@ -86,7 +86,7 @@ def test_round_moves_lowest_scratches_consistently():
 def test_reseeded_scratches_go_where_needed_and_light_up():
     targets, views, board = _scene()
     cfg = _config()
-    params, opt, ctx = _setup(targets, views, board, cfg)
+    params, opt, ctx = setup(targets, views, board, cfg)
     # all the error in one pixel of view 1
     dens = np.zeros((2, SIZE, SIZE))
     dens[1, 5, 20] = 1.0
@@ -109,7 +109,7 @@ def test_reseeded_scratches_go_where_needed_and_light_up():
         s = Scratches(jnp.asarray(q0, jnp.float32), jnp.asarray(q1, jnp.float32),
                       jnp.full((n,), 2.5e-4), jnp.full((n,), 1.28e-4), jnp.full((n,), 0.04))
         prm = DesignParams.from_physical(s, np.asarray(views.intensity), board)
-        pairs, _ = _bin(prm, None, board, cfg)
+        pairs, _ = bin_pairs(prm, None, board, cfg)
         lists, _, _ = solver.view_lists(prm, pairs, ctx, (1, 1))
         return np.asarray(solver.contributions(prm, lists, ctx))[1].sum()
 

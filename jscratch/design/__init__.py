@@ -53,8 +53,12 @@ and the last good state stays in the checkpoint.
 - `jscratch.design.config`: `DesignConfig`, `GROUPS`, `NonFiniteError`.
 - `jscratch.design.params`: `DesignParams`, `group_tree`.
 - `jscratch.design.solver`: the jitted step (`Context`, `view_lists`, `evaluate`, `step`, ...).
+- `jscratch.design.carvable`: carvable grooves (one plunge per scratch in the machine's range,
+  mapped to the groove profile); `jscratch.design.prune`: prune/re-seed rounds (an option).
 - `jscratch.design.discard`, `jscratch.design.checkpoint`, `jscratch.design.result`.
-- `jscratch.design.io`: targets, images and outputs; `jscratch.design.run`: `design`;
+- `jscratch.design.io`: targets, images and outputs; `jscratch.design.maker`: the machine's
+  outputs (as-carved render, carving estimate); `jscratch.design.run`: `design` and its seams
+  (`setup`, `bin_pairs`, `initial_state`: what tests and notebooks drive a step through);
   `jscratch.design.cli`: the command line (``python -m jscratch.design``).
 """
 

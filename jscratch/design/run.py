@@ -75,13 +75,13 @@ def design(
     tnp, board = _check_inputs(targets, views, board, config, checkpoint, resume)
     checkpoint = None if checkpoint is None else os.fspath(checkpoint)
     thash = targets_hash(tnp)
-    params, optimizer, ctx = _setup(tnp, views, board, config)
+    params, optimizer, ctx = setup(tnp, views, board, config)
     warm = None
     if resume:
         like = State(0, params, optimizer.init(params), None, None, (1,) * views.m, {}, 0)
         state = load_checkpoint(checkpoint, like, config, thash)
     else:
-        state, warm = _initial_state(params, optimizer, ctx, tnp, config)
+        state, warm = initial_state(params, optimizer, ctx, tnp, config)
     if warm is not None:
         warm.join()
     n_iter = config.iterations if stop_after is None else min(config.iterations, stop_after)
@@ -114,7 +114,7 @@ def _check_inputs(targets, views, board, config, checkpoint, resume):
     return tnp, board
 
 
-def _setup(tnp, views, board, config):
+def setup(tnp, views, board, config):
     """The initial parameters (the structure a checkpoint is restored into), the optimiser and the
     step's `Context`."""
     dt = jnp.dtype(config.dtype)
@@ -140,19 +140,19 @@ def _setup(tnp, views, board, config):
     return params, optimizer, ctx
 
 
-def _bin(params, spec, board, config):
+def bin_pairs(params, spec, board, config):
     """The shared pair list of ``params`` (`bvh.build_pairs`, reusing ``spec``'s capacities)."""
     p0, p1, wd, dp, _, _ = physical(params)
     return bvh.build_pairs(p0, p1, wd, dp, board=(board.Sx, board.Sy), shape=board.shape,
                            spec=spec, skin=config.skin)
 
 
-def _initial_state(params, optimizer, ctx, tnp, config):
+def initial_state(params, optimizer, ctx, tnp, config):
     """Iteration 0: the pair list, the per-view capacities and (``init_intensity ==
     "match_mean"``) the closed-form light intensities; and the thread compiling the step
     meanwhile (`_compile_step_meanwhile`)."""
     m, dt = tnp.shape[0], params.geom.dtype
-    pairs, spec = _bin(params, None, ctx.board, config)
+    pairs, spec = bin_pairs(params, None, ctx.board, config)
     caps = measure_caps(params, pairs, ctx, m)
     warm = _compile_step_meanwhile(params, optimizer, pairs, ctx, caps)
     if config.init_intensity == "match_mean":
@@ -231,7 +231,7 @@ def _iterate(state, optimizer, ctx, config, n_iter, checkpoint, thash, progress)
                     hist["terms"].setdefault(k, []).append(float(v))
             pairs, spec, rebins = state.pairs, state.spec, state.rebins
             if bool(rebin):
-                pairs, spec = _bin(new, spec, ctx.board, config)
+                pairs, spec = bin_pairs(new, spec, ctx.board, config)
                 rebins += 1
             state = State(state.iteration + 1, new, opt_state, pairs, spec, state.caps, hist,
                           rebins)
@@ -254,7 +254,7 @@ def _prune(state, ctx, config):
     ``[iteration, moved]``."""
     params, opt_state, idx = prune_mod.prune_reseed(state.params, state.opt_state, state.pairs,
                                                     state.caps, ctx, config, state.iteration)
-    pairs, spec = _bin(params, state.spec, ctx.board, config)
+    pairs, spec = bin_pairs(params, state.spec, ctx.board, config)
     caps = state.caps
     if ctx.cull_eps > 0:
         caps = tuple(max(a, b) for a, b in zip(caps, measure_caps(params, pairs, ctx, len(caps))))
