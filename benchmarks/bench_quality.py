@@ -64,14 +64,14 @@ def lineart(shape, seed=0):
 def targets(names, size):
     from skimage import data
 
-    from jscratch.design.io import _fit, _to_gray01
+    from jscratch.design.io import prepare_target
 
     out = []
     for n in names:
         if n == "lineart":
             out.append(lineart((size, size)))
         else:
-            out.append(_fit(_to_gray01(getattr(data, n)(), n), (size, size), n, crop=True))
+            out.append(prepare_target(getattr(data, n)(), (size, size), n))
     return np.stack(out)
 
 

@@ -14,12 +14,10 @@ differentiable in ``render``.
   default) or ``VGG19Features`` (from a local weights file, ``load_vgg19``).
 - ``total_loss``, ``LossConfig``, ``make_loss``: the weighted sum ``lambda_p E_p + lambda_g E_g``
   (plus ``lambda_x E_x`` when ``LossConfig.lambda_x > 0``).
-- ``ghost_loss``: ``E_x``, the cross-view ghosting beyond the targets' own (``ssim_mean``, a
-  differentiable copy of scikit-image's SSIM; ``cross_ssim``), off by default (measured, issue 17).
+- ``ghost_loss``: ``E_x``, cross-view ghosting beyond the targets' own (``jscratch.ssim``), off.
 
-The design of the filter bank is in ``FilterBank``, the VGG file format in ``load_vgg19`` and the
-calibration of ``LAMBDA_G`` next to it (measured on design runs in issue 17; ``calibrate_lambda_g``
-for VGG features). NaN detection is the optimiser's job: these functions propagate NaN.
+The filter bank's design is in ``FilterBank``, the VGG format in ``load_vgg19``, the calibration
+of ``LAMBDA_G`` next to it. NaN detection is the optimiser's job: these functions propagate NaN.
 """
 
 from __future__ import annotations
@@ -36,6 +34,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from jscratch.errors import error_line
+from jscratch.ssim import ssim_mean
 
 __all__ = [
     "BLUR_SIGMA",
@@ -59,7 +58,6 @@ __all__ = [
     "load_vgg19",
     "make_loss",
     "perceptual_loss",
-    "ssim_mean",
     "total_loss",
 ]
 
@@ -70,26 +68,16 @@ __all__ = [
 BLUR_SIGMA = 1.0
 
 #: Default ``lambda_g`` for the default ``FilterBank`` features (with ``lambda_p = 1``), settled by
-#: measurement (issue 17, benchmarks/RESULTS.md "Issue 17"; 3 views, seed 0, 100 iterations).
-#: The design's SSIM and a texture measure that neither loss optimises (``metrics.texture_distance``:
-#: LBP histogram distance, lower is better) against ``lambda_g``:
-#:
-#: - 128 px / 5k scratches, camera/astronaut/chelsea: 0 -> SSIM 0.739, texture 0.200; 20 -> 0.735,
-#:   0.177; 50 -> 0.715, 0.171; 100 -> 0.694, 0.162; 200 -> 0.658, 0.160; 400 -> 0.603, 0.155.
-#:   coins/clock/line art: 0 -> 0.725, 0.245; 20 -> 0.723, 0.232; 200 -> 0.616, 0.214.
-#: - 256 px / 20k scratches (default targets): 0 -> SSIM 0.801, texture 0.246; **20 -> 0.815,
-#:   0.226**; 200 -> 0.755, 0.202.
-#:
-#: ``E_g`` trades SSIM for texture monotonically; 20 is the weight that beats ``E_p`` alone on
-#: both at the default size (and costs <= 0.004 SSIM at 128 px while improving texture 5-11 %);
-#: 200 (``lambda_g E_g = E_p / 4`` on synthetic renders) loses 0.05-0.11 SSIM but has the best
-#: texture and the lowest raw ghosting. **The default stays 200** because the project's rule for
-#: changing defaults (mean SSIM up *and* SPEC-7 ghosting down at the same time, or the same SSIM
-#: with 25 % fewer scratches) was not met: with 20 (and prune/re-seed) SSIM rose 0.755 -> 0.827
-#: but the raw ghosting rose 0.233 -> 0.243 (a perfect render scores 0.246), and at 13k scratches
-#: (-27 % kept) SSIM was 0.749, not 0.755. ``--lambda-g 20`` is the measured recommendation.
-#: ``E_g`` is small in absolute terms because the Gram entries are divided by channels times
-#: positions. Not valid for VGG features (different scale; see ``calibrate_lambda_g``).
+#: measurement (issue 17; benchmarks/RESULTS.md "Issue 17" has the sweep: 3 views, seed 0, 100
+#: iterations, SSIM and ``metrics.texture_distance``, an LBP texture measure neither loss
+#: optimises). ``E_g`` trades SSIM for texture monotonically; at 256 px / 20k scratches 0 gives
+#: SSIM 0.801 / texture 0.246, **20 gives 0.815 / 0.226** (better than ``E_p`` alone on both: the
+#: measured recommendation, ``--lambda-g 20``), 200 gives 0.755 / 0.202 (best texture, lowest raw
+#: ghosting). The default stays 200: with 20 (and prune/re-seed) SSIM rose 0.755 -> 0.827 but the
+#: SPEC-7 ghosting rose 0.233 -> 0.243 (a perfect render scores 0.246), and at 27 % fewer
+#: scratches SSIM was 0.749, so the rule for new defaults (SSIM up *and* ghosting down, or the
+#: same SSIM with 25 % fewer scratches) was not met. Not valid for VGG features (different scale;
+#: see ``calibrate_lambda_g``).
 LAMBDA_G = 200.0
 
 #: Allowed ``LossConfig.kind`` values.
@@ -216,34 +204,6 @@ def perceptual_loss(render: Float[Array, "M H W"], target: Float[Array, "M H W"]
     render, target = _check_images(render, target)
     d = blur3(render - target)
     return jnp.sum(jnp.mean(d * d, axis=(-2, -1)))
-
-
-_SSIM_WIN = 7  # skimage.metrics.structural_similarity's default uniform window
-_SSIM_C1, _SSIM_C2 = 0.01**2, 0.03**2  # its constants for data_range 1
-
-
-def ssim_mean(x: Float[Array, "... H W"], y: Float[Array, "... H W"]) -> Float[Array, "..."]:
-    """Mean SSIM of ``x`` against ``y`` as ``skimage.metrics.structural_similarity`` computes it
-    (7x7 uniform window, sample covariance, ``data_range = 1``, mean over the pixels whose window
-    lies inside the image), differentiable: the measure of SPEC section 7's ghosting.
-
-    **Arguments:** `x`, `y`: ``(..., H, W)`` with ``H, W >= 7``. **Returns:** ``(...)``.
-    """
-    w = _SSIM_WIN
-    n = w * w
-
-    def mean(a):
-        dims = (1,) * (a.ndim - 2) + (w, w)
-        return jax.lax.reduce_window(a, 0.0, jax.lax.add, dims, (1,) * a.ndim, "VALID") / n
-
-    mx, my = mean(x), mean(y)
-    cn = n / (n - 1)
-    vx = cn * (mean(x * x) - mx * mx)
-    vy = cn * (mean(y * y) - my * my)
-    vxy = cn * (mean(x * y) - mx * my)
-    s = ((2 * mx * my + _SSIM_C1) * (2 * vxy + _SSIM_C2)) / (
-        (mx * mx + my * my + _SSIM_C1) * (vx + vy + _SSIM_C2))
-    return jnp.mean(s, axis=(-2, -1))
 
 
 def cross_ssim(render: Float[Array, "M H W"], target: Float[Array, "M H W"]) -> Array:
@@ -692,11 +652,9 @@ class LossConfig:
     - `vgg_weights`: path of a local VGG-19 ``.npz`` (``load_vgg19``); ``None`` uses
       ``FilterBank``.
     - `lambda_x`: weight of the cross-view ghosting term ``E_x`` (``ghost_loss``), ``>= 0``;
-      added to any kind; 0 (default) leaves it out. Measured (issue 17) on top of ``E_p``: at
-      128 px / 5k scratches 0.01 lowered the one view above its targets' own ghosting from 0.151
-      to 0.134 (baseline 0.125) at mean SSIM 0.739 -> 0.739, but at 256 px / 20k it cost 0.005
-      mean SSIM (view 1: 0.798 -> 0.786) for ghosting 0.231 -> 0.229, so it is not on by default:
-      most of the measured ghosting is the targets' own resemblance (a perfect render shows it).
+      added to any kind; 0 (default) leaves it out: at 256 px / 20k it cost 0.005 mean SSIM for
+      ghosting 0.231 -> 0.229 (issue 17 in benchmarks/RESULTS.md; at 128 px it helps a view whose
+      ghosting exceeds its targets' own).
     """
 
     kind: str = "perceptual+gram"

@@ -14,7 +14,7 @@ import pytest
 import scipy.ndimage
 import scipy.signal
 
-from jscratch import loss as L
+from jscratch import loss as loss_mod
 
 SHAPE = (2, 32, 32)  # one image shape for (almost) everything: few compilations
 R = math.sqrt(0.5)
@@ -37,18 +37,18 @@ def _smooth(seed, shape=SHAPE):
 
 
 def test_gaussian_kernel3_values():
-    g = np.asarray(L.gaussian_kernel3(), dtype=np.float64)
+    g = np.asarray(loss_mod.gaussian_kernel3(), dtype=np.float64)
     np.testing.assert_allclose(g, np.outer(K1, K1), rtol=1e-15)
     assert g.sum() == pytest.approx(1.0, abs=1e-15)
     np.testing.assert_allclose(K1, [0.27406862, 0.45186276, 0.27406862], atol=1e-8)
     with pytest.raises(ValueError, match="sigma"):
-        L.gaussian_kernel3(0.0)
+        loss_mod.gaussian_kernel3(0.0)
 
 
 def test_blur3_matches_scipy_nearest():
     x = _rand(0)
     ref = np.stack([scipy.ndimage.convolve(v, np.outer(K1, K1), mode="nearest") for v in x])
-    np.testing.assert_allclose(np.asarray(L.blur3(jnp.asarray(x))), ref, rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(loss_mod.blur3(jnp.asarray(x))), ref, rtol=1e-13, atol=1e-15)
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
@@ -56,7 +56,7 @@ def test_perceptual_constant_offset(dtype):
     # Edge-replicate boundary: a constant stays constant, so E_p = M c^2 exactly.
     t = _rand(1, dtype=dtype)
     c = dtype(0.3)
-    ep = L.perceptual_loss(jnp.asarray(t + c), jnp.asarray(t))
+    ep = loss_mod.perceptual_loss(jnp.asarray(t + c), jnp.asarray(t))
     assert ep.dtype == dtype
     # float32: XLA's CPU reduction over 1024 pixels is sequential (error up to ~n eps/2).
     tol = 1e-4 if dtype == np.float32 else 1e-12
@@ -70,7 +70,7 @@ def test_perceptual_delta_interior_and_corner():
     i = t.copy()
     i[0, 4, 3] = a  # interior delta: every tap of g lands inside
     i[1, 0, 0] = a  # corner delta: edge replication folds the outside taps back
-    ep = float(L.perceptual_loss(jnp.asarray(i), jnp.asarray(t)))
+    ep = float(loss_mod.perceptual_loss(jnp.asarray(i), jnp.asarray(t)))
     interior = a**2 * np.sum(K1**2) ** 2 / (h * w)
     corner = a**2 * ((K1[0] + K1[1]) ** 2 + K1[0] ** 2) ** 2 / (h * w)
     assert ep == pytest.approx(interior + corner, rel=1e-13)
@@ -81,7 +81,7 @@ def test_l2_hand():
     i = t.copy()
     i[0] = 0.5
     i[1, 1, 2] = 2.0
-    assert float(L.l2_loss(jnp.asarray(i), jnp.asarray(t))) == pytest.approx(0.25 + 4.0 / 16)
+    assert float(loss_mod.l2_loss(jnp.asarray(i), jnp.asarray(t))) == pytest.approx(0.25 + 4.0 / 16)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -91,14 +91,14 @@ def test_l2_hand():
 def test_gram_hand():
     f = np.array([[[1.0, 2.0], [3.0, 4.0]], [[0.0, 1.0], [0.0, 1.0]]])  # (C=2, 2, 2)
     expected = np.array([[30.0, 6.0], [6.0, 2.0]]) / (2 * 4)
-    np.testing.assert_allclose(np.asarray(L.gram(jnp.asarray(f))), expected, rtol=1e-15)
+    np.testing.assert_allclose(np.asarray(loss_mod.gram(jnp.asarray(f))), expected, rtol=1e-15)
     # batched over leading axes
-    g2 = L.gram(jnp.stack([jnp.asarray(f), 2 * jnp.asarray(f)]))
+    g2 = loss_mod.gram(jnp.stack([jnp.asarray(f), 2 * jnp.asarray(f)]))
     np.testing.assert_allclose(np.asarray(g2[1]), 4 * expected, rtol=1e-15)
 
 
 def test_filter_bank_constant_images():
-    fb = L.FilterBank()
+    fb = loss_mod.FilterBank()
     x = np.full(SHAPE, 0.6)
     x[1] = 0.2
     feats = fb(jnp.asarray(x))
@@ -108,12 +108,12 @@ def test_filter_bank_constant_images():
         assert np.all(np.abs(f[:, 1:]) <= 1e-16)  # every oriented channel is zero (to rounding)
         np.testing.assert_allclose(f[:, 0], x[:, :1, :1] * np.ones_like(f[:, 0]), rtol=1e-15)
     # Gram of a constant c: only G[0, 0] = c^2 / 17; E_g(c1 vs c2) = (c1^2 - c2^2)^2 / 17^2.
-    eg = float(L.gram_loss(jnp.asarray(x), jnp.asarray(x[::-1].copy()), fb))
+    eg = float(loss_mod.gram_loss(jnp.asarray(x), jnp.asarray(x[::-1].copy()), fb))
     assert eg == pytest.approx(2 * (0.36 - 0.04) ** 2 / 289, rel=1e-12)
 
 
 def test_filter_bank_step_edges():
-    fb = L.FilterBank()
+    fb = loss_mod.FilterBank()
     x = np.zeros(SHAPE)
     x[0, :, 16:] = 1.0  # view 0: dark left, bright right (intensity grows along +x)
     x[1, :16, :] = 1.0  # view 1: bright top (intensity grows along +y = up)
@@ -145,7 +145,7 @@ def _rot_perm():
 
 
 def test_filter_bank_rotation_permutes_channels():
-    fb = L.FilterBank()
+    fb = loss_mod.FilterBank()
     x = _rand(2)
     xr = np.rot90(x, axes=(-2, -1)).copy()  # +90 degrees (counter-clockwise)
     fa, fr = fb(jnp.asarray(x)), fb(jnp.asarray(xr))
@@ -154,24 +154,24 @@ def test_filter_bank_rotation_permutes_channels():
         np.testing.assert_allclose(
             np.asarray(b), np.rot90(np.asarray(a)[:, perm], axes=(-2, -1)), atol=1e-13
         )
-        ga, gb = np.asarray(L.gram(a)), np.asarray(L.gram(b))
+        ga, gb = np.asarray(loss_mod.gram(a)), np.asarray(loss_mod.gram(b))
         np.testing.assert_allclose(gb, ga[:, perm][:, :, perm], atol=1e-13)
     t = _smooth(3)
     tr = np.rot90(t, axes=(-2, -1)).copy()
-    eg = float(L.gram_loss(jnp.asarray(x), jnp.asarray(t), fb))
-    egr = float(L.gram_loss(jnp.asarray(xr), jnp.asarray(tr), fb))
+    eg = float(loss_mod.gram_loss(jnp.asarray(x), jnp.asarray(t), fb))
+    egr = float(loss_mod.gram_loss(jnp.asarray(xr), jnp.asarray(tr), fb))
     assert egr == pytest.approx(eg, rel=1e-12)
     assert eg > 0
 
 
 def test_filter_bank_odd_size_and_too_small():
-    fb = L.FilterBank(n_scales=2)
+    fb = loss_mod.FilterBank(n_scales=2)
     f = fb(jnp.zeros((1, 9, 7)))
     assert [v.shape for v in f] == [(1, 17, 9, 7), (1, 17, 4, 3)]
     with pytest.raises(ValueError, match="too small"):
-        L.FilterBank()(jnp.zeros((1, 15, 32)))
+        loss_mod.FilterBank()(jnp.zeros((1, 15, 32)))
     with pytest.raises(ValueError, match="n_scales"):
-        L.FilterBank(n_scales=0)
+        loss_mod.FilterBank(n_scales=0)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -180,7 +180,7 @@ def test_filter_bank_odd_size_and_too_small():
 
 def _weighted(r, t, w):
     """``w[0] E_p + w[1] E_g``: one compilation checks both terms (weights are traced)."""
-    return w[0] * L.perceptual_loss(r, t) + w[1] * L.gram_loss(r, t)
+    return w[0] * loss_mod.perceptual_loss(r, t) + w[1] * loss_mod.gram_loss(r, t)
 
 
 _VG = jax.jit(jax.value_and_grad(_weighted))
@@ -201,15 +201,15 @@ def _fd_check(vg, x, *args, seeds=(0, 1), eps=1e-6, rtol=1e-6):
 def test_gradients_match_finite_differences():
     t = jnp.asarray(_smooth(4))
     i = jnp.asarray(_smooth(5) * 0.8 + 0.1 * _rand(6))
-    for w in ([1.0, 0.0], [0.0, 1.0], [1.0, L.LAMBDA_G]):  # E_p, E_g, the default total
+    for w in ([1.0, 0.0], [0.0, 1.0], [1.0, loss_mod.LAMBDA_G]):  # E_p, E_g, the default total
         _fd_check(_VG, i, t, jnp.asarray(w))
 
 
 def test_float32_follows_input_and_agrees_with_float64():
     t64, i64 = _smooth(7), _smooth(8)
-    w = jnp.asarray([1.0, L.LAMBDA_G])
+    w = jnp.asarray([1.0, loss_mod.LAMBDA_G])
     v64, g64 = _VG(jnp.asarray(i64), jnp.asarray(t64), w)
-    ref = float(L.make_loss()(jnp.asarray(i64), jnp.asarray(t64)))  # eager, the public path
+    ref = float(loss_mod.make_loss()(jnp.asarray(i64), jnp.asarray(t64)))  # eager, the public path
     assert float(v64) == pytest.approx(ref, rel=1e-12)
     v32, g32 = _VG(jnp.asarray(i64, jnp.float32), jnp.asarray(t64), w.astype(jnp.float32))
     assert v32.dtype == jnp.float32 and g32.dtype == jnp.float32
@@ -217,7 +217,7 @@ def test_float32_follows_input_and_agrees_with_float64():
     g64 = np.asarray(g64)
     assert np.linalg.norm(np.asarray(g32) - g64) <= 1e-3 * np.linalg.norm(g64)
     # a float64 target is cast to the render's float32
-    assert L.perceptual_loss(jnp.asarray(i64, jnp.float32), jnp.asarray(t64)).dtype == jnp.float32
+    assert loss_mod.perceptual_loss(jnp.asarray(i64, jnp.float32), jnp.asarray(t64)).dtype == jnp.float32
 
 
 # ----------------------------------------------------------------------------------------------
@@ -226,18 +226,18 @@ def test_float32_follows_input_and_agrees_with_float64():
 
 def test_make_loss_kinds_and_bind():
     t, i = jnp.asarray(_smooth(9)), jnp.asarray(_smooth(10))
-    ep, eg, l2 = L.perceptual_loss(i, t), L.gram_loss(i, t), L.l2_loss(i, t)
-    loss_l2 = L.make_loss(L.LossConfig(kind="l2", lambda_p=2.0))
+    ep, eg, l2 = loss_mod.perceptual_loss(i, t), loss_mod.gram_loss(i, t), loss_mod.l2_loss(i, t)
+    loss_l2 = loss_mod.make_loss(loss_mod.LossConfig(kind="l2", lambda_p=2.0))
     assert float(loss_l2(i, t)) == pytest.approx(2.0 * float(l2), rel=1e-14)
     assert float(loss_l2.terms(i, t)["l2"]) == pytest.approx(float(l2), rel=1e-14)
-    loss_p = L.make_loss(L.LossConfig(kind="perceptual"))
+    loss_p = loss_mod.make_loss(loss_mod.LossConfig(kind="perceptual"))
     assert loss_p.features is None
     assert float(loss_p(i, t)) == pytest.approx(float(ep), rel=1e-14)
-    loss = L.make_loss(L.LossConfig(lambda_g=3.0))
+    loss = loss_mod.make_loss(loss_mod.LossConfig(lambda_g=3.0))
     expected = float(ep) + 3.0 * float(eg)
     assert float(loss(i, t)) == pytest.approx(expected, rel=1e-13)
-    assert float(L.make_loss()(i, t)) == pytest.approx(float(ep) + L.LAMBDA_G * float(eg), 1e-13)
-    assert float(L.total_loss(i, t, lambda_g=3.0)) == pytest.approx(expected, rel=1e-13)
+    assert float(loss_mod.make_loss()(i, t)) == pytest.approx(float(ep) + loss_mod.LAMBDA_G * float(eg), 1e-13)
+    assert float(loss_mod.total_loss(i, t, lambda_g=3.0)) == pytest.approx(expected, rel=1e-13)
     terms = loss.terms(i, t)
     assert set(terms) == {"total", "E_p", "E_g"}
     bound = loss.bind(t)
@@ -245,40 +245,40 @@ def test_make_loss_kinds_and_bind():
     assert float(eqx.filter_jit(lambda f, a, b: f(a, b))(loss, i, t)) == pytest.approx(
         expected, rel=1e-12
     )
-    assert set(dataclasses.asdict(L.LossConfig())) == {"kind", "lambda_p", "lambda_g", "vgg_weights",
+    assert set(dataclasses.asdict(loss_mod.LossConfig())) == {"kind", "lambda_p", "lambda_g", "vgg_weights",
                                                       "lambda_x"}
 
 
 def test_calibrate_lambda_g():
     t, i = jnp.asarray(_smooth(11)), jnp.asarray(_rand(12))
-    lam = L.calibrate_lambda_g(i, t, ratio=0.5)
-    assert lam * float(L.gram_loss(i, t)) == pytest.approx(0.5 * float(L.perceptual_loss(i, t)))
+    lam = loss_mod.calibrate_lambda_g(i, t, ratio=0.5)
+    assert lam * float(loss_mod.gram_loss(i, t)) == pytest.approx(0.5 * float(loss_mod.perceptual_loss(i, t)))
     with pytest.raises(ValueError, match="E_g"):
-        L.calibrate_lambda_g(t, t)
+        loss_mod.calibrate_lambda_g(t, t)
     with pytest.raises(ValueError, match="ratio"):
-        L.calibrate_lambda_g(i, t, ratio=-1.0)
+        loss_mod.calibrate_lambda_g(i, t, ratio=-1.0)
 
 
 def test_bad_inputs():
     t = jnp.zeros(SHAPE)
     with pytest.raises(ValueError, match=r"render must have shape \(M, H, W\)"):
-        L.perceptual_loss(jnp.zeros((32, 32)), jnp.zeros((32, 32)))
+        loss_mod.perceptual_loss(jnp.zeros((32, 32)), jnp.zeros((32, 32)))
     with pytest.raises(ValueError, match="target must have the same shape"):
-        L.l2_loss(t, jnp.zeros((3, 32, 32)))
+        loss_mod.l2_loss(t, jnp.zeros((3, 32, 32)))
     with pytest.raises(TypeError, match="render must be a floating"):
-        L.gram_loss(jnp.zeros(SHAPE, jnp.int32), t)
+        loss_mod.gram_loss(jnp.zeros(SHAPE, jnp.int32), t)
     with pytest.raises(TypeError, match="target must be floating"):
-        L.perceptual_loss(t, np.zeros(SHAPE, np.uint8))
+        loss_mod.perceptual_loss(t, np.zeros(SHAPE, np.uint8))
     with pytest.raises(ValueError, match="kind must be one of"):
-        L.LossConfig(kind="vgg")
+        loss_mod.LossConfig(kind="vgg")
     with pytest.raises(ValueError, match="lambda_p"):
-        L.LossConfig(lambda_p=float("nan"))
+        loss_mod.LossConfig(lambda_p=float("nan"))
     with pytest.raises(ValueError, match="lambda_g must be given with vgg_weights"):
-        L.LossConfig(vgg_weights="x.npz")
+        loss_mod.LossConfig(vgg_weights="x.npz")
     with pytest.raises(TypeError, match="LossConfig"):
-        L.make_loss({"kind": "l2"})
+        loss_mod.make_loss({"kind": "l2"})
     with pytest.raises(FileNotFoundError, match="not found"):
-        L.make_loss(L.LossConfig(vgg_weights="/nonexistent/vgg.npz", lambda_g=1.0))
+        loss_mod.make_loss(loss_mod.LossConfig(vgg_weights="/nonexistent/vgg.npz", lambda_g=1.0))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -290,7 +290,7 @@ WIDTHS = {"conv1": 4, "conv2": 5, "conv3": 6, "conv4": 6, "conv5": 7}
 def _tiny_vgg(seed=0) -> dict[str, np.ndarray]:
     rng = np.random.default_rng(seed)
     out, prev = {}, 3
-    for name, _ in L.VGG19_LAYERS:
+    for name, _ in loss_mod.VGG19_LAYERS:
         o = WIDTHS[name[:5]]
         out[f"{name}.weight"] = (rng.standard_normal((o, prev, 3, 3)) * np.sqrt(2 / (9 * prev))).astype(
             np.float32
@@ -315,7 +315,7 @@ def _vgg_reference(arrays, images):
     for img in images:
         x = (np.repeat(img[None], 3, axis=0) - mean) / std
         taps = []
-        for name, _ in L.VGG19_LAYERS:
+        for name, _ in loss_mod.VGG19_LAYERS:
             if name.endswith("_1") and name != "conv1_1":
                 c, h, w = x.shape
                 x = x[:, : h // 2 * 2, : w // 2 * 2].reshape(c, h // 2, 2, w // 2, 2).max((2, 4))
@@ -332,10 +332,10 @@ def _vgg_reference(arrays, images):
                 ]
             )
             x = np.maximum(y, 0.0)
-            if name in L.VGG19_TAPS:
+            if name in loss_mod.VGG19_TAPS:
                 taps.append(x)
         outs.append(taps)
-    return [np.stack([o[l] for o in outs]) for l in range(len(L.VGG19_TAPS))]
+    return [np.stack([o[l] for o in outs]) for l in range(len(loss_mod.VGG19_TAPS))]
 
 
 def _np_gram(f):
@@ -346,8 +346,8 @@ def _np_gram(f):
 
 def test_vgg_features_loss_and_gradient_match_scipy(tiny_vgg_file):
     # One compilation: value_and_grad of the configured loss, with the features and terms as aux.
-    loss = L.make_loss(L.LossConfig(vgg_weights=str(tiny_vgg_file), lambda_g=0.5))
-    assert isinstance(loss.features, L.VGG19Features)
+    loss = loss_mod.make_loss(loss_mod.LossConfig(vgg_weights=str(tiny_vgg_file), lambda_g=0.5))
+    assert isinstance(loss.features, loss_mod.VGG19Features)
 
     def f(r, t, loss):
         terms = loss.terms(r, t)
@@ -394,14 +394,14 @@ def test_vgg_loader_structure_errors(tmp_path, edit, match):
     path = tmp_path / "bad.npz"
     np.savez(path, **arrays)
     with pytest.raises(ValueError, match=match):
-        L.load_vgg19(path)
+        loss_mod.load_vgg19(path)
 
 
 def test_vgg_loader_unreadable_file(tmp_path):
     path = tmp_path / "junk.npz"
     path.write_bytes(b"not a zip file")
     with pytest.raises(ValueError, match="not a readable .npz"):
-        L.load_vgg19(path)
+        loss_mod.load_vgg19(path)
 
 
 def _converter():
@@ -425,15 +425,15 @@ def test_converter_maps_torchvision_keys(tmp_path):
             b = np.zeros(prev, np.float32)
         state[f"features.{idx}.weight"], state[f"features.{idx}.bias"] = w, b
     state["classifier.0.weight"] = np.zeros((2, 2), np.float32)
-    assert {k: v for k, v in L.VGG19_LAYERS} == {
-        k: v for k, v in conv.TORCHVISION_VGG19_CONVS.items() if k in dict(L.VGG19_LAYERS)
+    assert {k: v for k, v in loss_mod.VGG19_LAYERS} == {
+        k: v for k, v in conv.TORCHVISION_VGG19_CONVS.items() if k in dict(loss_mod.VGG19_LAYERS)
     }
     out = conv.convert_state_dict(state)
     assert len(out) == 32 and "classifier.0.weight" not in out
     path = tmp_path / "converted.npz"
     np.savez(path, **out)
-    feats = L.load_vgg19(path)
-    for got, want in zip(feats.weights, (arrays[f"{n}.weight"] for n, _ in L.VGG19_LAYERS)):
+    feats = loss_mod.load_vgg19(path)
+    for got, want in zip(feats.weights, (arrays[f"{n}.weight"] for n, _ in loss_mod.VGG19_LAYERS)):
         np.testing.assert_array_equal(np.asarray(got), want)
     with pytest.raises(ValueError, match="vgg19_bn"):
         conv.convert_state_dict({**state, "features.1.running_mean": np.zeros(4)})

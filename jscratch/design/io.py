@@ -99,6 +99,13 @@ def _fit(img: np.ndarray, shape: tuple[int, int], name: str, crop: bool) -> np.n
     return np.clip(resize(img, shape, anti_aliasing=True), 0.0, 1.0)
 
 
+def prepare_target(img: np.ndarray, shape: tuple[int, int], name: str, *, crop: bool = True) -> np.ndarray:
+    """An image array (grayscale or RGB(A), any dtype) as display values ``(H, W)`` in ``[0, 1]``:
+    grayscale, centre-cropped to the board's aspect (``crop``; else the aspect must match within
+    2 %) and resized to ``shape``. `name` names it in `DesignError` messages."""
+    return _fit(_to_gray01(img, name), shape, name, crop=crop)
+
+
 def load_target(path: str | os.PathLike, shape: tuple[int, int]) -> np.ndarray:
     """Read an image file as display values ``(H, W)`` in ``[0, 1]`` (grayscale, resized).
 
@@ -116,7 +123,7 @@ def load_target(path: str | os.PathLike, shape: tuple[int, int]) -> np.ndarray:
         img = io.imread(path)
     except Exception as e:  # noqa: BLE001 - any reader failure is an unreadable image
         raise DesignError(f"target image {path!r} is not a readable image ({error_line(e)})") from None
-    return _fit(_to_gray01(img, repr(path)), shape, repr(path), crop=False)
+    return prepare_target(img, shape, repr(path), crop=False)
 
 
 def default_targets(m: int, shape: tuple[int, int]) -> tuple[np.ndarray, list[str]]:
@@ -124,7 +131,7 @@ def default_targets(m: int, shape: tuple[int, int]) -> tuple[np.ndarray, list[st
     from skimage import data
 
     names = [DEFAULT_IMAGES[j % len(DEFAULT_IMAGES)] for j in range(m)]
-    imgs = [_fit(_to_gray01(getattr(data, n)(), n), shape, n, crop=True) for n in names]
+    imgs = [prepare_target(getattr(data, n)(), shape, n) for n in names]
     return np.stack(imgs), [f"skimage.data.{n}" for n in names]
 
 

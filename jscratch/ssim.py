@@ -1,0 +1,37 @@
+"""A differentiable SSIM equal to scikit-image's (`ssim_mean`): the measure of SPEC section 7's
+ghosting, which `jscratch.loss.ghost_loss` penalises. Pure jax; imports nothing of jscratch."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+__all__ = ["ssim_mean"]
+
+SSIM_WINDOW = 7  # skimage.metrics.structural_similarity's default uniform window
+SSIM_C1, SSIM_C2 = 0.01**2, 0.03**2  # its constants for data_range 1
+
+
+def ssim_mean(x: Float[Array, "... H W"], y: Float[Array, "... H W"]) -> Float[Array, "..."]:
+    """Mean SSIM of ``x`` against ``y`` as ``skimage.metrics.structural_similarity`` computes it
+    (7x7 uniform window, sample covariance, ``data_range = 1``, mean over the pixels whose window
+    lies inside the image), differentiable: the measure of SPEC section 7's ghosting.
+
+    **Arguments:** `x`, `y`: ``(..., H, W)`` with ``H, W >= 7``. **Returns:** ``(...)``.
+    """
+    w = SSIM_WINDOW
+    n = w * w
+
+    def mean(a):
+        dims = (1,) * (a.ndim - 2) + (w, w)
+        return jax.lax.reduce_window(a, 0.0, jax.lax.add, dims, (1,) * a.ndim, "VALID") / n
+
+    mx, my = mean(x), mean(y)
+    cn = n / (n - 1)
+    vx = cn * (mean(x * x) - mx * mx)
+    vy = cn * (mean(y * y) - my * my)
+    vxy = cn * (mean(x * y) - mx * my)
+    s = ((2 * mx * my + SSIM_C1) * (2 * vxy + SSIM_C2)) / (
+        (mx * mx + my * my + SSIM_C1) * (vx + vy + SSIM_C2))
+    return jnp.mean(s, axis=(-2, -1))
