@@ -36,6 +36,7 @@ import numpy as np
 from jscratch.scene import Scratches
 from jscratch.shading import display
 from jscratch.design import solver
+from jscratch.design.discard import scores
 from jscratch.design.params import DesignParams
 
 #: Standard deviation (radians) of the random turn of a re-seeded scratch's direction.
@@ -49,14 +50,6 @@ def due(iteration: int, config) -> bool:
     every = config.prune_every
     return (every > 0 and iteration > 0 and iteration % every == 0
             and iteration <= config.prune_until * config.iterations)
-
-
-def scores(params, pairs, ctx, caps) -> np.ndarray:
-    """``(N,)`` the discard's score: ``max_j contribution[j, i] / mean_i contribution[j, i]``."""
-    lists, _, _ = solver.view_lists(params, pairs, ctx, caps)
-    contrib = np.asarray(solver.contributions(params, lists, ctx), np.float64)  # (M, N)
-    mean = contrib.mean(axis=1, keepdims=True)
-    return (contrib / np.where(mean > 0, mean, 1.0)).max(axis=0)
 
 
 def error_density(disp: np.ndarray, target: np.ndarray) -> np.ndarray:
