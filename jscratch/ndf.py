@@ -107,7 +107,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from jscratch import lobe
+from jscratch import lobe, native
 
 __all__ = [
     "pair_integral",
@@ -495,6 +495,45 @@ def _lit_sum_bwd(n_gl, res, ct):
 _lit_sum.defvjp(_lit_sum_fwd, _lit_sum_bwd)
 
 
+def _lit_native_values(n_gl, ua, ub, Ya, Yb, X, hx, hy, hz, alpha):
+    """`_lit_sum` of the pieces cut to the lit slab of the view `(hx, hy, hz)` (`_view`)."""
+    u_m, u_p = lit_interval(hx, hz)
+    u_lo = jnp.maximum(-X, u_m)
+    u_hi = jnp.maximum(jnp.minimum(X, u_p), u_lo)
+    p = lobe.lobe_params(lobe.lobe(hx, hy, hz, alpha))
+    return _lit_sum_values(n_gl, ua, ub, Ya, Yb, u_lo, u_hi, p)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _lit_native(n_gl, ua, ub, Ya, Yb, X, hx, hy, hz, alpha):
+    """`_lit_native_values` (values by jnp), whose reverse pass is `native.lit_partials`: the
+    partials of `_lit_sum`'s hand-written reverse pass chained through the slab and the lobe
+    parameters, per pair-view in one native kernel (used where `native.available`)."""
+    return _lit_native_values(n_gl, ua, ub, Ya, Yb, X, hx, hy, hz, alpha)
+
+
+def _varying_like(x, like):
+    """`x` marked device-varying over the mesh axes `like` varies over (inside `jax.shard_map`
+    the native kernel's outputs carry no such type, its inputs do)."""
+    varying = lambda v: set(getattr(getattr(jax.typeof(v), "mat", None), "varying", ()) or ())
+    missing = tuple(sorted(varying(like) - varying(x)))
+    return jax.lax.pcast(x, missing, to="varying") if missing else x
+
+
+def _lit_native_fwd(n_gl, ua, ub, Ya, Yb, X, hx, hy, hz, alpha):
+    args = (ua, ub, Ya, Yb, X, hx, hy, hz, alpha)
+    lit, partials = native.lit_partials(n_gl, *args)
+    lit = functools.reduce(_varying_like, args, lit)
+    return lit, tuple(_varying_like(d, a) for d, a in zip(partials, args))
+
+
+def _lit_native_bwd(n_gl, partials, ct):
+    return tuple(ct[..., None] * d if d.ndim > ct.ndim else ct * d for d in partials)
+
+
+_lit_native.defvjp(_lit_native_fwd, _lit_native_bwd)
+
+
 def _cut_values(ua, ub, Ya, Yb, lo, hi):
     c = _cut(ua, ub, Ya, Yb, lo, hi)
     return c.ua, c.ub, c.Ya, c.Yb
@@ -668,12 +707,19 @@ def pair_geometry(footprint: Float[ArrayLike, "4 2"], p0: Float[ArrayLike, "2"],
 
 
 def _lit_integral(geometry: PairGeometry, h, alpha, pieces: int, hand_vjp: bool = True):
-    hx, hy, hz, u_lo, u_hi = _view(geometry, h)
-    L = lobe.lobe(hx, hy, hz, alpha)
     # Points contribute exactly nothing, value or gradient (`lobe.piece_values`, `_cut_transpose`),
     # so the first non-points are exact where they are all.
     first = (tuple(x[:pieces] for x in geometry.first) if pieces <= N_COMPACT
              else geometry.pieces)
+    if hand_vjp and native.available(h.dtype):
+        # The same integral; its reverse pass by the native kernel (`_lit_native`).
+        hn = h / jnp.sqrt(h[0] * h[0] + h[1] * h[1] + h[2] * h[2])
+        hx = hn[0] * geometry.b[0] + hn[1] * geometry.b[1]
+        hy = hn[0] * geometry.t[0] + hn[1] * geometry.t[1]
+        lit = _lit_native(lobe.nodes(h.dtype), *first, geometry.X, hx, hy, hn[2], alpha)
+        return geometry.scale * (alpha * alpha / (4 * jnp.pi)) * lit
+    hx, hy, hz, u_lo, u_hi = _view(geometry, h)
+    L = lobe.lobe(hx, hy, hz, alpha)
     lit = (_lit_sum if hand_vjp else _lit_sum_values)(
         lobe.nodes(h.dtype), *first, u_lo, u_hi, lobe.lobe_params(L))
     return geometry.scale * L.pref * lit

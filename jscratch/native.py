@@ -1,0 +1,132 @@
+"""The pair kernel's per-view reverse pass as a native CPU kernel (an XLA FFI custom call).
+
+`jscratch.ndf` evaluates a pair-view's value with jnp (XLA vectorises it well) and its partial
+derivatives either with jnp (`ndf._lit_sum`'s hand-written reverse pass, whose many gradient
+outputs XLA's CPU backend evaluates in separate fusions that each recompute the shared
+arithmetic) or, where this module is available, with `native_lit.cc`: the same formulas, line
+by line, per pair-view in registers, on all cores. Same results up to rounding (tests compare
+the two in float64 and float32).
+
+- `available(dtype) -> bool`: whether `lit_partials` can run for arrays of `dtype` here: the
+  default backend is the CPU, the kernel compiled (once per source, with the system's C++
+  compiler, cached in ``$JSCRATCH_CACHE`` or ``~/.cache/jscratch``) and ``JSCRATCH_NATIVE`` is
+  not ``0``. Otherwise jscratch uses the jnp reverse pass.
+- `lit_partials(n_gl, ua, ub, Ya, Yb, X, hx, hy, hz, alpha)`: the lit integral and its partials
+  (`native_lit.cc` says which).
+
+Nothing is downloaded; a machine without a C++ compiler runs the jnp path (`status()` says why).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import hashlib
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+
+__all__ = ["available", "lit_partials", "status"]
+
+_SOURCE = Path(__file__).with_name("native_lit.cc")
+_TARGETS = {jnp.dtype(jnp.float32): "jscratch_lit_f32", jnp.dtype(jnp.float64): "jscratch_lit_f64"}
+_status = {"loaded": False, "why": "not tried"}
+
+
+def _cache_dir() -> Path:
+    root = os.environ.get("JSCRATCH_CACHE") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "jscratch")
+    return Path(root)
+
+
+def _cpu_flags() -> str:
+    """This CPU's model and feature flags (Linux), else the processor's name."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            lines = [ln for ln in f if ln.startswith(("model name", "flags", "Features"))]
+        return "".join(sorted(set(lines)))
+    except OSError:
+        return platform.processor()
+
+
+def _compile() -> Path:
+    """The kernel's shared library, compiled once per source text and compiler flags."""
+    cxx = os.environ.get("CXX") or shutil.which("g++") or shutil.which("c++") or shutil.which(
+        "clang++")
+    if cxx is None:
+        raise RuntimeError("no C++ compiler (g++, c++ or clang++) on PATH")
+    flags = ["-O3", "-march=native", "-fno-math-errno", "-std=c++17", "-shared", "-fPIC", "-ffp-contract=off", "-pthread",
+             "-w", f"-I{jax.ffi.include_dir()}"]
+    src = _SOURCE.read_bytes()
+    # -march=native: the library is for this CPU (a cache shared between machines keys on it).
+    key = hashlib.sha256(src + " ".join([cxx, *flags, platform.machine(), _cpu_flags()])
+                         .encode()).hexdigest()[:16]
+    lib = _cache_dir() / f"native_lit-{key}.so"
+    if lib.exists():
+        return lib
+    lib.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=lib.parent) as tmp:
+        out = Path(tmp) / lib.name
+        proc = subprocess.run([cxx, *flags, str(_SOURCE), "-o", str(out)], capture_output=True,
+                              text=True)
+        if proc.returncode != 0:
+            last = (proc.stderr.strip().splitlines() or ["?"])[-1]
+            raise RuntimeError(f"{Path(cxx).name} failed on native_lit.cc: {last}")
+        os.replace(out, lib)  # atomic: concurrent processes see a whole library or none
+    return lib
+
+
+@functools.lru_cache(maxsize=None)
+def _load() -> bool:
+    try:
+        lib = ctypes.cdll.LoadLibrary(str(_compile()))
+        jax.ffi.register_ffi_target(_TARGETS[jnp.dtype(jnp.float32)],
+                                    jax.ffi.pycapsule(lib.JscratchLitF32), platform="cpu")
+        jax.ffi.register_ffi_target(_TARGETS[jnp.dtype(jnp.float64)],
+                                    jax.ffi.pycapsule(lib.JscratchLitF64), platform="cpu")
+    except Exception as e:  # no compiler, a failed build, an FFI this jaxlib lacks: jnp path
+        _status.update(why=f"{type(e).__name__}: {e}")
+        return False
+    _status.update(loaded=True, why="compiled and registered")
+    return True
+
+
+def status() -> dict:
+    """``{"loaded": bool, "why": str}``: whether the native kernel is in use, and why not."""
+    return dict(_status)
+
+
+def available(dtype) -> bool:
+    """Whether `lit_partials` runs for `dtype` arrays (float32 or float64, CPU backend)."""
+    if jnp.dtype(dtype) not in _TARGETS or jax.default_backend() != "cpu":
+        return False
+    if os.environ.get("JSCRATCH_NATIVE", "1") == "0":  # read when a function is traced
+        return False
+    return _load()
+
+
+def _threads() -> int:
+    n = os.environ.get("JSCRATCH_NATIVE_THREADS")
+    if n:
+        return max(1, int(n))
+    return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
+               else os.cpu_count() or 1)
+
+
+def lit_partials(n_gl: int, ua, ub, Ya, Yb, X, hx, hy, hz, alpha):
+    """The lit integral of the pieces ``(ua, ub, Ya, Yb)`` (``(..., k)``, cut to the groove)
+    under the view ``(hx, hy, hz)`` with roughness ``alpha`` (``(...)``, groove half-width ``X``
+    in widths), and its partials: ``(lit, (d_ua, d_ub, d_Ya, d_Yb, d_X, d_hx, d_hy, d_hz,
+    d_alpha))``, shapes as the inputs. Jittable and vmappable; needs `available`."""
+    dt = jnp.dtype(ua.dtype)
+    S = lambda x: jax.ShapeDtypeStruct(x.shape, dt)
+    out = (S(X), S(ua), S(ub), S(Ya), S(Yb), S(X), S(hx), S(hy), S(hz), S(alpha))
+    call = jax.ffi.ffi_call(_TARGETS[dt], out, vmap_method="broadcast_all")
+    res = call(ua, ub, Ya, Yb, X, hx, hy, hz, alpha, n_gl=int(n_gl), threads=_threads())
+    return res[0], tuple(res[1:])
