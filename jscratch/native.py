@@ -12,7 +12,7 @@ the two in float64 and float32).
   compiler, cached in ``$JSCRATCH_CACHE`` or ``~/.cache/jscratch``) and ``JSCRATCH_NATIVE`` is
   not ``0``. Otherwise jscratch uses the jnp reverse pass.
 - `lit_partials(n_gl, ua, ub, Ya, Yb, X, hx, hy, hz, alpha)`: the lit integral and its partials
-  (`native_lit.cc` says which).
+  (`native_lit.cc` says which); `lit_values(...)`: the integral alone.
 
 Nothing is downloaded; a machine without a C++ compiler runs the jnp path (`status()` says why).
 """
@@ -32,10 +32,13 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 
-__all__ = ["available", "lit_partials", "status"]
+__all__ = ["available", "lit_partials", "lit_values", "status"]
 
 _SOURCE = Path(__file__).with_name("native_lit.cc")
 _TARGETS = {jnp.dtype(jnp.float32): "jscratch_lit_f32", jnp.dtype(jnp.float64): "jscratch_lit_f64"}
+_SYMBOLS = {"jscratch_lit_f32": "JscratchLitF32", "jscratch_lit_f64": "JscratchLitF64",
+            "jscratch_lit_values_f32": "JscratchLitValuesF32",
+            "jscratch_lit_values_f64": "JscratchLitValuesF64"}
 _status = {"loaded": False, "why": "not tried"}
 
 
@@ -86,10 +89,9 @@ def _compile() -> Path:
 def _load() -> bool:
     try:
         lib = ctypes.cdll.LoadLibrary(str(_compile()))
-        jax.ffi.register_ffi_target(_TARGETS[jnp.dtype(jnp.float32)],
-                                    jax.ffi.pycapsule(lib.JscratchLitF32), platform="cpu")
-        jax.ffi.register_ffi_target(_TARGETS[jnp.dtype(jnp.float64)],
-                                    jax.ffi.pycapsule(lib.JscratchLitF64), platform="cpu")
+        for target, symbol in _SYMBOLS.items():
+            jax.ffi.register_ffi_target(target, jax.ffi.pycapsule(getattr(lib, symbol)),
+                                        platform="cpu")
     except Exception as e:  # no compiler, a failed build, an FFI this jaxlib lacks: jnp path
         _status.update(why=f"{type(e).__name__}: {e}")
         return False
@@ -117,6 +119,14 @@ def _threads() -> int:
         return max(1, int(n))
     return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
                else os.cpu_count() or 1)
+
+
+def lit_values(n_gl: int, ua, ub, Ya, Yb, X, hx, hy, hz, alpha):
+    """`lit_partials`' first output alone (the forward pass; cheaper). Needs `available`."""
+    dt = jnp.dtype(ua.dtype)
+    call = jax.ffi.ffi_call(_TARGETS[dt].replace("_lit_", "_lit_values_"),
+                            jax.ShapeDtypeStruct(X.shape, dt), vmap_method="broadcast_all")
+    return call(ua, ub, Ya, Yb, X, hx, hy, hz, alpha, n_gl=int(n_gl), threads=_threads())
 
 
 def lit_partials(n_gl: int, ua, ub, Ya, Yb, X, hx, hy, hz, alpha):

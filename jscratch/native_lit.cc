@@ -11,7 +11,8 @@
 // the groove half-width in widths, hx, hy, hz (n) the normalised half vector in the scratch
 // frame, alpha (n). Attribute n_gl: Gauss-Legendre nodes per piece.
 // Outputs: lit (n) = sum over pieces of the integral of Y (F1 + F2) du over the piece cut to the
-// lit slab, and its partial derivatives with respect to every input.
+// lit slab, and its partial derivatives with respect to every input (`JscratchLit*`), or the
+// value alone (`JscratchLitValues*`).
 
 #include <algorithm>
 #include <cmath>
@@ -235,7 +236,7 @@ inline Lobes<V> lobes(V u, const V* p) {
 
 // `lobe.piece_values(..., with_partials=True)` for one piece per lane: the value, the partials
 // with respect to the ends (ua, ub, Ya, Yb) and (accumulated into dp) the 11 lobe parameters.
-template <typename T, typename V>
+template <typename T, typename V, bool kPartials>
 V piece(int n_gl, const double* xs, const double* ws, V ua, V ub, V Ya, V Yb, const V* p, V* d_ua,
         V* d_ub, V* d_Ya, V* d_Yb, V* dp) {
   const V c0 = p[0], u1 = p[5], q1 = p[6], k = p[8];
@@ -272,6 +273,17 @@ V piece(int n_gl, const double* xs, const double* ws, V ua, V ub, V Ya, V Yb, co
     Et0 = ct[0] * B0[1] + ct[1] * B0[2] + ct[2] * B0[3] + ct[3] * B0[4];
   }
   V cf = q1 * (Ym * E0 + (dY / ds_s) * E1);
+  if constexpr (!kPartials) {  // the value alone: `lobe.piece_values(..., False)`
+    V t1 = zero, t2 = zero;
+    for (int j = 0; j < n_gl; ++j) {
+      const V x = splat<V>(xs[j]), w = splat<V>(ws[j]);
+      Lobes<V> at = lobes(um + half * x, p);
+      V wy = w * (Ym + (dY / 2) * x);
+      t1 += wy * at.F1;
+      t2 += wy * (at.T2 * at.T2 + at.T2);
+    }
+    return sel<V>(use_cf, cf, half * t1) + half * t2;
+  }
   V gl_t1 = zero, gl_t2 = zero, m0_2 = zero, mc_2 = zero, m0t_gl = zero, mc_gl = zero;
   V bas[4] = {zero, zero, zero, zero};
   V ft_wy = zero, dk = zero, dhx = zero, dhz = zero;
@@ -338,7 +350,7 @@ V piece(int n_gl, const double* xs, const double* ws, V ua, V ub, V Ya, V Yb, co
 }
 
 // One lane per pair-view: `L` pair-views from lanes of the inputs (pieces `k` per lane).
-template <typename T, typename V>
+template <typename T, typename V, bool kPartials>
 void lit_lanes(int n_gl, const double* xs, const double* ws, int k, const V* ua, const V* ub,
                const V* Ya, const V* Yb, V X, V hx_, V hy_, V hz_, V alpha_, V* out, V* g_ua,
                V* g_ub, V* g_Ya, V* g_Yb, V* g_X, V* g_hx, V* g_hy, V* g_hz, V* g_alpha) {
@@ -410,8 +422,9 @@ void lit_lanes(int n_gl, const double* xs, const double* ws, int k, const V* ua,
   for (int i = 0; i < 11; ++i) dp[i] = zero;
   for (int i = 0; i < k; ++i) {
     V dca, dcb, dYa, dYb;
-    value += piece<T>(n_gl, xs, ws, ca[i], cb[i], Ya2[i] - ref, Yb2[i] - ref, p, &dca, &dcb,
-                      &dYa, &dYb, dp);
+    value += piece<T, V, kPartials>(n_gl, xs, ws, ca[i], cb[i], Ya2[i] - ref, Yb2[i] - ref, p,
+                                    &dca, &dcb, &dYa, &dYb, dp);
+    if constexpr (!kPartials) continue;
     // `ndf._cut_transpose`.
     dca = dca + sel<V>(pt[i], dcb, zero);
     dYa = dYa + sel<V>(pt[i], dYb, zero);
@@ -433,6 +446,7 @@ void lit_lanes(int n_gl, const double* xs, const double* ws, int k, const V* ua,
     g_hi += sel<V>(hi_a[i], dca, zero) + sel<V>(hi_b[i], dcb, zero);
   }
   *out = value;
+  if constexpr (!kPartials) return;
   // Chain the slab bounds' and the lobe parameters' partials through the view algebra.
   V gt[kTan];
   for (int t = 0; t < kTan; ++t) {
@@ -449,7 +463,7 @@ void lit_lanes(int n_gl, const double* xs, const double* ws, int k, const V* ua,
 
 // Pair-views [i0, i1): `L` at a time, lanes gathered from and scattered to the flat arrays
 // (a tail of fewer than `L` repeats its last pair-view in the spare lanes and keeps only its own).
-template <typename T>
+template <typename T, bool kPartials>
 void lit_range(int n_gl, const double* xs, const double* ws, size_t k, size_t i0, size_t i1,
                const T* const* in, T* const* res) {
   typedef typename Vec<T>::type V;
@@ -464,12 +478,13 @@ void lit_range(int n_gl, const double* xs, const double* ws, size_t k, size_t i0
       for (int f = 0; f < 5; ++f) sc[f][l] = in[4 + f][i];
     }
     V out, gp[4][kMaxPieces], gs[5];
-    lit_lanes<T, V>(n_gl, xs, ws, static_cast<int>(k), pc[0], pc[1], pc[2], pc[3], sc[0], sc[1],
+    lit_lanes<T, V, kPartials>(n_gl, xs, ws, static_cast<int>(k), pc[0], pc[1], pc[2], pc[3], sc[0], sc[1],
                     sc[2], sc[3], sc[4], &out, gp[0], gp[1], gp[2], gp[3], &gs[0], &gs[1],
                     &gs[2], &gs[3], &gs[4]);
     for (int l = 0; l < lanes; ++l) {
       const size_t i = b + l;
       res[0][i] = out[l];
+      if constexpr (!kPartials) continue;
       for (int f = 0; f < 4; ++f)
         for (size_t j = 0; j < k; ++j) res[1 + f][i * k + j] = gp[f][j][l];
       for (int f = 0; f < 5; ++f) res[5 + f][i] = gs[f][l];
@@ -477,31 +492,18 @@ void lit_range(int n_gl, const double* xs, const double* ws, size_t k, size_t i0
   }
 }
 
-template <ffi::DataType DT>
-ffi::Error LitImpl(ffi::Buffer<DT> ua, ffi::Buffer<DT> ub, ffi::Buffer<DT> Ya, ffi::Buffer<DT> Yb,
-                   ffi::Buffer<DT> X, ffi::Buffer<DT> hx, ffi::Buffer<DT> hy, ffi::Buffer<DT> hz,
-                   ffi::Buffer<DT> alpha, int64_t n_gl, int64_t threads, ffi::ResultBuffer<DT> out,
-                   ffi::ResultBuffer<DT> g_ua, ffi::ResultBuffer<DT> g_ub,
-                   ffi::ResultBuffer<DT> g_Ya, ffi::ResultBuffer<DT> g_Yb,
-                   ffi::ResultBuffer<DT> g_X, ffi::ResultBuffer<DT> g_hx,
-                   ffi::ResultBuffer<DT> g_hy, ffi::ResultBuffer<DT> g_hz,
-                   ffi::ResultBuffer<DT> g_alpha) {
-  using T = ffi::NativeType<DT>;
-  const size_t n = X.element_count();
+// Pair-views [0, n) over `threads` threads (whole vectors each).
+template <typename T, bool kPartials>
+ffi::Error run(size_t n, size_t n_pieces, int64_t n_gl, int64_t threads, const T* const* in,
+               T* const* res) {
   if (n == 0) return ffi::Error::Success();
-  const size_t k = ua.element_count() / n;
-  if (k * n != ua.element_count() || k > kMaxPieces || n_gl < 1 || n_gl > kMaxNodes)
+  const size_t k = n_pieces / n;
+  if (k * n != n_pieces || k > kMaxPieces || n_gl < 1 || n_gl > kMaxNodes)
     return ffi::Error(ffi::ErrorCode::kInvalidArgument, "jscratch lit: bad shapes");
   double xs[kMaxNodes], ws[kMaxNodes];
   gauss_legendre(static_cast<int>(n_gl), xs, ws);
-  const T* in[9] = {ua.typed_data(), ub.typed_data(), Ya.typed_data(), Yb.typed_data(),
-                    X.typed_data(),  hx.typed_data(), hy.typed_data(), hz.typed_data(),
-                    alpha.typed_data()};
-  T* res[10] = {out->typed_data(),  g_ua->typed_data(), g_ub->typed_data(), g_Ya->typed_data(),
-                g_Yb->typed_data(), g_X->typed_data(),  g_hx->typed_data(), g_hy->typed_data(),
-                g_hz->typed_data(), g_alpha->typed_data()};
   auto work = [&](size_t i0, size_t i1) {
-    lit_range<T>(static_cast<int>(n_gl), xs, ws, k, i0, i1, in, res);
+    lit_range<T, kPartials>(static_cast<int>(n_gl), xs, ws, k, i0, i1, in, res);
   };
   constexpr size_t L = Vec<T>::L;
   size_t nt = static_cast<size_t>(std::max<int64_t>(1, threads));
@@ -519,14 +521,49 @@ ffi::Error LitImpl(ffi::Buffer<DT> ua, ffi::Buffer<DT> ub, ffi::Buffer<DT> Ya, f
   return ffi::Error::Success();
 }
 
+template <ffi::DataType DT>
+ffi::Error LitImpl(ffi::Buffer<DT> ua, ffi::Buffer<DT> ub, ffi::Buffer<DT> Ya, ffi::Buffer<DT> Yb,
+                   ffi::Buffer<DT> X, ffi::Buffer<DT> hx, ffi::Buffer<DT> hy, ffi::Buffer<DT> hz,
+                   ffi::Buffer<DT> alpha, int64_t n_gl, int64_t threads, ffi::ResultBuffer<DT> out,
+                   ffi::ResultBuffer<DT> g_ua, ffi::ResultBuffer<DT> g_ub,
+                   ffi::ResultBuffer<DT> g_Ya, ffi::ResultBuffer<DT> g_Yb,
+                   ffi::ResultBuffer<DT> g_X, ffi::ResultBuffer<DT> g_hx,
+                   ffi::ResultBuffer<DT> g_hy, ffi::ResultBuffer<DT> g_hz,
+                   ffi::ResultBuffer<DT> g_alpha) {
+  using T = ffi::NativeType<DT>;
+  const T* in[9] = {ua.typed_data(), ub.typed_data(), Ya.typed_data(), Yb.typed_data(),
+                    X.typed_data(),  hx.typed_data(), hy.typed_data(), hz.typed_data(),
+                    alpha.typed_data()};
+  T* res[10] = {out->typed_data(),  g_ua->typed_data(), g_ub->typed_data(), g_Ya->typed_data(),
+                g_Yb->typed_data(), g_X->typed_data(),  g_hx->typed_data(), g_hy->typed_data(),
+                g_hz->typed_data(), g_alpha->typed_data()};
+  return run<T, true>(X.element_count(), ua.element_count(), n_gl, threads, in, res);
+}
+
+template <ffi::DataType DT>
+ffi::Error LitValuesImpl(ffi::Buffer<DT> ua, ffi::Buffer<DT> ub, ffi::Buffer<DT> Ya,
+                         ffi::Buffer<DT> Yb, ffi::Buffer<DT> X, ffi::Buffer<DT> hx,
+                         ffi::Buffer<DT> hy, ffi::Buffer<DT> hz, ffi::Buffer<DT> alpha,
+                         int64_t n_gl, int64_t threads, ffi::ResultBuffer<DT> out) {
+  using T = ffi::NativeType<DT>;
+  const T* in[9] = {ua.typed_data(), ub.typed_data(), Ya.typed_data(), Yb.typed_data(),
+                    X.typed_data(),  hx.typed_data(), hy.typed_data(), hz.typed_data(),
+                    alpha.typed_data()};
+  T* res[1] = {out->typed_data()};
+  return run<T, false>(X.element_count(), ua.element_count(), n_gl, threads, in, res);
+}
+
 }  // namespace
 
-#define JSCRATCH_LIT_BIND(DT)                                                              \
+#define JSCRATCH_LIT_ARGS(DT)                                                              \
   ffi::Ffi::Bind()                                                                         \
       .Arg<ffi::Buffer<DT>>().Arg<ffi::Buffer<DT>>().Arg<ffi::Buffer<DT>>()                \
       .Arg<ffi::Buffer<DT>>().Arg<ffi::Buffer<DT>>().Arg<ffi::Buffer<DT>>()                \
       .Arg<ffi::Buffer<DT>>().Arg<ffi::Buffer<DT>>().Arg<ffi::Buffer<DT>>()                \
-      .Attr<int64_t>("n_gl").Attr<int64_t>("threads")                                      \
+      .Attr<int64_t>("n_gl").Attr<int64_t>("threads")
+
+#define JSCRATCH_LIT_BIND(DT)                                                              \
+  JSCRATCH_LIT_ARGS(DT)                                                                    \
       .Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()                \
       .Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()                \
       .Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()                \
@@ -536,3 +573,7 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchLitF32, LitImpl<ffi::DataType::F32>,
                               JSCRATCH_LIT_BIND(ffi::DataType::F32));
 XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchLitF64, LitImpl<ffi::DataType::F64>,
                               JSCRATCH_LIT_BIND(ffi::DataType::F64));
+XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchLitValuesF32, LitValuesImpl<ffi::DataType::F32>,
+                              JSCRATCH_LIT_ARGS(ffi::DataType::F32).Ret<ffi::Buffer<ffi::DataType::F32>>());
+XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchLitValuesF64, LitValuesImpl<ffi::DataType::F64>,
+                              JSCRATCH_LIT_ARGS(ffi::DataType::F64).Ret<ffi::Buffer<ffi::DataType::F64>>());
