@@ -11,7 +11,7 @@ the two in float64 and float32).
   default backend is the CPU, the kernel compiled (once per source, with the system's C++
   compiler, cached in ``$JSCRATCH_CACHE`` or ``~/.cache/jscratch``) and ``JSCRATCH_NATIVE`` is
   not ``0``. Otherwise jscratch uses the jnp reverse pass.
-- `lit_partials(n_gl, ua, ub, Ya, Yb, X, hx, hy, hz, alpha)`: the lit integral and its partials
+- `lit_partials(n_gl, ua, ub, Ya, Yb, X, h, b, t, alpha)`: the lit integral and its partials
   (`native_lit.cc` says which); `lit_values(...)`: the integral alone.
 
 Nothing is downloaded; a machine without a C++ compiler runs the jnp path (`status()` says why).
@@ -121,22 +121,24 @@ def _threads() -> int:
                else os.cpu_count() or 1)
 
 
-def lit_values(n_gl: int, ua, ub, Ya, Yb, X, hx, hy, hz, alpha):
+def lit_values(n_gl: int, ua, ub, Ya, Yb, X, h, b, t, alpha):
     """`lit_partials`' first output alone (the forward pass; cheaper). Needs `available`."""
     dt = jnp.dtype(ua.dtype)
     call = jax.ffi.ffi_call(_TARGETS[dt].replace("_lit_", "_lit_values_"),
                             jax.ShapeDtypeStruct(X.shape, dt), vmap_method="broadcast_all")
-    return call(ua, ub, Ya, Yb, X, hx, hy, hz, alpha, n_gl=int(n_gl), threads=_threads())
+    return call(ua, ub, Ya, Yb, X, h, b, t, alpha, n_gl=int(n_gl), threads=_threads())
 
 
-def lit_partials(n_gl: int, ua, ub, Ya, Yb, X, hx, hy, hz, alpha):
-    """The lit integral of the pieces ``(ua, ub, Ya, Yb)`` (``(..., k)``, cut to the groove)
-    under the view ``(hx, hy, hz)`` with roughness ``alpha`` (``(...)``, groove half-width ``X``
-    in widths), and its partials: ``(lit, (d_ua, d_ub, d_Ya, d_Yb, d_X, d_hx, d_hy, d_hz,
+def lit_partials(n_gl: int, ua, ub, Ya, Yb, X, h, b, t, alpha):
+    """The lit integral of the pieces ``(ua, ub, Ya, Yb)`` (``(..., k)``, cut to the groove of
+    half-width ``X`` in widths, ``(...)``) under the half vector ``h`` (``(..., 3)``, board frame)
+    for a scratch along ``t`` and across ``b`` (``(..., 2)``) with roughness ``alpha``
+    (``(...)``), and its partials: ``(lit, (d_ua, d_ub, d_Ya, d_Yb, d_X, d_h, d_b, d_t,
     d_alpha))``, shapes as the inputs. Jittable and vmappable; needs `available`."""
     dt = jnp.dtype(ua.dtype)
-    S = lambda x: jax.ShapeDtypeStruct(x.shape, dt)
-    out = (S(X), S(ua), S(ub), S(Ya), S(Yb), S(X), S(hx), S(hy), S(hz), S(alpha))
+    args = (ua, ub, Ya, Yb, X, h, b, t, alpha)
+    out = (jax.ShapeDtypeStruct(X.shape, dt),) + tuple(jax.ShapeDtypeStruct(a.shape, dt)
+                                                       for a in args)
     call = jax.ffi.ffi_call(_TARGETS[dt], out, vmap_method="broadcast_all")
-    res = call(ua, ub, Ya, Yb, X, hx, hy, hz, alpha, n_gl=int(n_gl), threads=_threads())
+    res = call(*args, n_gl=int(n_gl), threads=_threads())
     return res[0], tuple(res[1:])

@@ -8,8 +8,9 @@
 //
 // Inputs per pair-view (leading axes flattened, n pair-views; the pieces have a trailing axis
 // of k): ua, ub, Ya, Yb (n, k) the boundary pieces cut to the groove (`ndf.PairGeometry`), X (n)
-// the groove half-width in widths, hx, hy, hz (n) the normalised half vector in the scratch
-// frame, alpha (n). Attribute n_gl: Gauss-Legendre nodes per piece.
+// the groove half-width in widths, h (n, 3) the board-frame half vector (normalised here), b, t
+// (n, 2) the scratch's across and along unit vectors, alpha (n). Attributes: n_gl Gauss-Legendre
+// nodes per piece, threads.
 // Outputs: lit (n) = sum over pieces of the integral of Y (F1 + F2) du over the piece cut to the
 // lit slab, and its partial derivatives with respect to every input (`JscratchLit*`), or the
 // value alone (`JscratchLitValues*`).
@@ -29,7 +30,7 @@ namespace {
 
 constexpr int kMaxNodes = 32;
 constexpr int kMaxPieces = 8;
-constexpr int kTan = 5;  // tangents of the view algebra: hx, hy, hz, alpha, X
+constexpr int kTan = 9;  // tangents of the view algebra: X, h (3), b (2), t (2), alpha
 
 // One lane per pair-view: GCC/Clang vector extensions (32 bytes: 8 floats or 4 doubles); the
 // compiler emits SIMD code for every operation below, branches become selects (`sel`).
@@ -352,12 +353,19 @@ V piece(int n_gl, const double* xs, const double* ws, V ua, V ub, V Ya, V Yb, co
 // One lane per pair-view: `L` pair-views from lanes of the inputs (pieces `k` per lane).
 template <typename T, typename V, bool kPartials>
 void lit_lanes(int n_gl, const double* xs, const double* ws, int k, const V* ua, const V* ub,
-               const V* Ya, const V* Yb, V X, V hx_, V hy_, V hz_, V alpha_, V* out, V* g_ua,
-               V* g_ub, V* g_Ya, V* g_Yb, V* g_X, V* g_hx, V* g_hy, V* g_hz, V* g_alpha) {
+               const V* Ya, const V* Yb, const V* sv, V* out, V* g_ua, V* g_ub, V* g_Ya,
+               V* g_Yb, V* gs) {
   const V zero = V{}, one = splat<V>(1), two = splat<V>(2);
-  // The view algebra with its Jacobian (`ndf._view`, `lit_interval`, `lobe.lobe`, `lobe_params`).
-  Dual<V> hx = var(hx_, 0), hy = var(hy_, 1), hz = var(hz_, 2), al = var(alpha_, 3),
-          Xd = var(X, 4);
+  // The view algebra with its Jacobian (`ndf._lit_integral`'s half vector in the scratch frame,
+  // `_view`, `lit_interval`, `lobe.lobe`, `lobe_params`), from sv = (X, h (3), b (2), t (2),
+  // alpha): computed here with IEEE operations, not in an XLA fusion (whose rewrites, such as
+  // x / sqrt(y) -> x * rsqrt(y), move a sharp peak by an ulp or two).
+  Dual<V> Xd = var(sv[0], 0), h0 = var(sv[1], 1), h1 = var(sv[2], 2), h2 = var(sv[3], 3),
+          b0 = var(sv[4], 4), b1 = var(sv[5], 5), t0 = var(sv[6], 6), t1 = var(sv[7], 7),
+          al = var(sv[8], 8);
+  Dual<V> nrm = dsqrt<T>(h0 * h0 + h1 * h1 + h2 * h2);
+  Dual<V> hn0 = h0 / nrm, hn1 = h1 / nrm, hz = h2 / nrm;
+  Dual<V> hx = hn0 * b0 + hn1 * b1, hy = hn0 * t0 + hn1 * t1;
   Dual<V> r = dsqrt<T>(hx * hx + hz * hz);
   Dual<V> rp = r + dabs<T>(hx);
   Dual<V> near = hz / scale(two, rp), far = rp / scale(two, hz);
@@ -448,21 +456,20 @@ void lit_lanes(int n_gl, const double* xs, const double* ws, int k, const V* ua,
   *out = value;
   if constexpr (!kPartials) return;
   // Chain the slab bounds' and the lobe parameters' partials through the view algebra.
-  V gt[kTan];
   for (int t = 0; t < kTan; ++t) {
     V s = g_lo * lo.d[t] + g_hi * hi.d[t];
     for (int i = 0; i < 11; ++i) s += dp[i] * pd[i].d[t];
-    gt[t] = s;
+    gs[t] = s;
   }
-  *g_hx = gt[0];
-  *g_hy = gt[1];
-  *g_hz = gt[2];
-  *g_alpha = gt[3];
-  *g_X = gt[4];
 }
 
-// Pair-views [i0, i1): `L` at a time, lanes gathered from and scattered to the flat arrays
-// (a tail of fewer than `L` repeats its last pair-view in the spare lanes and keeps only its own).
+// Pair-views [i0, i1), `L` at a time, lanes gathered from and scattered to the flat arrays
+// (a tail of fewer than `L` repeats its last pair-view in the spare lanes and keeps only its
+// own). `in`: ua, ub, Ya, Yb (k per pair-view), X, h (3), b (2), t (2), alpha; `res`: lit, then
+// the partials in the same layout.
+constexpr int kFields = 5;                          // X, h, b, t, alpha
+constexpr int kFieldWidth[kFields] = {1, 3, 2, 2, 1};  // their kTan = 9 values per pair-view
+
 template <typename T, bool kPartials>
 void lit_range(int n_gl, const double* xs, const double* ws, size_t k, size_t i0, size_t i1,
                const T* const* in, T* const* res) {
@@ -470,36 +477,44 @@ void lit_range(int n_gl, const double* xs, const double* ws, size_t k, size_t i0
   constexpr int L = Vec<T>::L;
   for (size_t b = i0; b < i1; b += L) {
     const int lanes = static_cast<int>(std::min<size_t>(L, i1 - b));
-    V pc[4][kMaxPieces], sc[5];
+    V pc[4][kMaxPieces], sv[kTan];
     for (int l = 0; l < L; ++l) {
       const size_t i = b + std::min(l, lanes - 1);
       for (int f = 0; f < 4; ++f)
         for (size_t j = 0; j < k; ++j) pc[f][j][l] = in[f][i * k + j];
-      for (int f = 0; f < 5; ++f) sc[f][l] = in[4 + f][i];
+      for (int f = 0, c = 0; f < kFields; ++f)
+        for (int w = 0; w < kFieldWidth[f]; ++w, ++c) sv[c][l] = in[4 + f][i * kFieldWidth[f] + w];
     }
-    V out, gp[4][kMaxPieces], gs[5];
-    lit_lanes<T, V, kPartials>(n_gl, xs, ws, static_cast<int>(k), pc[0], pc[1], pc[2], pc[3], sc[0], sc[1],
-                    sc[2], sc[3], sc[4], &out, gp[0], gp[1], gp[2], gp[3], &gs[0], &gs[1],
-                    &gs[2], &gs[3], &gs[4]);
+    V out, gp[4][kMaxPieces], gs[kTan];
+    lit_lanes<T, V, kPartials>(n_gl, xs, ws, static_cast<int>(k), pc[0], pc[1], pc[2], pc[3],
+                               sv, &out, gp[0], gp[1], gp[2], gp[3], gs);
     for (int l = 0; l < lanes; ++l) {
       const size_t i = b + l;
       res[0][i] = out[l];
       if constexpr (!kPartials) continue;
       for (int f = 0; f < 4; ++f)
         for (size_t j = 0; j < k; ++j) res[1 + f][i * k + j] = gp[f][j][l];
-      for (int f = 0; f < 5; ++f) res[5 + f][i] = gs[f][l];
+      for (int f = 0, c = 0; f < kFields; ++f)
+        for (int w = 0; w < kFieldWidth[f]; ++w, ++c) res[5 + f][i * kFieldWidth[f] + w] = gs[c][l];
     }
   }
 }
 
 // Pair-views [0, n) over `threads` threads (whole vectors each).
 template <typename T, bool kPartials>
-ffi::Error run(size_t n, size_t n_pieces, int64_t n_gl, int64_t threads, const T* const* in,
+ffi::Error run(const size_t* counts, int64_t n_gl, int64_t threads, const T* const* in,
                T* const* res) {
+  // counts: element counts of ua, ub, Ya, Yb, X, h, b, t, alpha.
+  const size_t n = counts[4];
   if (n == 0) return ffi::Error::Success();
-  const size_t k = n_pieces / n;
-  if (k * n != n_pieces || k > kMaxPieces || n_gl < 1 || n_gl > kMaxNodes)
-    return ffi::Error(ffi::ErrorCode::kInvalidArgument, "jscratch lit: bad shapes");
+  const size_t k = counts[0] / n;
+  bool ok = k * n == counts[0] && k <= kMaxPieces && n_gl >= 1 && n_gl <= kMaxNodes;
+  for (int f = 1; f < 4; ++f) ok = ok && counts[f] == counts[0];
+  for (int f = 0; f < kFields; ++f) ok = ok && counts[4 + f] == n * kFieldWidth[f];
+  if (!ok)
+    return ffi::Error(ffi::ErrorCode::kInvalidArgument,
+                      "jscratch lit: inputs must be (n, k) pieces, (n,) X and alpha, (n, 3) h, "
+                      "(n, 2) b and t, k <= 8");
   double xs[kMaxNodes], ws[kMaxNodes];
   gauss_legendre(static_cast<int>(n_gl), xs, ws);
   auto work = [&](size_t i0, size_t i1) {
@@ -523,34 +538,40 @@ ffi::Error run(size_t n, size_t n_pieces, int64_t n_gl, int64_t threads, const T
 
 template <ffi::DataType DT>
 ffi::Error LitImpl(ffi::Buffer<DT> ua, ffi::Buffer<DT> ub, ffi::Buffer<DT> Ya, ffi::Buffer<DT> Yb,
-                   ffi::Buffer<DT> X, ffi::Buffer<DT> hx, ffi::Buffer<DT> hy, ffi::Buffer<DT> hz,
+                   ffi::Buffer<DT> X, ffi::Buffer<DT> h, ffi::Buffer<DT> b, ffi::Buffer<DT> t,
                    ffi::Buffer<DT> alpha, int64_t n_gl, int64_t threads, ffi::ResultBuffer<DT> out,
                    ffi::ResultBuffer<DT> g_ua, ffi::ResultBuffer<DT> g_ub,
                    ffi::ResultBuffer<DT> g_Ya, ffi::ResultBuffer<DT> g_Yb,
-                   ffi::ResultBuffer<DT> g_X, ffi::ResultBuffer<DT> g_hx,
-                   ffi::ResultBuffer<DT> g_hy, ffi::ResultBuffer<DT> g_hz,
+                   ffi::ResultBuffer<DT> g_X, ffi::ResultBuffer<DT> g_h,
+                   ffi::ResultBuffer<DT> g_b, ffi::ResultBuffer<DT> g_t,
                    ffi::ResultBuffer<DT> g_alpha) {
   using T = ffi::NativeType<DT>;
   const T* in[9] = {ua.typed_data(), ub.typed_data(), Ya.typed_data(), Yb.typed_data(),
-                    X.typed_data(),  hx.typed_data(), hy.typed_data(), hz.typed_data(),
+                    X.typed_data(),  h.typed_data(), b.typed_data(), t.typed_data(),
                     alpha.typed_data()};
   T* res[10] = {out->typed_data(),  g_ua->typed_data(), g_ub->typed_data(), g_Ya->typed_data(),
-                g_Yb->typed_data(), g_X->typed_data(),  g_hx->typed_data(), g_hy->typed_data(),
-                g_hz->typed_data(), g_alpha->typed_data()};
-  return run<T, true>(X.element_count(), ua.element_count(), n_gl, threads, in, res);
+                g_Yb->typed_data(), g_X->typed_data(),  g_h->typed_data(),  g_b->typed_data(),
+                g_t->typed_data(),  g_alpha->typed_data()};
+  const size_t counts[9] = {ua.element_count(), ub.element_count(), Ya.element_count(),
+                            Yb.element_count(), X.element_count(),  h.element_count(),
+                            b.element_count(),  t.element_count(),  alpha.element_count()};
+  return run<T, true>(counts, n_gl, threads, in, res);
 }
 
 template <ffi::DataType DT>
 ffi::Error LitValuesImpl(ffi::Buffer<DT> ua, ffi::Buffer<DT> ub, ffi::Buffer<DT> Ya,
-                         ffi::Buffer<DT> Yb, ffi::Buffer<DT> X, ffi::Buffer<DT> hx,
-                         ffi::Buffer<DT> hy, ffi::Buffer<DT> hz, ffi::Buffer<DT> alpha,
+                         ffi::Buffer<DT> Yb, ffi::Buffer<DT> X, ffi::Buffer<DT> h,
+                         ffi::Buffer<DT> b, ffi::Buffer<DT> t, ffi::Buffer<DT> alpha,
                          int64_t n_gl, int64_t threads, ffi::ResultBuffer<DT> out) {
   using T = ffi::NativeType<DT>;
   const T* in[9] = {ua.typed_data(), ub.typed_data(), Ya.typed_data(), Yb.typed_data(),
-                    X.typed_data(),  hx.typed_data(), hy.typed_data(), hz.typed_data(),
+                    X.typed_data(),  h.typed_data(), b.typed_data(), t.typed_data(),
                     alpha.typed_data()};
   T* res[1] = {out->typed_data()};
-  return run<T, false>(X.element_count(), ua.element_count(), n_gl, threads, in, res);
+  const size_t counts[9] = {ua.element_count(), ub.element_count(), Ya.element_count(),
+                            Yb.element_count(), X.element_count(),  h.element_count(),
+                            b.element_count(),  t.element_count(),  alpha.element_count()};
+  return run<T, false>(counts, n_gl, threads, in, res);
 }
 
 }  // namespace

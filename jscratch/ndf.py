@@ -504,13 +504,13 @@ _lit_sum.defvjp(_lit_sum_fwd, _lit_sum_bwd)
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
-def _lit_native(n_gl, ua, ub, Ya, Yb, X, hx, hy, hz, alpha):
-    """`_lit_sum` of the pieces cut to the lit slab of the view `(hx, hy, hz)` (`_view`, `lobe`),
+def _lit_native(n_gl, ua, ub, Ya, Yb, X, h, b, t, alpha):
+    """`_lit_sum` of the pieces cut to the lit slab of the half vector `h` (`_view`, `lobe`),
     by the native kernel (`native.lit_values`), whose reverse pass is
     `native.lit_partials`: the partials of `_lit_sum`'s hand-written reverse pass chained
     through the slab and the lobe parameters, per pair-view in one native kernel (used where
     `native.available`)."""
-    args = (ua, ub, Ya, Yb, X, hx, hy, hz, alpha)
+    args = (ua, ub, Ya, Yb, X, h, b, t, alpha)
     return functools.reduce(_varying_like, args, native.lit_values(n_gl, *args))
 
 
@@ -522,8 +522,8 @@ def _varying_like(x, like):
     return jax.lax.pcast(x, missing, to="varying") if missing else x
 
 
-def _lit_native_fwd(n_gl, ua, ub, Ya, Yb, X, hx, hy, hz, alpha):
-    args = (ua, ub, Ya, Yb, X, hx, hy, hz, alpha)
+def _lit_native_fwd(n_gl, ua, ub, Ya, Yb, X, h, b, t, alpha):
+    args = (ua, ub, Ya, Yb, X, h, b, t, alpha)
     lit, partials = native.lit_partials(n_gl, *args)
     lit = functools.reduce(_varying_like, args, lit)
     return lit, tuple(_varying_like(d, a) for d, a in zip(partials, args))
@@ -714,11 +714,9 @@ def _lit_integral(geometry: PairGeometry, h, alpha, pieces: int, hand_vjp: bool 
     first = (tuple(x[:pieces] for x in geometry.first) if pieces <= N_COMPACT
              else geometry.pieces)
     if hand_vjp and native.available(h.dtype):
-        # The same integral; its reverse pass by the native kernel (`_lit_native`).
-        hn = h / jnp.sqrt(h[0] * h[0] + h[1] * h[1] + h[2] * h[2])
-        hx = hn[0] * geometry.b[0] + hn[1] * geometry.b[1]
-        hy = hn[0] * geometry.t[0] + hn[1] * geometry.t[1]
-        lit = _lit_native(lobe.nodes(h.dtype), *first, geometry.X, hx, hy, hn[2], alpha)
+        # The same integral, by the native kernel (`_lit_native`).
+        lit = _lit_native(lobe.nodes(h.dtype), *first, geometry.X, h, geometry.b, geometry.t,
+                          alpha)
         return geometry.scale * (alpha * alpha / (4 * jnp.pi)) * lit
     hx, hy, hz, u_lo, u_hi = _view(geometry, h)
     L = lobe.lobe(hx, hy, hz, alpha)
