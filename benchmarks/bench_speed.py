@@ -17,8 +17,8 @@ in a file, so both codes see the same pairs.
   `render.grad_compiler_options`), XLA cost-analysis flops and bytes per pair-view.
 - ``render``: `render.render_pairs` on the default scene (20,000 scratches, 256x256, views on a
   circle at 50 degrees, unculled `bin_pairs` list): forward and value + VJP, ns per pair-view.
-- ``design``: ``python -m jscratch.design --iterations 6 --no-discard`` (default scene):
-  median step and first step (compilation included).
+- ``design``: ``python -m jscratch.design --iterations 6 --no-discard`` (default scene, free
+  grooves for both codes): median step and first step (compilation included).
 
 Medians of repeated `block_until_ready` runs after a warm-up, compile time apart. Writes
 ``speed.json`` and ``speed.md`` to ``--out`` and prints the Markdown.
@@ -122,8 +122,14 @@ def worker_render(repeats: int) -> dict:
 def worker_design(iterations: int) -> dict:
     from jscratch import design  # in this process: the code this worker's PYTHONPATH selects
 
+    # The same scene for both codes: free grooves (the base predates `--groove`, whose default
+    # became `carvable`; its parser refuses the option, and then it runs without).
     with tempfile.TemporaryDirectory() as out:
-        design.main(["--iterations", str(iterations), "--no-discard", "--quiet", "--out", out])
+        args = ["--iterations", str(iterations), "--no-discard", "--quiet", "--out", out]
+        try:
+            design.main(args + ["--groove", "free"])
+        except SystemExit:
+            design.main(args)
         m = json.loads(Path(out, "metrics.json").read_text())
     return {"step_median_s": m["time_step_median"], "first_step_s": m["time_first_step"],
             "loss": m["loss"]}

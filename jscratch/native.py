@@ -64,8 +64,8 @@ def _compile() -> Path:
         "clang++")
     if cxx is None:
         raise RuntimeError("no C++ compiler (g++, c++ or clang++) on PATH")
-    flags = ["-O3", "-march=native", "-fno-math-errno", "-std=c++17", "-shared", "-fPIC", "-ffp-contract=off", "-pthread",
-             "-w", f"-I{jax.ffi.include_dir()}"]
+    flags = ["-O3", "-march=native", "-fno-math-errno", "-ffp-contract=off", "-std=c++17",
+             "-shared", "-fPIC", "-pthread", "-w", f"-I{jax.ffi.include_dir()}"]
     src = _SOURCE.read_bytes()
     # -march=native: the library is for this CPU (a cache shared between machines keys on it).
     key = hashlib.sha256(src + " ".join([cxx, *flags, platform.machine(), _cpu_flags()])

@@ -595,6 +595,8 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchLitF32, LitImpl<ffi::DataType::F32>,
 XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchLitF64, LitImpl<ffi::DataType::F64>,
                               JSCRATCH_LIT_BIND(ffi::DataType::F64));
 XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchLitValuesF32, LitValuesImpl<ffi::DataType::F32>,
-                              JSCRATCH_LIT_ARGS(ffi::DataType::F32).Ret<ffi::Buffer<ffi::DataType::F32>>());
+                              JSCRATCH_LIT_ARGS(ffi::DataType::F32)
+                                  .Ret<ffi::Buffer<ffi::DataType::F32>>());
 XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchLitValuesF64, LitValuesImpl<ffi::DataType::F64>,
-                              JSCRATCH_LIT_ARGS(ffi::DataType::F64).Ret<ffi::Buffer<ffi::DataType::F64>>());
+                              JSCRATCH_LIT_ARGS(ffi::DataType::F64)
+                                  .Ret<ffi::Buffer<ffi::DataType::F64>>());

@@ -93,13 +93,13 @@ derivative of the one constraint that sets each (implicit function theorem), so 
 never enters the reverse pass. `_pair_integral(..., hand_vjp=False)` differentiates the same
 forward by plain autodiff; the tests compare the two on every test pair.
 
-**Native reverse pass.** On the CPU the per-view stage's reverse pass (the slab and lobe of the
-view, `_cut`, the piece partials, `_cut_transpose`, and the view algebra's Jacobian) runs as one
-native kernel, `jscratch/native_lit.cc` (an XLA FFI custom call, `jscratch.native`; one SIMD lane
-per pair-view), where XLA's fusions recomputed the shared arithmetic for each partial: the same
-formulas (float64: equal to the jnp reverse pass to 1e-9, tests/test_native.py), ~4x less time;
-its values-only variant gives the values. Other backends, a machine without a C++ compiler, or ``JSCRATCH_NATIVE=0`` use
-the jnp reverse pass (`_lit_sum`).
+**Native per-view stage.** On the CPU the per-view stage (the view's slab and lobe, `_cut`, the
+piece integrals and their partials, `_cut_transpose`, and the view algebra's Jacobian) runs as
+one native kernel, `jscratch/native_lit.cc` (an XLA FFI custom call, `jscratch.native`; one SIMD
+lane per pair-view; a values-only variant for forward passes), where XLA's fusions recomputed
+the shared arithmetic for each partial: the same formulas (float64: equal to the jnp code to
+1e-9, `tests/test_native.py`), ~4x less time. Other backends, a machine without a C++
+compiler, or ``JSCRATCH_NATIVE=0`` use the jnp code (`_view`, `lobe`, `_lit_sum`).
 
 Degenerate input (zero-length scratch, zero depth, vertices on groove edges, edges parallel to
 the scratch) gives finite values and finite gradients: every division and square root that can
