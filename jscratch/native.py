@@ -7,6 +7,7 @@ arithmetic) or, where this module is available, with `native_lit.cc`: the same f
 by line, per pair-view in registers, on all cores. Same results up to rounding (tests compare
 the two in float64 and float32).
 
+- `prepare()`: start the build on a background thread (the design does, before its setup).
 - `available(dtype) -> bool`: whether `lit_partials` can run for arrays of `dtype` here: the
   default backend is the CPU, the kernel compiled (once per source, with the system's C++
   compiler, cached in ``$JSCRATCH_CACHE`` or ``~/.cache/jscratch``) and ``JSCRATCH_NATIVE`` is
@@ -27,12 +28,13 @@ import platform
 import shutil
 import subprocess
 import tempfile
+import threading
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 
-__all__ = ["available", "lit_partials", "lit_values", "status"]
+__all__ = ["available", "lit_partials", "lit_values", "prepare", "status"]
 
 _SOURCE = Path(__file__).with_name("native_lit.cc")
 _TARGETS = {jnp.dtype(jnp.float32): "jscratch_lit_f32", jnp.dtype(jnp.float64): "jscratch_lit_f64"}
@@ -85,10 +87,47 @@ def _compile() -> Path:
     return lib
 
 
-@functools.lru_cache(maxsize=None)
+_build: dict = {}  # the background build (`prepare`): {"thread": ..., "lib" or "error": ...}
+_build_lock = threading.Lock()
+
+
+def prepare() -> None:
+    """Start building the kernel on a background thread (the compiler runs as a subprocess, so
+    the caller's setup goes on meanwhile); `available` waits for it. A no-op when already
+    started, built, disabled (``JSCRATCH_NATIVE=0``) or off the CPU."""
+    if os.environ.get("JSCRATCH_NATIVE", "1") == "0" or jax.default_backend() != "cpu":
+        return
+    with _build_lock:
+        if _build:
+            return
+
+        def work():
+            try:
+                _build["lib"] = _compile()
+            except Exception as e:  # reported by `available` (through `status`)
+                _build["error"] = e
+
+        _build["thread"] = threading.Thread(target=work, name="jscratch-native-build",
+                                            daemon=True)
+        _build["thread"].start()
+
+
+_load_lock = threading.Lock()
+
+
 def _load() -> bool:
+    with _load_lock:  # the design traces on two threads at once
+        return _load_once()
+
+
+@functools.lru_cache(maxsize=None)
+def _load_once() -> bool:
     try:
-        lib = ctypes.cdll.LoadLibrary(str(_compile()))
+        prepare()
+        _build["thread"].join()
+        if "error" in _build:
+            raise _build["error"]
+        lib = ctypes.cdll.LoadLibrary(str(_build["lib"]))
         for target, symbol in _SYMBOLS.items():
             jax.ffi.register_ffi_target(target, jax.ffi.pycapsule(getattr(lib, symbol)),
                                         platform="cpu")

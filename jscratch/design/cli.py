@@ -14,6 +14,7 @@ import jax
 import numpy as np
 
 from jscratch import loss as loss_mod
+from jscratch import native
 from jscratch.designfile import DesignError
 from jscratch.scene import Board, views_on_circle
 from jscratch.design.config import DEFAULT_IMAGES, DesignConfig, GROUPS, NonFiniteError, PARAMETERISATIONS
@@ -101,6 +102,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _run_cli(args) -> int:
+    native.prepare()  # the native kernel builds (first run only) while the inputs load
     out = args.out
     cfg_path = os.path.join(out, "config.json")
     if args.resume:

@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float
 
-from jscratch import bvh, cull
+from jscratch import bvh, cull, native
 from jscratch import loss as loss_mod
 from jscratch.designfile import DesignError
 from jscratch.metrics import image_metrics
@@ -71,6 +71,7 @@ def design(
     gradient or a parameter becomes non-finite (after saving the last good state to `checkpoint`).
     """
     t_start = time.perf_counter()
+    native.prepare()  # the native kernel builds (first run only) while the setup goes on
     config = DesignConfig() if config is None else config
     tnp, board = _check_inputs(targets, views, board, config, checkpoint, resume)
     checkpoint = None if checkpoint is None else os.fspath(checkpoint)
