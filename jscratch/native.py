@@ -1,11 +1,12 @@
-"""The pair kernel's per-view reverse pass as a native CPU kernel (an XLA FFI custom call).
+"""The pair kernel's per-view stage as a native CPU kernel (an XLA FFI custom call).
 
-`jscratch.ndf` evaluates a pair-view's value with jnp (XLA vectorises it well) and its partial
-derivatives either with jnp (`ndf._lit_sum`'s hand-written reverse pass, whose many gradient
-outputs XLA's CPU backend evaluates in separate fusions that each recompute the shared
+`jscratch.ndf` evaluates a pair-view's per-view stage (slab, lobe, cut, piece integrals) and its
+hand-written partial derivatives either with jnp (`ndf._view`, `lobe`, `ndf._lit_sum`: XLA's CPU
+backend evaluates the many gradient outputs in separate fusions that each recompute the shared
 arithmetic) or, where this module is available, with `native_lit.cc`: the same formulas, line
-by line, per pair-view in registers, on all cores. Same results up to rounding (tests compare
-the two in float64 and float32).
+by line, one SIMD lane per pair-view, on all cores, in a values-only and a values + partials
+variant. Same results up to rounding (`tests/test_native.py` compares the two in float64 and
+float32).
 
 - `prepare()`: start the build on a background thread (the design does, before its setup).
 - `available(dtype) -> bool`: whether `lit_partials` can run for arrays of `dtype` here: the
