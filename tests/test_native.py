@@ -124,3 +124,22 @@ def test_without_a_compiler_jscratch_falls_back_to_jnp(tmp_path):
     ok, finite, why = out.stdout.strip().split(" ", 2)
     assert ok == "False" and finite == "True" and "no-such-compiler" in why, out.stdout
 
+
+
+def test_design_with_and_without_the_native_kernel_agree(tmp_path):
+    """A small design (64 px, 800 scratches, 5 iterations) run with the native kernel and with
+    the jnp fallback (``JSCRATCH_NATIVE=0``) ends at the same loss and SSIM (rounding apart)."""
+    import json
+
+    out = {}
+    for flag in ("1", "0"):
+        d = tmp_path / f"native{flag}"
+        r = subprocess.run(
+            [sys.executable, "-m", "jscratch.design", "--iterations", "5", "--size", "64",
+             "--scratches", "800", "--no-discard", "--quiet", "--out", str(d)],
+            env=dict(os.environ, JSCRATCH_NATIVE=flag), capture_output=True, text=True,
+            timeout=600)
+        assert r.returncode == 0, r.stderr[-2000:]
+        out[flag] = json.loads((d / "metrics.json").read_text())
+    assert out["1"]["loss"] == pytest.approx(out["0"]["loss"], rel=1e-5)
+    np.testing.assert_allclose(out["1"]["ssim"], out["0"]["ssim"], atol=1e-5)
