@@ -17,7 +17,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-__all__ = ["Lobe", "lobe", "lobe_terms", "lobe_params", "piece_values", "nodes", "gauss_legendre"]
+__all__ = ["Lobe", "lobe", "prefactor", "lobe_terms", "lobe_params", "piece_values", "nodes",
+           "gauss_legendre"]
 
 
 def _safe_sqrt(x):
@@ -55,6 +56,11 @@ class Lobe(NamedTuple):
     pref: Array  # alpha^2 / (4 pi)
 
 
+def prefactor(alpha):
+    """The GGX lobe's constant factor ``alpha^2 / (4 pi)`` (`Lobe.pref`)."""
+    return alpha * alpha / (4 * jnp.pi)
+
+
 def lobe(hx, hy, hz, alpha) -> Lobe:
     """The constants of the lobe for a local half vector ``(hx, hy, hz)`` and roughness
     ``alpha``."""
@@ -63,7 +69,7 @@ def lobe(hx, hy, hz, alpha) -> Lobe:
     g = 1 / (1 + k * hz)
     beta2 = a2 + k * k * hy * hy
     beta = jnp.sqrt(beta2)
-    return Lobe(k, hx, hz, g, beta2, beta, -g * k * hx / 2, g * beta / 2, a2 / (4 * jnp.pi))
+    return Lobe(k, hx, hz, g, beta2, beta, -g * k * hx / 2, g * beta / 2, prefactor(alpha))
 
 
 def lobe_terms(L: Lobe, u):

@@ -38,10 +38,11 @@ import jax.numpy as jnp
 __all__ = ["available", "lit_partials", "lit_values", "prepare", "status"]
 
 _SOURCE = Path(__file__).with_name("native_lit.cc")
-_TARGETS = {jnp.dtype(jnp.float32): "jscratch_lit_f32", jnp.dtype(jnp.float64): "jscratch_lit_f64"}
-_SYMBOLS = {"jscratch_lit_f32": "JscratchLitF32", "jscratch_lit_f64": "JscratchLitF64",
-            "jscratch_lit_values_f32": "JscratchLitValuesF32",
-            "jscratch_lit_values_f64": "JscratchLitValuesF64"}
+#: (dtype, with partials) -> (FFI target name, symbol in the library).
+_TARGETS = {(jnp.dtype(dt), partials): (f"jscratch_lit{'' if partials else '_values'}_{name}",
+                                        f"JscratchLit{'' if partials else 'Values'}{name.upper()}")
+            for dt, name in ((jnp.float32, "f32"), (jnp.float64, "f64"))
+            for partials in (True, False)}
 _status = {"loaded": False, "why": "not tried"}
 
 
@@ -129,7 +130,7 @@ def _load_once() -> bool:
         if "error" in _build:
             raise _build["error"]
         lib = ctypes.cdll.LoadLibrary(str(_build["lib"]))
-        for target, symbol in _SYMBOLS.items():
+        for target, symbol in _TARGETS.values():
             jax.ffi.register_ffi_target(target, jax.ffi.pycapsule(getattr(lib, symbol)),
                                         platform="cpu")
     except Exception as e:  # no compiler, a failed build, an FFI this jaxlib lacks: jnp path
@@ -146,7 +147,7 @@ def status() -> dict:
 
 def available(dtype) -> bool:
     """Whether `lit_partials` runs for `dtype` arrays (float32 or float64, CPU backend)."""
-    if jnp.dtype(dtype) not in _TARGETS or jax.default_backend() != "cpu":
+    if (jnp.dtype(dtype), True) not in _TARGETS or jax.default_backend() != "cpu":
         return False
     if os.environ.get("JSCRATCH_NATIVE", "1") == "0":  # read when a function is traced
         return False
@@ -164,8 +165,8 @@ def _threads() -> int:
 def lit_values(n_gl: int, ua, ub, Ya, Yb, X, h, b, t, alpha):
     """`lit_partials`' first output alone (the forward pass; cheaper). Needs `available`."""
     dt = jnp.dtype(ua.dtype)
-    call = jax.ffi.ffi_call(_TARGETS[dt].replace("_lit_", "_lit_values_"),
-                            jax.ShapeDtypeStruct(X.shape, dt), vmap_method="broadcast_all")
+    call = jax.ffi.ffi_call(_TARGETS[dt, False][0], jax.ShapeDtypeStruct(X.shape, dt),
+                            vmap_method="broadcast_all")
     return call(ua, ub, Ya, Yb, X, h, b, t, alpha, n_gl=int(n_gl), threads=_threads())
 
 
@@ -179,6 +180,6 @@ def lit_partials(n_gl: int, ua, ub, Ya, Yb, X, h, b, t, alpha):
     args = (ua, ub, Ya, Yb, X, h, b, t, alpha)
     out = (jax.ShapeDtypeStruct(X.shape, dt),) + tuple(jax.ShapeDtypeStruct(a.shape, dt)
                                                        for a in args)
-    call = jax.ffi.ffi_call(_TARGETS[dt], out, vmap_method="broadcast_all")
+    call = jax.ffi.ffi_call(_TARGETS[dt, True][0], out, vmap_method="broadcast_all")
     res = call(*args, n_gl=int(n_gl), threads=_threads())
     return res[0], tuple(res[1:])

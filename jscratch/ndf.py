@@ -717,7 +717,7 @@ def _lit_integral(geometry: PairGeometry, h, alpha, pieces: int, hand_vjp: bool 
         # The same integral, by the native kernel (`_lit_native`).
         lit = _lit_native(lobe.nodes(h.dtype), *first, geometry.X, h, geometry.b, geometry.t,
                           alpha)
-        return geometry.scale * (alpha * alpha / (4 * jnp.pi)) * lit
+        return geometry.scale * lobe.prefactor(alpha) * lit
     hx, hy, hz, u_lo, u_hi = _view(geometry, h)
     L = lobe.lobe(hx, hy, hz, alpha)
     lit = (_lit_sum if hand_vjp else _lit_sum_values)(

@@ -31,7 +31,8 @@ def _grads(pieces, monkeypatch, use_native: bool, threads: int | None = None, ji
     native kernel on or off (a new function each call: jit traces it afresh). ``jit=False``
     evaluates op by op: the reference for the jnp path, whose XLA-fused reverse pass gives a
     different half-vector gradient on some grazing pairs than op by op (jax 0.10.1, CPU:
-    -2.1e-7 against -2.7e-12; the native kernel gives the op-by-op value; RESULTS.md)."""
+    -2.1e-7 against -2.7e-12; the native kernel gives the op-by-op value; RESULTS.md, session
+    8, also for grazing pairs where no derivative path matches central differences)."""
     monkeypatch.setenv("JSCRATCH_NATIVE", "1" if use_native else "0")
     if threads is not None:
         monkeypatch.setenv("JSCRATCH_NATIVE_THREADS", str(threads))
