@@ -13,6 +13,8 @@ float32).
   default backend is the CPU, the kernel compiled (once per source, with the system's C++
   compiler, cached in ``$JSCRATCH_CACHE`` or ``~/.cache/jscratch``) and ``JSCRATCH_NATIVE`` is
   not ``0``. Otherwise jscratch uses the jnp reverse pass.
+- `lit(n_gl, ua, ub, Ya, Yb, X, h, b, t, alpha)`: the lit integral, differentiable (reverse
+  mode: its partials from the kernel; `ndf` calls this).
 - `lit_partials(n_gl, ua, ub, Ya, Yb, X, h, b, t, alpha)`: the lit integral and its partials
   (`native_lit.cc` says which); `lit_values(...)`: the integral alone.
 
@@ -183,3 +185,34 @@ def lit_partials(n_gl: int, ua, ub, Ya, Yb, X, h, b, t, alpha):
     call = jax.ffi.ffi_call(_TARGETS[dt, True][0], out, vmap_method="broadcast_all")
     res = call(*args, n_gl=int(n_gl), threads=_threads())
     return res[0], tuple(res[1:])
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def lit(n_gl: int, ua, ub, Ya, Yb, X, h, b, t, alpha):
+    """`lit_values`, differentiable: its reverse pass multiplies `lit_partials`' partials by the
+    cotangent (`ndf`'s `_lit_sum` reverse pass chained through the slab and the lobe parameters,
+    per pair-view in one native call). Works under `jax.shard_map`. Needs `available`."""
+    args = (ua, ub, Ya, Yb, X, h, b, t, alpha)
+    return functools.reduce(_varying_like, args, lit_values(n_gl, *args))
+
+
+def _varying_like(x, like):
+    """`x` marked device-varying over the mesh axes `like` varies over (inside `jax.shard_map`
+    the custom call's outputs carry no such type, its inputs do)."""
+    varying = lambda v: set(getattr(getattr(jax.typeof(v), "mat", None), "varying", ()) or ())
+    missing = tuple(sorted(varying(like) - varying(x)))
+    return jax.lax.pcast(x, missing, to="varying") if missing else x
+
+
+def _lit_fwd(n_gl, ua, ub, Ya, Yb, X, h, b, t, alpha):
+    args = (ua, ub, Ya, Yb, X, h, b, t, alpha)
+    value, partials = lit_partials(n_gl, *args)
+    value = functools.reduce(_varying_like, args, value)
+    return value, tuple(_varying_like(d, a) for d, a in zip(partials, args))
+
+
+def _lit_bwd(n_gl, partials, ct):
+    return tuple(ct[..., None] * d if d.ndim > ct.ndim else ct * d for d in partials)
+
+
+lit.defvjp(_lit_fwd, _lit_bwd)

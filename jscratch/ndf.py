@@ -503,39 +503,6 @@ def _lit_sum_bwd(n_gl, res, ct):
 _lit_sum.defvjp(_lit_sum_fwd, _lit_sum_bwd)
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
-def _lit_native(n_gl, ua, ub, Ya, Yb, X, h, b, t, alpha):
-    """`_lit_sum` of the pieces cut to the lit slab of the half vector `h` (`_view`, `lobe`),
-    by the native kernel (`native.lit_values`), whose reverse pass is
-    `native.lit_partials`: the partials of `_lit_sum`'s hand-written reverse pass chained
-    through the slab and the lobe parameters, per pair-view in one native kernel (used where
-    `native.available`)."""
-    args = (ua, ub, Ya, Yb, X, h, b, t, alpha)
-    return functools.reduce(_varying_like, args, native.lit_values(n_gl, *args))
-
-
-def _varying_like(x, like):
-    """`x` marked device-varying over the mesh axes `like` varies over (inside `jax.shard_map`
-    the native kernel's outputs carry no such type, its inputs do)."""
-    varying = lambda v: set(getattr(getattr(jax.typeof(v), "mat", None), "varying", ()) or ())
-    missing = tuple(sorted(varying(like) - varying(x)))
-    return jax.lax.pcast(x, missing, to="varying") if missing else x
-
-
-def _lit_native_fwd(n_gl, ua, ub, Ya, Yb, X, h, b, t, alpha):
-    args = (ua, ub, Ya, Yb, X, h, b, t, alpha)
-    lit, partials = native.lit_partials(n_gl, *args)
-    lit = functools.reduce(_varying_like, args, lit)
-    return lit, tuple(_varying_like(d, a) for d, a in zip(partials, args))
-
-
-def _lit_native_bwd(n_gl, partials, ct):
-    return tuple(ct[..., None] * d if d.ndim > ct.ndim else ct * d for d in partials)
-
-
-_lit_native.defvjp(_lit_native_fwd, _lit_native_bwd)
-
-
 def _cut_values(ua, ub, Ya, Yb, lo, hi):
     c = _cut(ua, ub, Ya, Yb, lo, hi)
     return c.ua, c.ub, c.Ya, c.Yb
@@ -714,8 +681,8 @@ def _lit_integral(geometry: PairGeometry, h, alpha, pieces: int, hand_vjp: bool 
     first = (tuple(x[:pieces] for x in geometry.first) if pieces <= N_COMPACT
              else geometry.pieces)
     if hand_vjp and native.available(h.dtype):
-        # The same integral, by the native kernel (`_lit_native`).
-        lit = _lit_native(lobe.nodes(h.dtype), *first, geometry.X, h, geometry.b, geometry.t,
+        # The same integral, by the native kernel (its reverse pass: the kernel's partials).
+        lit = native.lit(lobe.nodes(h.dtype), *first, geometry.X, h, geometry.b, geometry.t,
                           alpha)
         return geometry.scale * lobe.prefactor(alpha) * lit
     hx, hy, hz, u_lo, u_hi = _view(geometry, h)
