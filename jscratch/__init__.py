@@ -30,8 +30,12 @@ from jscratch.shading import (
     pixel_footprints as pixel_footprints,
     shade as shade,
 )
-from jscratch.bvh import Pairs as Pairs, bin_pairs as bin_pairs
-from jscratch.cull import cull_pairs as cull_pairs
+from jscratch.bvh import (
+    PairLists as PairLists,
+    Pairs as Pairs,
+    bin_pairs as bin_pairs,
+    cull_pairs as cull_pairs,
+)
 from jscratch.render import (
     render_pairs as render_pairs,
     render_reference as render_reference,

@@ -1,6 +1,6 @@
-"""Culling pairs that cannot matter: a rigorous per-pair bound on the scratch NDF, per-view culled
-pair lists at fixed capacities (jax-md's pattern: host `allocate_views`, jitted `update_views`,
-overflow reported in the counts) and the host driver `cull_pairs`.
+"""Culling pairs that cannot matter: a rigorous per-pair bound on the scratch NDF (`cull_ratio`),
+the per-view cull (`cull`) and the coverage cull (`cull_coverage`) of a pair list. The per-view
+lists at fixed capacities built from them are `bvh.PairLists`.
 
 **View culling: the bound.** For one view, pixel `P` with half vector `h` and scratch `i`, SPEC
 section 3 gives `D_hat = ∫∫_{F ∩ groove} D_x(h, n(x)) dx dy <= A * max_x D_x(h, n(x))`. In the
@@ -36,7 +36,7 @@ unchanged and the radiance error is the same bound times the shading factor:
 `0 <= radiance - radiance_culled < eps * (I wi_z / r^2) G F / (4 wi_z wo_z) * sum_dropped A_i /
 (pi alpha_i^2 S_P)`, i.e. at most `eps` times the radiance the pixel would have if every groove in
 it were a mirror at its GGX peak. `tests/test_bvh.py` checks the per-pixel bound by independent
-quadrature on random scenes. `compact` re-packs a culled list into fewer slots so that the
+quadrature on random scenes. `grid.compact` re-packs a culled list into fewer slots so that the
 culling saves shading time. The default `DEFAULT_EPS` comes from the time-against-error table
 in `benchmarks/results/bvh.md`.
 
@@ -49,44 +49,24 @@ signs and each stays within its bound). Away from the board's mirror direction `
 most pairs drop out: for the default 3-view design 70% of the pixels need no coverage pairs at
 `eps = 1e-3`.
 
-Imports: `jscratch.bvh` (pair lists), `jscratch.scene`, `jscratch.shading` (half vectors).
+Imports: `jscratch.grid` (pair lists), `jscratch.ndf`.
 """
 
 from __future__ import annotations
 
-import math
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from jscratch.bvh import (
-    DEFAULT_CHUNK,
-    DEFAULT_MARGIN,
-    Pairs,
-    checked_scratches,
-    compact,
-    layout,
-    pairs_of,
-)
+from jscratch.grid import Pairs, checked_scratches
 from jscratch.ndf import local_frame
-from jscratch.scene import Board, Scratches, Views
-from jscratch.shading import half_vectors
 
 __all__ = [
     "DEFAULT_EPS",
-    "VIEW_CAP_ROUND",
-    "ViewPairs",
-    "allocate_views",
     "cull",
     "cull_coverage",
-    "cull_pairs",
     "cull_ratio",
-    "cull_views",
-    "grow_caps",
-    "update_views",
 ]
 
 DEFAULT_EPS = 1e-3
@@ -184,7 +164,7 @@ def cull(
     the dropped pairs change `D_P` by at most `(1/S_P) sum_dropped rho_i A_i / (pi alpha_i^2)
     < eps (1/S_P) sum_dropped A_i / (pi alpha_i^2)` (and never increase it). The coverage `c` of
     SPEC 4 must still come from the unculled list, else the board term adds its own error (module
-    docstring). Use `compact` to turn the dropped slots into saved time.
+    docstring). Use `grid.compact` to turn the dropped slots into saved time.
 
     **Arguments:** as `cull_ratio`, plus `eps >= 0` (scalar; may be traced).
 
@@ -231,114 +211,3 @@ def cull_coverage(
     d = board_ndf.at[pairs.pixel].get(mode="clip")
     valid = pairs.valid & ((d * jnp.pi * a * a > eps) | (eps == 0))
     return eqx.tree_at(lambda p: p.valid, pairs, valid)
-
-
-# --------------------------------------------------------------------------------------------
-# Per-view lists at fixed capacities
-
-
-class ViewPairs(eqx.Module):
-    """The pair lists of one multi-view render, culled per view and compacted to fixed capacities.
-
-    **Fields:**
-
-    - `views`: ``M`` `Pairs` lists, view ``j`` culled by `cull` and compacted to
-      ``caps[j]`` slots (their `overflow` flags are cleared: overflow is read from `counts`).
-    - `coverage`: the coverage list: culled by `cull_coverage` and compacted to ``caps[M]``
-      when ``coverage_eps > 0``, else the shared list itself.
-    - `counts`: ``(M + 1,)`` int, pairs kept per list before compaction (views, then coverage).
-    - `caps`: the ``M + 1`` capacities (static).
-
-    [`overflow`][ViewPairs.overflow] is true when a list held more pairs than its capacity: the
-    lists are then incomplete; the host re-allocates (`grow_caps`) and recomputes.
-    """
-
-    views: list
-    coverage: Pairs
-    counts: Int[Array, " k"]
-    caps: tuple = eqx.field(static=True)
-
-    @property
-    def overflow(self) -> Bool[Array, ""]:
-        return jnp.any(self.counts > jnp.asarray(self.caps))
-
-
-def cull_views(pairs: Pairs, p0, p1, width, depth, alpha, h_views, eps: float,
-               board_ndf=None, coverage_eps: float = 0.0) -> list[Pairs]:
-    """The ``M`` per-view culled lists (`cull` with ``h_views[j]``, same capacity as
-    `pairs`) and the coverage list (`cull_coverage` with `board_ndf` when
-    ``coverage_eps > 0``, else `pairs` itself): ``M + 1`` lists (jittable)."""
-    culled = [cull(pairs, p0, p1, width, depth, alpha, h_views[j], eps)
-              for j in range(h_views.shape[0])]
-    if coverage_eps > 0:
-        return culled + [cull_coverage(pairs, alpha, board_ndf, coverage_eps)]
-    return culled + [pairs]
-
-
-def update_views(pairs: Pairs, p0, p1, width, depth, alpha, h_views, eps: float, caps,
-                 board_ndf=None, coverage_eps: float = 0.0) -> ViewPairs:
-    """`cull_views` compacted to the capacities `caps` (``M + 1`` static ints, from
-    `allocate_views`): a `ViewPairs` (jittable). An overflowing list is incomplete: the
-    caller checks `ViewPairs.overflow` (or ``counts > caps``) and retries with larger capacities;
-    the lists' own flags are cleared so that a renderer's overflow check does not fire first."""
-    culled = cull_views(pairs, p0, p1, width, depth, alpha, h_views, eps, board_ndf, coverage_eps)
-    m = h_views.shape[0]
-    counts = jnp.stack([jnp.sum(c.valid) for c in culled])
-    compacted = lambda c, cap: eqx.tree_at(lambda q: q.overflow, compact(c, cap),
-                                           jnp.zeros((), bool))
-    views = [compacted(c, cap) for c, cap in zip(culled[:m], caps)]
-    cov = compacted(culled[m], caps[m]) if coverage_eps > 0 else pairs
-    return ViewPairs(views, cov, counts, tuple(int(c) for c in caps))
-
-
-#: Per-view capacities are rounded up to a multiple of this.
-VIEW_CAP_ROUND = 1024
-
-
-def grow_caps(caps, counts, margin: float = DEFAULT_MARGIN) -> tuple[int, ...]:
-    """Capacities that hold `counts` times `margin` (rounded up to `VIEW_CAP_ROUND`), never
-    smaller than `caps` (host code)."""
-    return tuple(max(int(c), max(VIEW_CAP_ROUND, int(math.ceil(margin * int(n) / VIEW_CAP_ROUND))
-                                 * VIEW_CAP_ROUND))
-                 for c, n in zip(caps, np.asarray(counts)))
-
-
-@eqx.filter_jit
-def _view_counts(pairs, p0, p1, width, depth, alpha, h_views, eps, board_ndf, coverage_eps):
-    culled = cull_views(pairs, p0, p1, width, depth, alpha, h_views, eps, board_ndf, coverage_eps)
-    return jnp.stack([jnp.sum(c.valid) for c in culled])
-
-
-def allocate_views(pairs: Pairs, p0, p1, width, depth, alpha, h_views, eps: float,
-                   board_ndf=None, coverage_eps: float = 0.0,
-                   margin: float = DEFAULT_MARGIN) -> tuple[int, ...]:
-    """The ``M + 1`` capacities of `update_views`: the culled pair counts times `margin`,
-    rounded up to `VIEW_CAP_ROUND` (host code; one jitted count)."""
-    counts = _view_counts(pairs, p0, p1, width, depth, alpha, h_views, float(eps), board_ndf,
-                          float(coverage_eps))
-    return grow_caps((0,) * int(counts.shape[0]), counts, margin)
-
-
-# --------------------------------------------------------------------------------------------
-# Host driver
-
-
-def cull_pairs(pairs, scratches: Scratches, views: Views, board: Board, eps: float, *,
-               chunk: int = DEFAULT_CHUNK, shards: int = 1):
-    """Per-view culled pair lists from a shared list (host code).
-
-    Culls ``pairs`` (a shared ``(L,)`` list, e.g. from `bin_pairs`) for every view with
-    ``cull.cull`` (pairs whose rigorous ``D_hat`` bound is below ``eps A / (pi alpha^2)``) and packs
-    each view's survivors into one ``(M, Lv)`` list laid out for ``shards`` pixel shards as in
-    `bin_pairs`. Render it with ``coverage_pairs=pairs``: a culled pair still covers the board.
-
-    **Returns:** `bvh.Pairs` ``(M, Lv)`` for `render_pairs`.
-    """
-    if eps <= 0 or not math.isfinite(eps):
-        raise ValueError(f"cull_pairs: `eps` must be finite and > 0; got {eps}")
-    hs = half_vectors(views, board, scratches.dtype)
-    keep = [np.asarray(cull(pairs, scratches.p0, scratches.p1, scratches.width,
-                                scratches.depth, scratches.alpha, hs[j], eps).valid)
-            for j in range(views.m)]
-    return pairs_of(*layout(np.asarray(pairs.pixel), np.asarray(pairs.scratch), keep,
-                              scratches.n, board, shards, chunk))

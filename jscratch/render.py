@@ -12,7 +12,7 @@ both are re-exported here.
 **Rendering:**
 
 - `render(scratches, views, board, *, eps=0.0)`: host driver; bins (`bin_pairs`), culls per
-  view when ``eps > 0`` (`cull_pairs`, ``cull.cull``) and calls `render_pairs`.
+  view when ``eps > 0`` (`cull_pairs`, `bvh.cull`) and calls `render_pairs`.
 - `render_pairs(scratches, views, board, pairs)`: the differentiable core, jittable, for use
   inside a loss; the pair list is integer data computed outside the differentiated function
   (`bin_pairs` makes one).
@@ -74,8 +74,7 @@ from jax.sharding import PartitionSpec
 from jaxtyping import Array, Float
 
 from jscratch import ndf
-from jscratch.bvh import DEFAULT_CHUNK, bin_pairs, pixels_per_shard
-from jscratch.cull import cull_pairs
+from jscratch.bvh import DEFAULT_CHUNK, bin_pairs, cull_pairs, pixels_per_shard
 from jscratch.scene import (
     Board,
     Scratches,
@@ -664,7 +663,7 @@ def render(scratches: Scratches, views: Views, board: Board, *, eps: float = 0.0
     """Bin, cull and render: the convenience driver (host code; not for inside jit).
 
     Bins with `bin_pairs`; when ``eps > 0`` culls every view's pairs with `cull_pairs`
-    (``cull.cull``: pairs whose rigorous ``D_hat`` bound is below ``eps A / (pi alpha^2)``); lays
+    (`bvh.cull`: pairs whose rigorous ``D_hat`` bound is below ``eps A / (pi alpha^2)``); lays
     the lists out for the mesh's pixel shards; renders with a jitted `render_pairs`. Coverage
     always uses the unculled list.
 

@@ -189,7 +189,7 @@ def test_cli_input_errors(tmp_path, capsys):
 def test_view_lists_report_overflow_without_aborting():
     # Per-view lists too small for the culled pairs: counts exceed the capacities (the host then
     # retries with larger ones) and the lists carry no overflow flag that would abort the render.
-    from jscratch import bvh, cull, loss
+    from jscratch import bvh, loss
     from jscratch.design.params import group_tree
     from jscratch.design.solver import Context, view_lists
 
@@ -198,17 +198,21 @@ def test_view_lists_report_overflow_without_aborting():
     s = render.Scratches.random(jax.random.PRNGKey(1), 60, board, width=2.5e-4, depth=1.28e-4,
                            dtype=jnp.float32)
     p = DesignParams.from_physical(s, np.ones(2), board)
-    pairs, _ = bvh.build_pairs(s.p0, s.p1, s.width, s.depth, board=(0.3, 0.3), shape=(16, 16))
+    pairs, spec = bvh.build_pairs(s.p0, s.p1, s.width, s.depth, board=(0.3, 0.3), shape=(16, 16))
     hs = render.half_vectors(views, board, jnp.float32)
     bound = loss.make_loss(loss.LossConfig(kind="l2")).bind(jnp.zeros((2, 16, 16), jnp.float32))
     lrs = group_tree(p, {g: jnp.float32(0) for g in ("endpoints", "width", "depth", "alpha",
                                                        "intensity")})
     # A board NDF above the threshold everywhere: every pair's coverage is kept.
     board_ndf = jnp.full((256,), 1e3, jnp.float32)
-    ctx = Context(views.camera, views.light, hs, board_ndf, bound, lrs, 1e-3, 1e-3, board, 1024)
-    lists, cov, counts = jax.jit(lambda p, q: view_lists(p, q, ctx, (4, 4, 4)))(p, pairs)
-    counts = np.asarray(counts)
-    expected = [int(cull.cull(pairs, s.p0, s.p1, s.width, s.depth, s.alpha, hs[j], 1e-3).valid.sum())
+    ctx = Context(views.camera, views.light, hs, board_ndf, bound, lrs, board, 1024)
+    small = bvh.PairLists(pairs, spec, jnp.zeros((3,), jnp.int32), caps=(4, 4, 4), cull_eps=1e-3,
+                          coverage_eps=1e-3)
+    culled = jax.jit(lambda p, q: view_lists(p, q, ctx))(p, small)
+    lists, cov = culled.for_render()
+    counts = np.asarray(culled.counts)
+    assert bool(culled.overflow)
+    expected = [int(bvh.cull(pairs, s.p0, s.p1, s.width, s.depth, s.alpha, hs[j], 1e-3).valid.sum())
                 for j in range(2)] + [int(pairs.valid.sum())]
     assert counts.tolist() == expected and min(expected) > 4
     assert all(not bool(q.overflow) and q.pixel.shape == (4,) for q in lists + [cov])

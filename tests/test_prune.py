@@ -16,7 +16,7 @@ import numpy as np
 from jscratch import render as R
 from jscratch.design import DesignConfig, default_targets, design
 from jscratch.design import prune, solver
-from jscratch.design.run import bin_pairs, initial_state, setup
+from jscratch.design.run import initial_state, pair_lists, rebin, setup
 
 SIZE = 32
 
@@ -48,9 +48,9 @@ def test_round_moves_lowest_scratches_consistently():
     st, warm = initial_state(params, opt, ctx, targets, cfg)
     warm.join()
     # one real step so that the Adam moments are non-zero
-    new, opt_state, *_ = solver.step(st.params, st.opt_state, st.pairs, ctx, st.caps, opt)
-    sc = prune.scores(new, st.pairs, ctx, st.caps)
-    p2, o2, idx = prune.prune_reseed(new, opt_state, st.pairs, st.caps, ctx, cfg, 2)
+    new, opt_state, *_ = solver.step(st.params, st.opt_state, st.lists, ctx, opt)
+    sc = prune.scores(new, st.lists, ctx)
+    p2, o2, idx = prune.prune_reseed(new, opt_state, st.lists, ctx, cfg, 2)
     assert len(idx) == 30 and len(np.unique(idx)) == 30
     # exactly the 30 lowest scores moved
     assert sc[idx].max() <= np.sort(sc)[30]
@@ -75,11 +75,12 @@ def test_round_moves_lowest_scratches_consistently():
     np.testing.assert_array_equal(np.asarray(mu.geom)[others], np.asarray(mu0.geom)[others])
     np.testing.assert_array_equal(o2.count, opt_state.count)
     # the rebuilt pair list covers the moved scratches and a step runs on it
-    pairs, _ = bin_pairs(p2, st.spec, board, cfg)
-    assert not bool(pairs.overflow)
+    lists = rebin(st.lists, p2, ctx)
+    pairs = lists.shared
+    assert not bool(lists.overflow)
     moved_pairs = np.isin(np.asarray(pairs.scratch)[np.asarray(pairs.valid)], idx)
     assert moved_pairs.sum() > 0
-    out = solver.step(p2, o2, pairs, ctx, st.caps, opt)
+    out = solver.step(p2, o2, lists, ctx, opt)
     assert np.isfinite(float(out[2]["total"]))
 
 
@@ -109,8 +110,7 @@ def test_reseeded_scratches_go_where_needed_and_light_up():
         s = Scratches(jnp.asarray(q0, jnp.float32), jnp.asarray(q1, jnp.float32),
                       jnp.full((n,), 2.5e-4), jnp.full((n,), 1.28e-4), jnp.full((n,), 0.04))
         prm = DesignParams.from_physical(s, np.asarray(views.intensity), board)
-        pairs, _ = bin_pairs(prm, None, board, cfg)
-        lists, _, _ = solver.view_lists(prm, pairs, ctx, (1, 1))
+        lists = solver.view_lists(prm, pair_lists(prm, ctx, cfg), ctx)
         return np.asarray(solver.contributions(prm, lists, ctx))[1].sum()
 
     half = 0.5 * (p1 - p0)

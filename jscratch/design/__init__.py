@@ -23,19 +23,20 @@ default). The optimiser is optax's Adam (``optax.scale_by_adam``) followed by a 
 ``I_j = (mean(T_j) / mean(display(R_j)))^2.2``, which makes the mean display value equal the
 target's mean wherever the render is above the display knee (``display`` is a pure power there).
 
-**Each iteration** (one jitted step): the shared pair list (`bvh.build_pairs`) is rendered for
-every view; with ``cull_eps > 0`` each view's list is first culled with `cull.cull` (pairs whose NDF
-bound is below ``cull_eps`` of their possible maximum) and compacted to a per-view capacity, and
-with ``coverage_eps > 0`` the coverage pass keeps only the pairs `cull.cull_coverage` keeps. Both
+**Each iteration** (one jitted step): the pair lists (`bvh.PairLists`, from `bvh.allocate_lists`)
+are culled for the current parameters (`bvh.update_lists`) and rendered: unculled, the shared list
+serves every view; with ``cull_eps > 0`` each view's list is culled with `bvh.cull` (pairs whose
+NDF bound is below ``cull_eps`` of their possible maximum) and compacted to a per-view capacity,
+and with ``coverage_eps > 0`` the coverage pass keeps only the pairs `bvh.cull_coverage` keeps. Both
 are off by default: culling bounds the forward error but removes the small gradients that turn
 unlit grooves towards a view, and Adam's per-parameter scaling makes those matter (measured on the
 default run: loss 0.0136 unculled vs 0.0323 at ``cull_eps = 1e-3``, 1.9x slower; see
 `benchmarks/RESULTS.md`). The renderer (`render.render_pairs`) gives radiance, `render.display`
 gives display values, and the loss (`loss.make_loss`) its value and gradient; Adam updates the
-parameters; `bvh.needs_rebin` says whether the pair list still holds every pair. The list is
-rebuilt on the host (outside the jitted step, same capacities, so no recompilation) only when it
-says so. Capacity overflows (pair list or
-per-view lists) re-allocate and recompile; they are rare (margins 1.25).
+parameters; `bvh.needs_rebin` says whether the shared list still holds every pair. The list is
+rebuilt on the host (`bvh.rebin_lists`, outside the jitted step, same capacities, so no
+recompilation) only when it says so. Capacity overflows (shared list or per-view lists:
+`bvh.grow_lists`) re-allocate and recompile; they are rare (margins 1.25).
 
 **Discard** (paper Fig. 21): after the optimisation each scratch gets a score, the largest over
 views of its share of the view's scratch radiance relative to the mean scratch's
@@ -58,7 +59,8 @@ and the last good state stays in the checkpoint.
 - `jscratch.design.discard`, `jscratch.design.checkpoint`, `jscratch.design.result`.
 - `jscratch.design.io`: targets, images and outputs; `jscratch.design.maker`: the machine's
   outputs (as-carved render, carving estimate); `jscratch.design.run`: `design` and its seams
-  (`setup`, `bin_pairs`, `initial_state`: what tests and notebooks drive a step through);
+  (`setup`, `pair_lists`, `rebin`, `initial_state`: what tests and notebooks drive a step
+  through);
   `jscratch.design.cli`: the command line (``python -m jscratch.design``).
 """
 

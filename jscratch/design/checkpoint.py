@@ -34,7 +34,9 @@ def save_npz(path: str, arrays: dict[str, np.ndarray]) -> None:
 
 def _fields(module_type) -> tuple[str, ...]:
     """The field names of an equinox Module (a dataclass): what a checkpoint saves of it, so a
-    field added to `bvh.Pairs` or `bvh.GridSpec` is saved without a list to keep in step."""
+    field added to `bvh.Pairs` or `bvh.GridSpec` is saved without a list to keep in step. (Of a
+    `bvh.PairLists` the shared list, its spec and the capacities are saved: the per-view lists
+    are recomputed by every step.)"""
     return tuple(f.name for f in dataclasses.fields(module_type))
 
 
@@ -45,9 +47,7 @@ class State:
     iteration: int
     params: DesignParams
     opt_state: Any
-    pairs: bvh.Pairs | None
-    spec: bvh.GridSpec | None
-    caps: tuple[int, ...]
+    lists: bvh.PairLists
     history: dict[str, Any]
     rebins: int
 
@@ -59,11 +59,12 @@ def save_checkpoint(path: str, state: State, config: DesignConfig, thash: str) -
     for i, leaf in enumerate(jax.tree_util.tree_leaves(state.opt_state)):
         arrays[f"opt/{i}"] = np.asarray(leaf)
     for f in _fields(bvh.Pairs):
-        arrays[f"pairs/{f}"] = np.asarray(getattr(state.pairs, f))
+        arrays[f"pairs/{f}"] = np.asarray(getattr(state.lists.shared, f))
+    arrays["list_counts"] = np.asarray(state.lists.counts)
     meta = {
         "iteration": state.iteration,
-        "spec": {f: getattr(state.spec, f) for f in _fields(bvh.GridSpec)},
-        "caps": list(state.caps),
+        "spec": {f: getattr(state.lists.spec, f) for f in _fields(bvh.GridSpec)},
+        "caps": list(state.lists.caps),
         "history": state.history,
         "rebins": state.rebins,
         "config": config.to_dict(),
@@ -103,6 +104,7 @@ def load_checkpoint(path: str, like: State, config: DesignConfig, thash: str) ->
     opt_state = restore(like.opt_state, "opt")
     missing = [f for f in _fields(bvh.Pairs) if f"pairs/{f}" not in data]
     missing += [f for f in _fields(bvh.GridSpec) if f not in meta["spec"]]
+    missing += [] if "list_counts" in data else ["list_counts"]
     if missing:
         raise DesignError(f"checkpoint {path!r} lacks {', '.join(missing)}: it was written by"
                           " another version of jscratch")
@@ -110,5 +112,7 @@ def load_checkpoint(path: str, like: State, config: DesignConfig, thash: str) ->
     # (JSON turns tuples into lists; the spec is static and hashed by jit, so tuples again)
     spec = bvh.GridSpec(**{f: tuple(v) if isinstance(v, list) else v
                            for f, v in meta["spec"].items()})
-    return State(meta["iteration"], params, opt_state, pairs, spec, tuple(meta["caps"]),
-                  meta["history"], meta["rebins"])
+    lists = bvh.PairLists(pairs, spec, jnp.asarray(data["list_counts"]), caps=tuple(meta["caps"]),
+                          cull_eps=float(config.cull_eps),
+                          coverage_eps=float(config.coverage_eps))
+    return State(meta["iteration"], params, opt_state, lists, meta["history"], meta["rebins"])

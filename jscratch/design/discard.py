@@ -9,26 +9,27 @@ import numpy as np
 from jscratch.design import solver
 
 
-def scores(params, pairs, ctx, caps) -> np.ndarray:
+def scores(params, lists, ctx) -> np.ndarray:
     """``(N,)`` each scratch's score: ``max_j contribution[j, i] / mean_i contribution[j, i]``
-    (`solver.contributions`); the discard and the prune/re-seed rounds drop the lowest."""
-    lists, _, _ = solver.view_lists(params, pairs, ctx, caps)
-    contrib = np.asarray(solver.contributions(params, lists, ctx), np.float64)  # (M, N)
+    (`solver.contributions` over the `bvh.PairLists` ``lists``); the discard and the
+    prune/re-seed rounds drop the lowest."""
+    culled = solver.view_lists(params, lists, ctx)
+    contrib = np.asarray(solver.contributions(params, culled, ctx), np.float64)  # (M, N)
     mean = contrib.mean(axis=1, keepdims=True)
     return (contrib / np.where(mean > 0, mean, 1.0)).max(axis=0)
 
 
-def discard(params, pairs, ctx, caps, loss_all, tol, rad_all, terms_all):
+def discard(params, lists, ctx, loss_all, tol, rad_all, terms_all):
     """Drop the lowest-scoring scratches (`scores`) while the loss stays within
     ``(1 + tol) loss_all``."""
     n = params.log_width.shape[0]
-    order = np.argsort(scores(params, pairs, ctx, caps), kind="stable")
+    order = np.argsort(scores(params, lists, ctx), kind="stable")
     limit = loss_all * (1 + tol)
 
     def evaluate(k):
         keep = np.ones(n, bool)
         keep[order[:k]] = False
-        rad, terms, _ = solver.evaluate(params, pairs, jnp.asarray(keep), ctx, caps)
+        rad, terms, _ = solver.evaluate(params, lists, jnp.asarray(keep), ctx)
         return keep, rad, terms
 
     best = (np.ones(n, bool), rad_all, terms_all)

@@ -101,17 +101,17 @@ def reset_moments(opt_state, idx):
                                   is_leaf=is_params)
 
 
-def prune_reseed(params, opt_state, pairs, caps, ctx, config, iteration: int):
+def prune_reseed(params, opt_state, lists, ctx, config, iteration: int):
     """One round. Returns ``(params, opt_state, moved indices (k,))``; the caller rebuilds the
     pair list and the capacities for the new parameters."""
     n = params.log_width.shape[0]
     k = int(round(config.prune_fraction * n))
     if k == 0:
         return params, opt_state, np.zeros((0,), np.int64)
-    sc = scores(params, pairs, ctx, caps)
+    sc = scores(params, lists, ctx)
     idx = np.sort(np.argsort(sc, kind="stable")[:k])
     keep = jnp.ones((n,), bool)
-    rad, _, _ = solver.evaluate(params, pairs, keep, ctx, caps)
+    rad, _, _ = solver.evaluate(params, lists, keep, ctx)
     dens = error_density(np.asarray(display(rad)), np.asarray(ctx.loss.target))
     rng = np.random.default_rng([config.seed, iteration, 17])
     p0, p1 = new_scratches(dens, ctx.hs, ctx.board, k, config, rng)

@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float
 
-from jscratch import bvh, cull, native
+from jscratch import bvh, native
 from jscratch import loss as loss_mod
 from jscratch.designfile import DesignError
 from jscratch.metrics import image_metrics
@@ -31,7 +31,6 @@ from jscratch.design.solver import (
     compile_step,
     evaluate,
     make_adam,
-    measure_caps,
     physical,
     step,
 )
@@ -79,7 +78,7 @@ def design(
     params, optimizer, ctx = setup(tnp, views, board, config)
     warm = None
     if resume:
-        like = State(0, params, optimizer.init(params), None, None, (1,) * views.m, {}, 0)
+        like = State(0, params, optimizer.init(params), None, {}, 0)
         state = load_checkpoint(checkpoint, like, config, thash)
     else:
         state, warm = initial_state(params, optimizer, ctx, tnp, config)
@@ -136,16 +135,31 @@ def setup(tnp, views, board, config):
     hs = half_vectors(Views(cam, lig), board, dt)
     bound = loss_mod.make_loss(config.loss).bind(jnp.asarray(tnp, dt))
     ndf_max = jnp.max(board_ndf(Views(cam, lig), board, dt), axis=0)  # (P,)
-    ctx = Context(cam, lig, hs, ndf_max, bound, lrs, float(config.cull_eps),
-                  float(config.coverage_eps), board, int(config.chunk))
+    ctx = Context(cam, lig, hs, ndf_max, bound, lrs, board, int(config.chunk))
     return params, optimizer, ctx
 
 
-def bin_pairs(params, spec, board, config):
-    """The shared pair list of ``params`` (`bvh.build_pairs`, reusing ``spec``'s capacities)."""
-    p0, p1, wd, dp, _, _ = physical(params)
-    return bvh.build_pairs(p0, p1, wd, dp, board=(board.Sx, board.Sy), shape=board.shape,
-                           spec=spec, skin=config.skin)
+def _scratches(params) -> Scratches:
+    return Scratches(*physical(params)[:5])
+
+
+def pair_lists(params, ctx, config) -> bvh.PairLists:
+    """The `bvh.PairLists` of ``params`` (`bvh.allocate_lists`: the shared list binned with
+    ``config.skin``, the per-view capacities measured when ``config.cull_eps > 0``)."""
+    return bvh.allocate_lists(_scratches(params), ctx.board, ctx.hs, ctx.board_ndf,
+                              cull_eps=float(config.cull_eps),
+                              coverage_eps=float(config.coverage_eps), skin=config.skin)
+
+
+def rebin(lists, params, ctx) -> bvh.PairLists:
+    """``lists`` with the shared list binned again for ``params`` (`bvh.rebin_lists`)."""
+    return bvh.rebin_lists(lists, _scratches(params), ctx.board)
+
+
+def remeasure(lists, params, ctx) -> bvh.PairLists:
+    """``lists`` with per-view capacities that hold ``params``' culled lists (never smaller)."""
+    return bvh.grow_lists(lists, bvh.list_counts(lists, _scratches(params), ctx.hs,
+                                                 ctx.board_ndf))
 
 
 def initial_state(params, optimizer, ctx, tnp, config):
@@ -153,13 +167,12 @@ def initial_state(params, optimizer, ctx, tnp, config):
     "match_mean"``) the closed-form light intensities; and the thread compiling the step
     meanwhile (`_compile_step_meanwhile`)."""
     m, dt = tnp.shape[0], params.geom.dtype
-    pairs, spec = bin_pairs(params, None, ctx.board, config)
-    caps = measure_caps(params, pairs, ctx, m)
-    warm = _compile_step_meanwhile(params, optimizer, pairs, ctx, caps)
+    lists = pair_lists(params, ctx, config)
+    warm = _compile_step_meanwhile(params, optimizer, lists, ctx)
     if config.init_intensity == "match_mean":
         unit = eqx.tree_at(lambda p: p.log_intensity, params, jnp.zeros((m,), dt))
         all_keep = jnp.ones((config.n_scratches,), bool)
-        rad = np.asarray(evaluate(unit, pairs, all_keep, ctx, caps)[0], np.float64)
+        rad = np.asarray(evaluate(unit, lists, all_keep, ctx)[0], np.float64)
         mean_disp = np.asarray(display(rad)).mean(axis=(1, 2))
         tmean = tnp.mean(axis=(1, 2))
         if np.any(mean_disp <= 0):
@@ -168,16 +181,16 @@ def initial_state(params, optimizer, ctx, tnp, config):
         log_i = DISPLAY_GAMMA * (np.log(np.maximum(tmean, 1e-6)) - np.log(mean_disp))
         params = eqx.tree_at(lambda p: p.log_intensity, params, jnp.asarray(log_i, dt))
     history = {"total": [], "terms": {}}
-    return State(0, params, optimizer.init(params), pairs, spec, caps, history, 0), warm
+    return State(0, params, optimizer.init(params), lists, history, 0), warm
 
 
-def _compile_step_meanwhile(params, optimizer, pairs, ctx, caps) -> threading.Thread:
+def _compile_step_meanwhile(params, optimizer, lists, ctx) -> threading.Thread:
     """Start compiling the Adam step (`compile_step`, the largest compilation of a design) on a
     second thread, so that it overlaps the setup's own render. Only shapes matter, so the
     intensities set meanwhile do not. A failure here is left to the first real step to report."""
     def work():
         try:
-            compile_step(params, optimizer.init(params), pairs, ctx, caps, optimizer)
+            compile_step(params, optimizer.init(params), lists, ctx, optimizer)
         except Exception:  # the first `step` call compiles again and raises it properly
             pass
 
@@ -217,12 +230,11 @@ def _iterate(state, optimizer, ctx, config, n_iter, checkpoint, thash, progress)
             if prune_mod.due(state.iteration, config) and not any(
                     r[0] == state.iteration for r in state.history.get("prune", [])):
                 state = _prune(state, ctx, config)
-            new, opt_state, terms, rebin, counts, health = step(
-                state.params, state.opt_state, state.pairs, ctx, state.caps, optimizer)
+            new, opt_state, terms, must_rebin, counts, health = step(
+                state.params, state.opt_state, state.lists, ctx, optimizer)
             counts = np.asarray(counts)
-            if ctx.cull_eps > 0 and np.any(counts > np.asarray(state.caps)):
-                caps = cull.grow_caps(state.caps, counts)
-                state = dataclasses.replace(state, caps=caps)
+            if state.lists.culled and np.any(counts > np.asarray(state.lists.caps)):
+                state = dataclasses.replace(state, lists=bvh.grow_lists(state.lists, counts))
                 continue  # retry the same iteration with larger per-view lists
             _check_health(health, state, config, checkpoint, thash)
             hist = state.history
@@ -230,12 +242,11 @@ def _iterate(state, optimizer, ctx, config, n_iter, checkpoint, thash, progress)
             for k, v in terms.items():
                 if k != "total":
                     hist["terms"].setdefault(k, []).append(float(v))
-            pairs, spec, rebins = state.pairs, state.spec, state.rebins
-            if bool(rebin):
-                pairs, spec = bin_pairs(new, spec, ctx.board, config)
+            lists, rebins = state.lists, state.rebins
+            if bool(must_rebin):
+                lists = rebin(lists, new, ctx)
                 rebins += 1
-            state = State(state.iteration + 1, new, opt_state, pairs, spec, state.caps, hist,
-                          rebins)
+            state = State(state.iteration + 1, new, opt_state, lists, hist, rebins)
             step_times.append(time.perf_counter() - t0)
             if bar is not None:
                 bar.set_postfix(loss=f"{hist['total'][-1]:.5g}")
@@ -253,35 +264,30 @@ def _prune(state, ctx, config):
     """A `prune.prune_reseed` round at ``state.iteration``: new parameters and Adam moments, the
     pair list rebuilt, the capacities re-measured (culled runs), ``history["prune"]`` appended with
     ``[iteration, moved]``."""
-    params, opt_state, idx = prune_mod.prune_reseed(state.params, state.opt_state, state.pairs,
-                                                    state.caps, ctx, config, state.iteration)
-    pairs, spec = bin_pairs(params, state.spec, ctx.board, config)
-    caps = state.caps
-    if ctx.cull_eps > 0:
-        caps = tuple(max(a, b) for a, b in zip(caps, measure_caps(params, pairs, ctx, len(caps))))
+    params, opt_state, idx = prune_mod.prune_reseed(state.params, state.opt_state, state.lists,
+                                                    ctx, config, state.iteration)
+    lists = remeasure(rebin(state.lists, params, ctx), params, ctx)
     hist = state.history
     hist.setdefault("prune", []).append([state.iteration, int(len(idx))])
-    return State(state.iteration, params, opt_state, pairs, spec, caps, hist, state.rebins + 1)
+    return State(state.iteration, params, opt_state, lists, hist, state.rebins + 1)
 
 
 def _finish(state, ctx, tnp, config, *, discard_now: bool) -> DesignResult:
     """Final render, discard (when ``discard_now``) and metrics (timings of the loop are the
     caller's)."""
     m = tnp.shape[0]
-    params, pairs = state.params, state.pairs
-    caps = state.caps
+    params, lists = state.params, state.lists
     all_keep = jnp.ones((config.n_scratches,), bool)
     t_d = time.perf_counter()
-    rad, terms, counts = evaluate(params, pairs, all_keep, ctx, caps)
-    if ctx.cull_eps > 0 and np.any(np.asarray(counts) > np.asarray(caps)):
-        caps = measure_caps(params, pairs, ctx, m)
-        rad, terms, counts = evaluate(params, pairs, all_keep, ctx, caps)
+    rad, terms, counts = evaluate(params, lists, all_keep, ctx)
+    if lists.culled and np.any(np.asarray(counts) > np.asarray(lists.caps)):
+        lists = remeasure(lists, params, ctx)
+        rad, terms, counts = evaluate(params, lists, all_keep, ctx)
     loss_all = float(terms["total"])
     metrics_all = image_metrics(np.asarray(display(rad)), tnp)
     keep = np.ones(config.n_scratches, bool)
     if discard_now:
-        keep, rad, terms = discard(params, pairs, ctx, caps, loss_all, config.discard_tol,
-                                   rad, terms)
+        keep, rad, terms = discard(params, lists, ctx, loss_all, config.discard_tol, rad, terms)
     t_discard = time.perf_counter() - t_d
     rad = np.asarray(rad)
     disp = np.asarray(display(rad))
@@ -297,10 +303,10 @@ def _finish(state, ctx, tnp, config, *, discard_now: bool) -> DesignResult:
         "metrics_before_discard": metrics_all,
         "discarded": int((~keep).sum()),
         "kept": int(keep.sum()),
-        "pairs_total": int(np.asarray(pairs.valid).sum()),
+        "pairs_total": int(np.asarray(lists.shared.valid).sum()),
         "pairs_per_view": [int(c) for c in np.asarray(counts)[:m]],
         "coverage_pairs": (int(np.asarray(counts)[m]) if len(counts) > m
-                           else int(np.asarray(pairs.valid).sum())),
+                           else int(np.asarray(lists.shared.valid).sum())),
         "rebins": state.rebins,
         "iterations": state.iteration,
         "time_total": None,

@@ -1,10 +1,11 @@
-"""The jitted pieces of the optimisation: the per-design `Context`, the per-view pair lists
-(`view_lists`), the forward `evaluate`, one Adam `step` with its health report, the per-scratch
-`contributions` and the per-view capacities (`measure_caps`). Module level, so that repeated designs
+"""The jitted pieces of the optimisation: the per-design `Context`, the pair lists culled for the
+current parameters (`view_lists`, a `bvh.PairLists`), the forward `evaluate`, one Adam `step`
+with its health report and the per-scratch `contributions`. Module level, so that repeated designs
 of the same shapes reuse compilations. Tests drive a step through these names."""
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import equinox as eqx
@@ -13,7 +14,7 @@ import jax.numpy as jnp
 import optax
 from jaxtyping import Array
 
-from jscratch import bvh, cull
+from jscratch import bvh
 from jscratch import loss as loss_mod
 from jscratch.render import grad_compiler_options, render_pairs, scratch_contributions
 from jscratch.scene import SCRATCH_RULES, Board, Views
@@ -31,8 +32,6 @@ class Context(eqx.Module):
     board_ndf: Array  # (P,) flat board's GGX at each pixel, largest over the views (1/sr)
     loss: loss_mod.BoundLoss
     lrs: DesignParams  # per-group learning rate (0 = frozen), scalar leaves
-    cull_eps: float = eqx.field(static=True)
-    coverage_eps: float = eqx.field(static=True)
     board: Board = eqx.field(static=True)
     chunk: int = eqx.field(static=True)
 
@@ -49,45 +48,36 @@ def make_adam(b1: float, b2: float, eps: float) -> optax.GradientTransformation:
     return optax.scale_by_adam(b1=b1, b2=b2, eps=eps)
 
 
-def view_lists(params: DesignParams, pairs: bvh.Pairs, ctx: Context, caps: tuple[int, ...]):
-    """``(lists, coverage list, counts)``: the per-view culled lists compacted to ``caps``, the
-    coverage list and the ``M + 1`` counts of kept pairs (views, then coverage), from
-    `cull.update_views` (``counts > caps`` means overflow: the caller retries with larger
-    capacities). Unculled (``cull_eps == 0``): the shared list, ``None`` (coverage from the same
-    list) and ``M`` counts."""
-    m = ctx.hs.shape[0]
-    if ctx.cull_eps == 0:
-        n = jnp.sum(pairs.valid)
-        return pairs, None, jnp.stack([n] * m)
+def view_lists(params: DesignParams, lists: bvh.PairLists, ctx: Context) -> bvh.PairLists:
+    """`lists` culled for ``params`` (`bvh.update_lists` at the lists' fixed capacities; its
+    ``overflow`` / ``counts > caps`` means the caller retries after `bvh.grow_lists`)."""
     s = jax.lax.stop_gradient(params).scratches()
-    v = cull.update_views(pairs, s.p0, s.p1, s.width, s.depth, s.alpha, ctx.hs, ctx.cull_eps, caps,
-                         ctx.board_ndf, ctx.coverage_eps)
-    return v.views, v.coverage, v.counts
+    return bvh.update_lists(lists, s, ctx.hs, ctx.board_ndf)
 
 
-def radiance(params: DesignParams, lists, cov, ctx: Context) -> Array:
-    """Radiance ``(M, H, W)`` from `view_lists`' pair lists."""
+def radiance(params: DesignParams, lists: bvh.PairLists, ctx: Context) -> Array:
+    """Radiance ``(M, H, W)`` from `view_lists`' culled lists."""
     views = Views(ctx.camera, ctx.light, params.intensity())
-    return render_pairs(params.scratches(), views, ctx.board, lists, cov, chunk=ctx.chunk)
+    return render_pairs(params.scratches(), views, ctx.board, *lists.for_render(), chunk=ctx.chunk)
 
 
-def _masked(p: bvh.Pairs, keep_ext: Array) -> bvh.Pairs:
-    return eqx.tree_at(lambda q: q.valid, p, p.valid & keep_ext[p.scratch])
+def _masked(lists: bvh.PairLists, keep_ext: Array) -> bvh.PairLists:
+    """`lists` without the pairs of scratches outside ``keep_ext`` (``(N + 1,)``)."""
+    mask = lambda p: eqx.tree_at(lambda q: q.valid, p, p.valid & keep_ext[p.scratch])  # noqa: E731
+    return dataclasses.replace(
+        lists, shared=mask(lists.shared),
+        views=None if lists.views is None else tuple(mask(p) for p in lists.views),
+        coverage=None if lists.coverage is None else mask(lists.coverage))
 
 
 @eqx.filter_jit
-def evaluate(params: DesignParams, pairs: bvh.Pairs, keep: Array, ctx: Context, caps):
-    """Forward only: ``(radiance (M,H,W), loss terms, per-view counts)`` with scratches outside
+def evaluate(params: DesignParams, lists: bvh.PairLists, keep: Array, ctx: Context):
+    """Forward only: ``(radiance (M,H,W), loss terms, per-list counts)`` with scratches outside
     ``keep`` removed (their pairs masked, so they neither shine nor cover)."""
     keep_ext = jnp.concatenate([keep, jnp.zeros((1,), bool)])
-    lists, cov, counts = view_lists(params, pairs, ctx, caps)
-    if isinstance(lists, list):
-        lists = [_masked(p, keep_ext) for p in lists]
-    else:
-        lists = _masked(lists, keep_ext)
-    cov = None if cov is None else _masked(cov, keep_ext)
-    rad = radiance(params, lists, cov, ctx)
-    return rad, ctx.loss.terms(display(rad)), counts
+    culled = view_lists(params, lists, ctx)
+    rad = radiance(params, _masked(culled, keep_ext), ctx)
+    return rad, ctx.loss.terms(display(rad)), culled.counts
 
 
 def _health(loss, grads: DesignParams, new: DesignParams) -> dict[str, Array]:
@@ -110,16 +100,16 @@ def _health(loss, grads: DesignParams, new: DesignParams) -> dict[str, Array]:
     return out
 
 
-def step(params: DesignParams, opt_state, pairs: bvh.Pairs, ctx: Context, caps, adam):
+def step(params: DesignParams, opt_state, lists: bvh.PairLists, ctx: Context, adam):
     """`_step_impl`, jitted with `render.grad_compiler_options` (faster compile and step)."""
-    return _jitted_step()(params, opt_state, pairs, ctx, caps, adam)
+    return _jitted_step()(params, opt_state, lists, ctx, adam)
 
 
-def compile_step(params: DesignParams, opt_state, pairs: bvh.Pairs, ctx: Context, caps, adam):
+def compile_step(params: DesignParams, opt_state, lists: bvh.PairLists, ctx: Context, adam):
     """Compile `step` for these arguments' shapes without running it: the jit cache is then warm
     and the first `step` call only runs. The design calls it on a second thread while the setup
     renders (XLA compiles without holding the GIL), so the two compilations overlap."""
-    _jitted_step().lower(params, opt_state, pairs, ctx, caps, adam).compile()
+    _jitted_step().lower(params, opt_state, lists, ctx, adam).compile()
 
 
 @functools.lru_cache(maxsize=None)
@@ -127,14 +117,14 @@ def _jitted_step():
     return eqx.filter_jit(_step_impl, compiler_options=grad_compiler_options())
 
 
-def _step_impl(params: DesignParams, opt_state, pairs: bvh.Pairs, ctx: Context, caps, adam):
+def _step_impl(params: DesignParams, opt_state, lists: bvh.PairLists, ctx: Context, adam):
     """One Adam iteration (`make_adam`, then ``-lr`` per group). Returns the new state, the loss
-    terms at ``params``, whether the pair list must be rebuilt for the new parameters, per-view
-    counts (to detect capacity overflow) and the health report."""
-    lists, cov, counts = view_lists(params, pairs, ctx, caps)
+    terms at ``params``, whether the shared pair list must be rebuilt for the new parameters, the
+    per-list counts (to detect capacity overflow) and the health report."""
+    culled = view_lists(params, lists, ctx)
 
     def f(p):
-        terms = ctx.loss.terms(display(radiance(p, lists, cov, ctx)))
+        terms = ctx.loss.terms(display(radiance(p, culled, ctx)))
         return terms["total"], terms
 
     (value, terms), grads = eqx.filter_value_and_grad(f, has_aux=True)(params)
@@ -149,9 +139,9 @@ def _step_impl(params: DesignParams, opt_state, pairs: bvh.Pairs, ctx: Context, 
     ok = lambda x: jnp.isfinite(x) & (x > 0)
     p0 = jnp.where(jnp.isfinite(s.p0), s.p0, 0)
     p1 = jnp.where(jnp.isfinite(s.p1), s.p1, 0)
-    rebin = bvh.needs_rebin(pairs, p0, p1, jnp.where(ok(s.width), s.width, 1e-4),
+    rebin = bvh.needs_rebin(lists.shared, p0, p1, jnp.where(ok(s.width), s.width, 1e-4),
                             jnp.where(ok(s.depth), s.depth, 1e-4))
-    return new, opt_state, terms, rebin, counts, _health(value, grads, new)
+    return new, opt_state, terms, rebin, culled.counts, _health(value, grads, new)
 
 
 @eqx.filter_jit
@@ -161,18 +151,9 @@ def physical(params: DesignParams):
 
 
 @eqx.filter_jit
-def contributions(params: DesignParams, lists, ctx: Context) -> Array:
-    """`render.scratch_contributions` of the design's scene, ``(M, N)``."""
+def contributions(params: DesignParams, lists: bvh.PairLists, ctx: Context) -> Array:
+    """`render.scratch_contributions` of the design's scene, ``(M, N)``, from `view_lists`'
+    culled lists."""
     views = Views(ctx.camera, ctx.light, params.intensity())
-    return scratch_contributions(params.scratches(), views, ctx.board, lists, chunk=ctx.chunk,
-                                   h=ctx.hs)
-
-
-def measure_caps(params, pairs, ctx, m) -> tuple[int, ...]:
-    """Capacities of the ``M`` view lists and the coverage list (`cull.allocate_views`: the culled
-    pair counts times a margin; ``M`` ones when not culling)."""
-    if ctx.cull_eps == 0:
-        return (1,) * m
-    s = jax.lax.stop_gradient(params).scratches()
-    return cull.allocate_views(pairs, s.p0, s.p1, s.width, s.depth, s.alpha, ctx.hs, ctx.cull_eps,
-                              ctx.board_ndf, ctx.coverage_eps)
+    return scratch_contributions(params.scratches(), views, ctx.board, lists.for_render()[0],
+                                 chunk=ctx.chunk, h=ctx.hs)
