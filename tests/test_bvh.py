@@ -678,3 +678,57 @@ def test_errors():
     with pytest.raises(ValueError, match="no bin_"):
         bvh.needs_rebin(no_bins, p0, p1, 1e-4, 1e-4)
     assert isinstance(pairs, eqx.Module)
+
+
+def test_pair_lists_allocate_update_overflow_grow_rebin():
+    """`bvh.PairLists` through its life: allocated lists hold exactly the pairs `cull` keeps
+    (checked against `cull` on the shared list, an independent path: no compaction), too-small
+    capacities report overflow (not silently dropped pairs), `grow_lists` fixes that, and
+    `rebin_lists` gives the shared list `build_pairs` gives for moved scratches."""
+    from jscratch.scene import Board, Scratches, views_on_circle
+    from jscratch.shading import board_ndf, half_vectors
+
+    board = Board(shape=(24, 24))
+    views = views_on_circle(3, np.radians(50), board=board)
+    s = Scratches.random(jax.random.PRNGKey(3), 150, board, width=2.5e-4, depth=1.28e-4,
+                         dtype=jnp.float32)
+    hs = half_vectors(views, board, jnp.float32)
+    ndf_max = jnp.max(board_ndf(views, board, jnp.float32), axis=0)
+    lists = bvh.allocate_lists(s, board, hs, ndf_max, cull_eps=1e-3, coverage_eps=1e-3)
+    assert len(lists.caps) == 4 and not bool(lists.overflow)
+    with pytest.raises(ValueError, match="not culled yet"):
+        lists.for_render()
+    upd = jax.jit(bvh.update_lists)(lists, s, hs, ndf_max)
+    assert not bool(upd.overflow)
+
+    def kept(p):
+        v = np.asarray(p.valid)
+        return sorted(zip(np.asarray(p.pixel)[v].tolist(), np.asarray(p.scratch)[v].tolist()))
+
+    per_view, cov = upd.for_render()
+    for j in range(3):
+        ref = cull.cull(lists.shared, s.p0, s.p1, s.width, s.depth, s.alpha, hs[j], 1e-3)
+        assert kept(per_view[j]) == kept(ref) and len(kept(ref)) == int(upd.counts[j])
+        assert per_view[j].pixel.shape == (lists.caps[j],)
+    assert kept(cov) == kept(cull.cull_coverage(lists.shared, s.alpha, ndf_max, 1e-3))
+    assert 0 < len(kept(per_view[0])) < len(kept(lists.shared))
+    # capacities too small: overflow reported; grow_lists restores complete lists
+    small = bvh.PairLists(lists.shared, lists.spec, lists.counts, caps=(8, 8, 8, 8),
+                          cull_eps=1e-3, coverage_eps=1e-3)
+    over = bvh.update_lists(small, s, hs, ndf_max)
+    assert bool(over.overflow)
+    grown = bvh.update_lists(bvh.grow_lists(small, over.counts), s, hs, ndf_max)
+    assert not bool(grown.overflow)
+    assert [kept(p) for p in grown.for_render()[0]] == [kept(p) for p in per_view]
+    # unculled: every view renders the shared list, coverage from the same list
+    plain = bvh.allocate_lists(s, board, hs)
+    assert plain.for_render()[0] is plain.shared and plain.for_render()[1] is None
+    # moved scratches: the rebinned shared list is build_pairs' list
+    moved = Scratches(s.p0 + 0.01, s.p1 + 0.01, s.width, s.depth, s.alpha)
+    assert bool(bvh.needs_rebin(lists.shared, moved.p0, moved.p1, moved.width, moved.depth))
+    reb = bvh.rebin_lists(lists, moved, board)
+    ref, _ = bvh.build_pairs(moved.p0, moved.p1, moved.width, moved.depth, board=BOARD,
+                             shape=(24, 24))
+    assert kept(reb.shared) == kept(ref) and reb.caps == lists.caps
+    with pytest.raises(ValueError, match="cull_eps"):
+        bvh.allocate_lists(s, board, hs, cull_eps=float("nan"))
