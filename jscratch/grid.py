@@ -250,7 +250,8 @@ class _StripSetup(eqx.Module):
     mv: Array
     n_v: Array  # cells per strip
     k_lo: Array  # first strip
-    n_strips: Array  # int32: strips the groove's candidate range covers
+    k_hi: Array  # last strip
+    n_strips: Array  # int32: strips generated, k_hi - k_lo + 2 (one spare: see _bin)
     rows_bound: Array  # int32: bound on cells per strip (for allocate)
     length: Array  # m
     tol: float  # slack of the exact pair test, m
@@ -291,14 +292,19 @@ def _strip_setup(p0, p1, width, depth, board, shape, skin) -> _StripSetup:
     k_hi = _floor_index(mu + hu + tolg, n_u)
     k_lo = jnp.maximum(k_lo, 0)
     k_hi = jnp.minimum(k_hi, n_u - 1)
-    n_strips = jnp.where(active, jnp.maximum(k_hi - k_lo + 1, 0), 0).astype(jnp.int32)
+    # One spare strip: XLA may evaluate k_lo separately for this count and for `_bin`'s gather of
+    # it (each fusion recomputes its elementwise inputs), and where `mu - hu - tolg` rounds to an
+    # integer the two may differ by one. With the spare, the strips generated from either value
+    # cover [k_lo, k_hi]; `_bin` drops those past k_hi or off the grid (found on a groove ending
+    # 2.8e-7 m from the board edge, which was binned into row H).
+    n_strips = jnp.where(active & (k_hi >= k_lo), k_hi - k_lo + 2, 0).astype(jnp.int32)
     # Bound on cells per strip (for allocate): v-extent of one strip's candidate range.
     tau_len = jnp.minimum(2 * half_l, (1 + 2 * half_w * jnp.abs(bu) + 2 * tolg) / jnp.abs(tu))
     v_ext = jnp.abs(tv) * tau_len + 2 * half_w * jnp.abs(bv) + 2 * tolg
     rows_bound = jnp.where(active, jnp.floor(v_ext * (1 + 1e-6) + 1e-6) + 2, 0)
     rows_bound = jnp.minimum(rows_bound, n_v).astype(jnp.int32)
     return _StripSetup(t, b, half_w, half_l, centre, col_major, tu, tv, bu, bv, mu, mv, n_v, k_lo,
-                       n_strips, rows_bound, length, tol, tolg)
+                       k_hi, n_strips, rows_bound, length, tol, tolg)
 
 
 def _floor_index(g, n):
@@ -333,6 +339,8 @@ def _bin(p0, p1, width, depth, *, board, shape, skin, strip_capacity, rows, pair
     )[owner]  # fmt: skip
     tu, tv, bu, bv, mu, mv, half_w, half_l, cx_m, cy_m, tx, ty = (fl[:, j] for j in range(12))
     k = g.k_lo[owner] + slot - offsets[owner]
+    n_u = jnp.where(g.col_major[owner], w_px, h_px)
+    strip_ok = strip_ok & (k >= 0) & (k <= g.k_hi[owner]) & (k < n_u)  # the spare (setup)
     col_major = g.col_major[owner]
     n_v = g.n_v[owner]
 
@@ -381,7 +389,14 @@ def _bin(p0, p1, width, depth, *, board, shape, skin, strip_capacity, rows, pair
     valid = src < n_cells
     src = jnp.minimum(src, n_cells - 1)
     pixel = (row * w_px + col).reshape(-1)
-    pix_out = jnp.where(valid, pixel[src], 0)
+    # Off-grid cells never become pairs (the strip and row ranges are clipped to the grid, but XLA
+    # may recompute a range's first index in another fusion with different rounding at an
+    # integer boundary; see `_strip_setup`): checked on the index actually written.
+    pix_src = pixel[src]
+    cell_src = (row.reshape(-1)[src], col.reshape(-1)[src])
+    valid = valid & (cell_src[0] >= 0) & (cell_src[0] < h_px) & (cell_src[1] >= 0) & (
+        cell_src[1] < w_px)
+    pix_out = jnp.where(valid, pix_src, 0)
     scr_out = jnp.where(valid, owner[src // rows], n)
     overflow = (
         (strips_needed > strip_capacity) | (max_rows > rows) | (pairs_needed > pair_capacity)

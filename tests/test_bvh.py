@@ -217,7 +217,9 @@ def test_no_missed_pairs_float64(board, shape, n, wide):
     # padding efficiency: real pairs over slots, close to 1/margin
     assert int(np.asarray(pairs.valid).sum()) / spec.pair_capacity > 0.6
     # per-scratch work follows the scratch's own extent, not the image size: at most
-    # (extent of the groove along its major grid axis, in pixels) + 2 strips per scratch
+    # (extent of the groove along its major grid axis, in pixels) + 2 strips per scratch, plus
+    # the one spare strip per scratch that makes the strip range robust to XLA evaluating its
+    # first strip twice with different rounding (grid._strip_setup)
     t, b, length = _local_frame(p0, p1)
     xm = _x_max(width, depth)
     kx, ky = shape[1] / board[0], shape[0] / board[1]
@@ -226,7 +228,7 @@ def test_no_missed_pairs_float64(board, shape, n, wide):
         (length * np.abs(t[:, 1]) + 2 * xm * np.abs(b[:, 1])) * ky,
     )
     area = (length > 0) & (xm > 0)
-    bound = np.sum(np.where(area, np.floor(ext) + 2, 0))
+    bound = np.sum(np.where(area, np.floor(ext) + 3, 0))
     assert spec.strip_capacity <= bvh.DEFAULT_MARGIN * bound + 64
 
 
