@@ -90,7 +90,10 @@ def _parser() -> argparse.ArgumentParser:
     # issue 17: quality per scratch
     p.add_argument("--lambda-x", type=float, default=d.loss.lambda_x,
                    help="weight of the cross-view ghosting term E_x (sum over view pairs of the SSIM "
-                        "of a render with another view's target beyond the targets' own; 0: off)")
+                        "of a render with another view's target, beyond --ghost-baseline; 0: off)")
+    p.add_argument("--ghost-baseline", choices=("targets", "zero"), default=d.loss.ghost_baseline,
+                   help="E_x penalises the cross-view SSIM beyond the targets' own (targets) or all of "
+                        "it (zero: the SPEC-7 ghosting itself)")
     p.add_argument("--prune-every", type=int, default=d.prune_every,
                    help="iterations between prune/re-seed rounds that move the least useful "
                         "scratches to where a view is too dark (0: never)")
@@ -145,7 +148,8 @@ def _run_cli(args) -> int:
             config, prune_every=args.prune_every, prune_fraction=args.prune_fraction,
             prune_until=args.prune_until, target_ssim=args.target_ssim,
             lr_schedule=args.lr_schedule, lr_final=args.lr_final,
-            loss=dataclasses.replace(config.loss, lambda_x=args.lambda_x))
+            loss=dataclasses.replace(config.loss, lambda_x=args.lambda_x,
+                                     ghost_baseline=args.ghost_baseline))
     if config.dtype == "float64":
         jax.config.update("jax_enable_x64", True)
     size = int(cli["size"])
