@@ -22,8 +22,10 @@ unless ``--groove free`` is given; ``--iterations`` sets the Adam iterations of 
 
 Suites: ``lambda`` (the ``lambda_g`` sweep), ``ghost`` (``lambda_x``), ``prune`` (re-seed
 rounds), ``pieces`` (today's defaults, each new piece alone,
-the proposed defaults), ``s9`` (session 9: the command line's defaults, ``lambda_g`` 20 alone,
-prune alone, both, both with ``E_x`` at the ``--lx`` values and with the raw-ghosting ``E_x``). ``--sets`` picks target sets (``default``: camera/astronaut/chelsea; ``other``:
+the proposed defaults), ``s9`` (session 9: the command line's defaults before it, ``lambda_g`` 20
+alone, prune alone, both, both with ``E_x`` at the ``--lx`` values, and with the raw-ghosting
+``E_x`` (``ghost_baseline = "zero"``) at the ``--lx`` values: the new defaults are
+``--lx 0.001 --only 5``). ``--sets`` picks target sets (``default``: camera/astronaut/chelsea; ``other``:
 coins/clock/line art; ``other2``: text/brick/page).
 """
 
@@ -173,8 +175,8 @@ def suite(name: str, lx=(0.003, 0.01, 0.03), prune=((10, 0.05), (20, 0.1)), lg_n
               "prune_every": 10, "prune_fraction": 0.05}),
         ]
     if name == "s9":
-        # today's defaults = the command line's (E_p + LAMBDA_G E_g, no prune, no E_x); every
-        # other row names its weights explicitly, so it does not move if the defaults do
+        # "today's defaults" = the command line's before session 9 (E_p + 200 E_g, no prune, no
+        # E_x); every row names its weights explicitly, so it does not move with the defaults
         old = {"loss": {"kind": "perceptual+gram", "lambda_g": 200.0, "lambda_x": 0.0},
                "prune_every": 0}
         g20 = {"kind": "perceptual+gram", "lambda_g": 20.0, "lambda_x": 0.0}
