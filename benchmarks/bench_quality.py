@@ -24,7 +24,7 @@ Suites: ``lambda`` (the ``lambda_g`` sweep), ``ghost`` (``lambda_x``), ``prune``
 rounds), ``pieces`` (today's defaults, each new piece alone,
 the proposed defaults), ``s9`` (session 9: the command line's defaults before it, ``lambda_g`` 20
 alone, prune alone, both, both with ``E_x`` at the ``--lx`` values, and with the raw-ghosting
-``E_x`` (``ghost_baseline = "zero"``) at the ``--lx`` values: the new defaults are
+``E_x`` (``ghost_baseline = "zero"``) at the ``--lx`` values: session 9's candidate is
 ``--lx 0.001 --only 5``). ``--sets`` picks target sets (``default``: camera/astronaut/chelsea; ``other``:
 coins/clock/line art; ``other2``: text/brick/page).
 """
