@@ -4,15 +4,28 @@ Each row is one `jscratch.design.design` run in its own Python process (so that 
 includes its own compilation, like a user's run), on one of the target sets below, with the same
 seed and scene. The table reports per-view SSIM, PSNR, ghosting (SPEC section 7), the texture
 distance (`metrics.texture_distance`), scratches kept, the ghosting in excess of the targets' own
-(`excess`), the carving estimate of SPEC section 8
-(one scratch per second plus the cutting length at 1.5 cm/s) and the wall time.
+(`excess`), the carving estimate and the wall time of ``design`` (compilation included; the
+carving estimate is not timed).
+
+Carving estimate: the machine profile's (`jscratch.design.maker.carving_estimate`: the kept
+scratches ordered with 1 s of 2-opt, then `jscratch.machine.carving_seconds` with the shipped
+profile's feeds, plunges and overheads), the number ``python -m jscratch.design`` writes to
+``metrics.json`` ("carving"). SPEC section 8's rule (one second per scratch plus the cutting
+length at 1.5 cm/s) is kept in the ``.jsonl`` as ``hours_spec8`` for comparison with older tables.
+
+Every row uses the command line's groove model (``--groove carvable``, one plunge per scratch)
+unless ``--groove free`` is given; ``--iterations`` sets the Adam iterations of every row,
+``--extra JSON`` merges `DesignConfig` overrides into every row (e.g. ``'{"target_ssim": 0.75}'``).
 
     python benchmarks/bench_quality.py --suite lambda --size 128 --scratches 5000 \
         --out /tmp/w17/lambda128.md
 
 Suites: ``lambda`` (the ``lambda_g`` sweep), ``ghost`` (``lambda_x``), ``prune`` (re-seed
 rounds), ``pieces`` (today's defaults, each new piece alone,
-the proposed defaults). ``--sets`` picks target sets (``default``: camera/astronaut/chelsea; ``other``:
+the proposed defaults), ``s9`` (session 9: the command line's defaults before it, ``lambda_g`` 20
+alone, prune alone, both, both with ``E_x`` at the ``--lx`` values, and with the raw-ghosting
+``E_x`` (``ghost_baseline = "zero"``) at the ``--lx`` values: session 9's candidate is
+``--lx 0.001 --only 5``). ``--sets`` picks target sets (``default``: camera/astronaut/chelsea; ``other``:
 coins/clock/line art; ``other2``: text/brick/page).
 """
 
@@ -75,7 +88,7 @@ def targets(names, size):
     return np.stack(out)
 
 
-def carving_hours(p0, p1):
+def carving_hours_spec8(p0, p1):
     length = np.hypot(*(np.asarray(p1) - np.asarray(p0)).T).sum()
     return (SECONDS_PER_SCRATCH * len(p0) + length / CUT_SPEED) / 3600.0
 
@@ -92,7 +105,11 @@ def run_one(spec: dict) -> dict:
     t = targets(SETS[spec["set"]], size)
     board = Board(shape=(size, size))
     views = views_on_circle(3, np.radians(50.0), 1.0, None, board)
-    cfg = DesignConfig.from_dict({"n_scratches": spec["scratches"], **spec["config"]})
+    over = dict(spec["config"])
+    if over.pop("raw_ghost", False):  # E_x against a zero baseline: the raw cross-view SSIM
+        over["loss"] = {**over.get("loss", {}), "ghost_baseline": "zero"}
+    cfg = DesignConfig.from_dict({"n_scratches": spec["scratches"], "groove": spec["groove"],
+                                  "iterations": spec["iterations"], **over})
     t0 = time.perf_counter()
     res = design(t, views, board, cfg)
     wall = time.perf_counter() - t0
@@ -101,10 +118,26 @@ def run_one(spec: dict) -> dict:
     from jscratch.metrics import image_metrics
 
     base = image_metrics(t, t)["ghosting"]  # what a perfect render would show
+    from jscratch import designfile
+    from jscratch.design.maker import carving_estimate
+
+    plunge = None
+    if res.params.groove is not None:
+        plunge = np.asarray(res.params.plunge(), np.float64)[np.asarray(res.keep)]
+    v = res.views
+    d = designfile.Design(np.asarray(s.p0, np.float64), np.asarray(s.p1, np.float64),
+                          np.asarray(s.width, np.float64), np.asarray(s.depth, np.float64),
+                          np.asarray(s.alpha, np.float64), np.array([board.Sx, board.Sy]),
+                          np.asarray(v.camera), np.asarray(v.light), np.asarray(v.intensity),
+                          plunge=plunge)
+    carve = carving_estimate(d, cfg.machine_profile(), time_limit=1.0, plunge=plunge)
     return {
         "ssim": m["ssim"], "psnr": m["psnr"], "ghosting": m["ghosting"],
         "texture": texture_distance(np.asarray(res.display), t),
-        "kept": int(m["kept"]), "hours": float(carving_hours(s.p0, s.p1)),
+        "kept": int(m["kept"]), "hours": carve["estimated_hours"],
+        "hours_spec8": float(carving_hours_spec8(s.p0, s.p1)), "iterations": cfg.iterations,
+        "groove": cfg.groove, "target": m.get("target"),
+        "step_median": m["time_step_median"], "time_select": m["time_discard"],
         "loss_terms": m["loss_terms"], "wall": wall, "jax": jax.__version__,
         "prune": m.get("prune"), "ghost_base": base,
     }
@@ -141,6 +174,26 @@ def suite(name: str, lx=(0.003, 0.01, 0.03), prune=((10, 0.05), (20, 0.1)), lg_n
              {"loss": {"kind": "perceptual+gram", "lambda_g": 20.0, "lambda_x": 0.0},
               "prune_every": 10, "prune_fraction": 0.05}),
         ]
+    if name == "s9":
+        # "today's defaults" = the command line's before session 9 (E_p + 200 E_g, no prune, no
+        # E_x); every row names its weights explicitly, so it does not move with the defaults
+        old = {"loss": {"kind": "perceptual+gram", "lambda_g": 200.0, "lambda_x": 0.0},
+               "prune_every": 0}
+        g20 = {"kind": "perceptual+gram", "lambda_g": 20.0, "lambda_x": 0.0}
+        (pe, pf) = prune[0]
+        pr = {"prune_every": pe, "prune_fraction": pf}
+        rows = [
+            ("today's defaults (E_p + 200 E_g)", old),
+            ("E_p + 20 E_g alone", {**old, "loss": g20}),
+            (f"prune every {pe}, {pf:.0%} alone (E_p + 200 E_g)", {**old, **pr}),
+            (f"proposal: E_p + 20 E_g, prune every {pe}, {pf:.0%}", {"loss": g20, **pr}),
+        ]
+        for x in lx:
+            rows.append((f"proposal + {x} E_x", {"loss": {**g20, "lambda_x": x}, **pr}))
+        for x in lx:
+            rows.append((f"proposal + {x} E_x raw (zero baseline)",
+                         {"loss": {**g20, "lambda_x": x, "ghost_baseline": "zero"}, **pr}))
+        return rows
     raise SystemExit(f"unknown suite {name!r}")
 
 
@@ -170,6 +223,12 @@ def main(argv=None):
                    "pieces: the first)")
     p.add_argument("--prune", default="10:0.05,20:0.1", help="EVERY:FRACTION settings (prune "
                    "suite; pieces: the first)")
+    p.add_argument("--groove", choices=("carvable", "free"), default="carvable",
+                   help="groove model of every row (the command line's default: carvable)")
+    p.add_argument("--iterations", type=int, default=100, help="Adam iterations of every row")
+    p.add_argument("--extra", default="{}", help="JSON DesignConfig overrides merged into every "
+                   "row (e.g. '{\"target_ssim\": 0.75}')")
+    p.add_argument("--label", default="", help="suffix of every row's label")
     p.add_argument("--out", default="/tmp/w17/quality.md", help="markdown table (appended)")
     p.add_argument("--one", default=None, help=argparse.SUPPRESS)  # child: JSON spec
     a = p.parse_args(argv)
@@ -183,15 +242,22 @@ def main(argv=None):
     os.makedirs(os.path.dirname(os.path.abspath(a.out)), exist_ok=True)
     load = os.getloadavg()
     with open(a.out, "a") as f:
-        f.write(f"\n### suite {a.suite}, {a.size} px, {a.scratches} scratches, 3 views, 100 it., "
+        f.write(f"\n### suite {a.suite}, {a.size} px, {a.scratches} scratches, 3 views, "
+                f"{a.iterations} it., {a.groove} grooves, extra {a.extra}, "
                 f"seed 0 ({time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, "
                 f"{platform.machine()}, load at start {load[0]:.2f}/{load[1]:.2f}/{load[2]:.2f})\n\n"
                 "| targets | run | SSIM per view (mean) | PSNR (dB) | ghosting (mean) | excess "
-                "ghosting | texture | kept | carve (h) | wall (s) |\n"
-                "|---|---|---|---|---|---|---|---|---|---|\n")
+                "ghosting | texture | kept | carve (h) | wall (s) | load |\n"
+                "|---|---|---|---|---|---|---|---|---|---|---|\n")
     for set_name in a.sets.split(","):
         for label, cfg in rows:
-            spec = {"set": set_name, "size": a.size, "scratches": a.scratches, "config": cfg}
+            extra = json.loads(a.extra)
+            if "loss" in extra:
+                extra["loss"] = {**cfg.get("loss", {}), **extra["loss"]}
+            label = label + a.label
+            spec = {"set": set_name, "size": a.size, "scratches": a.scratches,
+                    "groove": a.groove, "iterations": a.iterations, "config": {**cfg, **extra}}
+            load0 = os.getloadavg()[0]
             proc = subprocess.run([sys.executable, __file__, "--one", json.dumps(spec)],
                                   capture_output=True, text=True)
             line = [x for x in proc.stdout.splitlines() if x.startswith("RESULT ")]
@@ -199,10 +265,12 @@ def main(argv=None):
                 row = f"| {set_name} | {label} | failed: {proc.stderr.strip().splitlines()[-1:]} |"
             else:
                 r = json.loads(line[0][7:])
-                row = f"| {set_name} | {label} | {fmt(r)} |"
+                row = (f"| {set_name} | {label} | {fmt(r)} | "
+                       f"{load0:.1f}-{os.getloadavg()[0]:.1f} |")
                 with open(a.out + ".jsonl", "a") as g:
                     g.write(json.dumps({"set": set_name, "label": label, "size": a.size,
-                                        "scratches": a.scratches, **r}) + "\n")
+                                        "scratches": a.scratches, "config": spec["config"],
+                                        "load": os.getloadavg(), **r}) + "\n")
             print(row, flush=True)
             with open(a.out, "a") as f:
                 f.write(row + "\n")

@@ -246,7 +246,7 @@ def test_make_loss_kinds_and_bind():
         expected, rel=1e-12
     )
     assert set(dataclasses.asdict(loss_mod.LossConfig())) == {"kind", "lambda_p", "lambda_g", "vgg_weights",
-                                                      "lambda_x"}
+                                                      "lambda_x", "ghost_baseline"}
 
 
 def test_calibrate_lambda_g():

@@ -70,3 +70,20 @@ def test_texture_distance():
     assert max(d_smooth) < min(min(d_flat), min(d_noisy))
     with pytest.raises(ValueError, match="same shape"):
         texture_distance(t[:1], t)
+
+
+def test_ghost_baseline_zero_penalises_raw_cross_ssim():
+    t = jnp.asarray(_images())
+    cfg = loss_mod.LossConfig(kind="perceptual", lambda_x=0.1, ghost_baseline="zero")
+    got = loss_mod.make_loss(cfg).bind(t).terms(t)
+    # independent: scikit-image SSIM of every (render j, target k != j) pair of the blurred images
+    b = np.asarray(loss_mod.blur3(t), np.float64)
+    ref = sum(max(0.0, structural_similarity(b[j], b[k], data_range=1.0))
+              for j in range(3) for k in range(3) if k != j)
+    assert ref > 0.05  # the targets resemble each other: a perfect render is penalised too
+    assert float(got["E_x"]) == pytest.approx(ref, rel=1e-4)
+    assert float(got["total"]) == pytest.approx(0.1 * ref, rel=1e-4)  # E_p = 0 here
+    default = loss_mod.make_loss(loss_mod.LossConfig(kind="perceptual", lambda_x=0.1))
+    assert float(default.bind(t).terms(t)["E_x"]) == pytest.approx(0.0, abs=1e-12)
+    with pytest.raises(ValueError, match="ghost_baseline"):
+        loss_mod.LossConfig(ghost_baseline="none")

@@ -90,7 +90,10 @@ def _parser() -> argparse.ArgumentParser:
     # issue 17: quality per scratch
     p.add_argument("--lambda-x", type=float, default=d.loss.lambda_x,
                    help="weight of the cross-view ghosting term E_x (sum over view pairs of the SSIM "
-                        "of a render with another view's target beyond the targets' own; 0: off)")
+                        "of a render with another view's target, beyond --ghost-baseline; 0: off)")
+    p.add_argument("--ghost-baseline", choices=("targets", "zero"), default=d.loss.ghost_baseline,
+                   help="E_x penalises the cross-view SSIM beyond the targets' own (targets) or all of "
+                        "it (zero: the SPEC-7 ghosting itself)")
     p.add_argument("--prune-every", type=int, default=d.prune_every,
                    help="iterations between prune/re-seed rounds that move the least useful "
                         "scratches to where a view is too dark (0: never)")
@@ -98,6 +101,16 @@ def _parser() -> argparse.ArgumentParser:
                    help="fraction of the scratches moved per prune/re-seed round")
     p.add_argument("--prune-until", type=float, default=d.prune_until,
                    help="last prune/re-seed round at this fraction of the iterations")
+    p.add_argument("--target-ssim", type=float, default=d.target_ssim,
+                   help="ask for a quality, get the fewest scratches: instead of the discard, keep the "
+                        "fewest scratches whose mean SSIM over the views (SPEC section 7, 0-1) stays at "
+                        "least this (all are kept if the full design is below it; metrics.json "
+                        "'target' has the search); default: the discard's loss tolerance decides")
+    p.add_argument("--lr-schedule", choices=("constant", "cosine"), default=d.lr_schedule,
+                   help="learning rates constant (paper) or cosine-decayed to --lr-final of their "
+                        "values over the iterations")
+    p.add_argument("--lr-final", type=float, default=d.lr_final,
+                   help="cosine schedule: final learning rates as a fraction of the initial ones (0-1)")
     return p
 
 
@@ -133,8 +146,10 @@ def _run_cli(args) -> int:
             groove=args.groove, machine=_machine_dict(args.machine))
         config = dataclasses.replace(  # issue 17's options
             config, prune_every=args.prune_every, prune_fraction=args.prune_fraction,
-            prune_until=args.prune_until,
-            loss=dataclasses.replace(config.loss, lambda_x=args.lambda_x))
+            prune_until=args.prune_until, target_ssim=args.target_ssim,
+            lr_schedule=args.lr_schedule, lr_final=args.lr_final,
+            loss=dataclasses.replace(config.loss, lambda_x=args.lambda_x,
+                                     ghost_baseline=args.ghost_baseline))
     if config.dtype == "float64":
         jax.config.update("jax_enable_x64", True)
     size = int(cli["size"])
@@ -177,6 +192,11 @@ def _run_cli(args) -> int:
         print(f"wrote {out}: {mt['kept']} scratches ({mt['discarded']} discarded), loss "
               f"{mt['loss']:.5g}, SSIM {[round(x, 3) for x in mt['ssim']]}, PSNR "
               f"{[round(x, 2) for x in mt['psnr']]} dB, {mt['time_total']:.1f} s")
+        if "target" in mt:
+            tg = mt["target"]
+            print(f"target mean SSIM {tg['ssim']:.3f}: " + (
+                f"reached with {mt['kept']} scratches (mean SSIM {tg['mean_ssim']:.3f})"
+                if tg["reached"] else f"not reached (full design: {tg['mean_ssim']:.3f})"))
         ac, cv = maker.get("as_carved"), maker["carving"]
         print(f"machine {config.machine_profile().name!r}, {maker['groove']} grooves: "
               + (f"as-carved SSIM {[round(x, 3) for x in ac['ssim']]}, " if ac else "")

@@ -19,6 +19,10 @@ GROUPS = ("endpoints", "width", "depth", "alpha", "intensity")
 PARAMETERISATIONS = ("endpoints", "midpoint")
 
 
+#: Learning-rate schedules (`DesignConfig.lr_schedule`).
+LR_SCHEDULES = ("constant", "cosine")
+
+
 #: Default targets from ``skimage.data`` (bundled with scikit-image; nothing is downloaded).
 DEFAULT_IMAGES = ("camera", "astronaut", "chelsea", "coffee", "rocket", "moon")
 
@@ -76,6 +80,15 @@ class DesignConfig:
     - `prune_fraction`: fraction of the ``N`` scratches moved per round. Default 0.05.
     - `prune_until`: no round after this fraction of ``iterations`` (moved scratches need
       iterations to settle). Default 0.6.
+    - `target_ssim`: None (default: the discard's loss tolerance decides what is kept) or a mean
+      SSIM (SPEC section 7, mean over views) in ``(0, 1]``: instead of the discard, keep the
+      fewest scratches (dropped in the discard's score order) whose render still reaches it
+      (`discard.fewest_for_ssim`; all are kept when the full design is below it). Reported in
+      ``metrics["target"]``.
+    - `lr_schedule`: ``"constant"`` (default, paper) or ``"cosine"``: every group's learning rate
+      follows ``optax.cosine_decay_schedule`` from its value down to ``lr_final`` of it at
+      ``iterations`` (resuming with a larger ``--iterations`` stretches the schedule).
+    - `lr_final`: the cosine schedule's final fraction, in ``[0, 1]``. Default 0.1.
     """
 
     n_scratches: int = 20000
@@ -110,6 +123,9 @@ class DesignConfig:
     prune_every: int = 0
     prune_fraction: float = 0.05
     prune_until: float = 0.6
+    target_ssim: float | None = None
+    lr_schedule: str = "constant"
+    lr_final: float = 0.1
 
     def __post_init__(self):
         def bad(name, what):
@@ -168,9 +184,14 @@ class DesignConfig:
             object.__setattr__(self, "machine", prof.to_dict())
         if not (isinstance(self.prune_every, (int, np.integer)) and self.prune_every >= 0):
             bad("prune_every", "an int >= 0 (iterations; 0 = never)")
-        for name in ("prune_fraction", "prune_until"):
+        if self.lr_schedule not in LR_SCHEDULES:
+            bad("lr_schedule", f"one of {LR_SCHEDULES}")
+        for name in ("prune_fraction", "prune_until", "lr_final"):
             if not (math.isfinite(getattr(self, name)) and 0 <= getattr(self, name) <= 1):
                 bad(name, "in [0, 1]")
+        if self.target_ssim is not None and not (
+                isinstance(self.target_ssim, (int, float)) and 0 < self.target_ssim <= 1):
+            bad("target_ssim", "None or a mean SSIM in (0, 1]")
 
     def machine_profile(self):
         """The `jscratch.machine.MachineProfile` of `machine` (the shipped default when None)."""

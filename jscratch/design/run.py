@@ -21,7 +21,7 @@ from jscratch.scene import Board, Scratches, Views
 from jscratch.shading import DISPLAY_GAMMA, board_ndf, display, half_vectors
 from jscratch.design.checkpoint import State, load_checkpoint, save_checkpoint
 from jscratch.design.config import DesignConfig, NonFiniteError
-from jscratch.design.discard import discard
+from jscratch.design.discard import discard, fewest_for_ssim
 from jscratch.design import prune as prune_mod
 from jscratch.design.io import check_design_views, check_targets, targets_hash
 from jscratch.design.params import DesignParams, group_tree
@@ -86,7 +86,8 @@ def design(
         warm.join()
     n_iter = config.iterations if stop_after is None else min(config.iterations, stop_after)
     state, step_times = _iterate(state, optimizer, ctx, config, n_iter, checkpoint, thash, progress)
-    result = _finish(state, ctx, tnp, config, discard_now=config.discard and stop_after is None)
+    result = _finish(state, ctx, tnp, config, discard_now=(
+        config.discard or config.target_ssim is not None) and stop_after is None)
     result.metrics.update({
         "time_total": time.perf_counter() - t_start,
         "time_first_step": step_times[0] if step_times else None,
@@ -129,6 +130,9 @@ def setup(tnp, views, board, config):
     params = DesignParams.from_physical(scratches, np.asarray(views.intensity), board,
                                         config.parameterisation, groove)
     optimizer = make_adam(config.adam_b1, config.adam_b2, config.adam_eps)
+    if config.lr_schedule == "cosine":
+        optimizer = make_adam(config.adam_b1, config.adam_b2, config.adam_eps, config.iterations,
+                              config.lr_final)
     lrs = group_tree(params, {g: jnp.asarray(v, dt) for g, v in config.learning_rates().items()})
     cam = jnp.asarray(views.camera, dt)
     lig = jnp.asarray(views.light, dt)
@@ -286,7 +290,11 @@ def _finish(state, ctx, tnp, config, *, discard_now: bool) -> DesignResult:
     loss_all = float(terms["total"])
     metrics_all = image_metrics(np.asarray(display(rad)), tnp)
     keep = np.ones(config.n_scratches, bool)
-    if discard_now:
+    target = None
+    if discard_now and config.target_ssim is not None:
+        keep, rad, terms, target = fewest_for_ssim(params, lists, ctx, tnp, config.target_ssim,
+                                                   rad, terms)
+    elif discard_now:
         keep, rad, terms = discard(params, lists, ctx, loss_all, config.discard_tol, rad, terms)
     t_discard = time.perf_counter() - t_d
     rad = np.asarray(rad)
@@ -316,5 +324,7 @@ def _finish(state, ctx, tnp, config, *, discard_now: bool) -> DesignResult:
         "intensity": [float(x) for x in inten],
         "prune": state.history.get("prune", []),
     })
+    if target is not None:
+        mets["target"] = target
     return DesignResult(result_scratches, result_views, ctx.board, params, keep, rad, disp, tnp,
                         state.history, mets, config)

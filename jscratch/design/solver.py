@@ -37,15 +37,22 @@ class Context(eqx.Module):
 
 
 @functools.lru_cache(maxsize=None)
-def make_adam(b1: float, b2: float, eps: float) -> optax.GradientTransformation:
+def make_adam(b1: float, b2: float, eps: float, decay_steps: int = 0,
+              final_fraction: float = 1.0) -> optax.GradientTransformation:
     """Adam's scaling (``optax.scale_by_adam``); `_step_impl` then scales each group by its own
     ``-lr`` (``Context.lrs``, 0 for a frozen group, whose gradient is zeroed first). Cached: the
-    same object for the same constants, so jit caches hit across designs.
+    same object for the same constants, so jit caches hit across designs. With ``decay_steps > 0``
+    the steps are also scaled by ``optax.cosine_decay_schedule(1, decay_steps, final_fraction)``
+    (every group's learning rate falls from its value to ``final_fraction`` of it).
 
     (``optax.multi_transform`` with ``optax.set_to_zero()`` computes the same update, but its
     different compiled step changes the default design's loss by ~1e-7 relative after a few
     iterations and ~3e-3 after 100: kept as is so that results stay identical.)"""
-    return optax.scale_by_adam(b1=b1, b2=b2, eps=eps)
+    adam = optax.scale_by_adam(b1=b1, b2=b2, eps=eps)
+    if decay_steps > 0:
+        sched = optax.cosine_decay_schedule(1.0, decay_steps, alpha=final_fraction)
+        return optax.chain(adam, optax.scale_by_schedule(sched))
+    return adam
 
 
 def view_lists(params: DesignParams, lists: bvh.PairLists, ctx: Context) -> bvh.PairLists:
