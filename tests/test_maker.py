@@ -167,7 +167,7 @@ def _tiny_optimisation():
     """A tiny carvable design problem, built once (the jitted step compiles once)."""
     if not _OPT:
         from jscratch.design.io import default_targets
-        from jscratch.design.run import bin_pairs, setup
+        from jscratch.design.run import pair_lists, setup
 
         board = render.Board(shape=(SIZE, SIZE))
         views = render.views_on_circle(2, math.radians(50), board=board)
@@ -175,7 +175,7 @@ def _tiny_optimisation():
         # The round trip's scene and machine, so that the jitted step is compiled once for both.
         cfg = DesignConfig(n_scratches=150, iterations=1, groove="carvable", machine=_MINE)
         params, opt, ctx = setup(targets, views, board, cfg)
-        pairs, _ = bin_pairs(params, None, board, cfg)  # unculled: capacities (1, 1)
+        pairs = pair_lists(params, ctx, cfg)  # unculled: the shared list serves every view
         _OPT.update(params=params, pairs=pairs, opt=opt, ctx=ctx)
     return _OPT["params"], _OPT["pairs"], _OPT["opt"], _OPT["ctx"]
 
@@ -200,7 +200,7 @@ def test_carvable_bounds_never_violated_during_optimisation(lr, start, seed):
     o_ = opt.init(p_)
     moved = 0.0
     for _ in range(3):
-        new, o_, terms, _, _, _ = step(p_, o_, pairs, ctx, (1, 1), opt)
+        new, o_, terms, _, _, _ = step(p_, o_, pairs, ctx, opt)
         pl = np.asarray(new.plunge(), np.float64)
         s = new.scratches()
         assert np.all((pl >= 1e-5 * (1 - 1e-6)) & (pl <= 8e-5 * (1 + 1e-6)))
