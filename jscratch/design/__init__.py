@@ -55,7 +55,7 @@ and the last good state stays in the checkpoint.
 - `jscratch.design.params`: `DesignParams`, `group_tree`.
 - `jscratch.design.solver`: the jitted step (`Context`, `view_lists`, `evaluate`, `step`, ...).
 - `jscratch.design.carvable`: carvable grooves (one plunge per scratch in the machine's range,
-  mapped to the groove profile); `jscratch.design.prune`: prune/re-seed rounds (an option).
+  mapped to the groove profile); `jscratch.design.prune`: prune/re-seed rounds (on by default since issue 17).
 - `jscratch.design.discard`, `jscratch.design.checkpoint`, `jscratch.design.result`.
 - `jscratch.design.io`: targets, images and outputs; `jscratch.design.maker`: the machine's
   outputs (as-carved render, carving estimate); `jscratch.design.run`: `design` and its seams
@@ -67,6 +67,7 @@ and the last good state stays in the checkpoint.
 from jscratch.design.cli import main as main
 from jscratch.design.config import (
     DEFAULT_IMAGES as DEFAULT_IMAGES,
+    DESIGN_LAMBDA_X as DESIGN_LAMBDA_X,
     GROUPS as GROUPS,
     PARAMETERISATIONS as PARAMETERISATIONS,
     DesignConfig as DesignConfig,

@@ -19,6 +19,20 @@ GROUPS = ("endpoints", "width", "depth", "alpha", "intensity")
 PARAMETERISATIONS = ("endpoints", "midpoint")
 
 
+#: Default weight of the ghosting term ``E_x`` in a design, against a zero baseline (the raw
+#: cross-view SSIM, SPEC section 7's ghosting). Measured (benchmarks/RESULTS.md, issue 17,
+#: session 9; 256 px, 20k scratches, 3 views, carvable grooves, seed 0): with ``lambda_g = 20``
+#: and prune/re-seed every 10 iterations, 0.001 gave mean SSIM 0.802 and ghosting 0.211 against
+#: the old defaults' 0.746 / 0.235 (camera / astronaut / chelsea), 0.746 / 0.328 vs 0.683 / 0.336
+#: (coins / clock / line art), 0.781 / 0.241 vs 0.712 / 0.271 (text / brick / page); seed 1
+#: (after the grid fix of session 9): 0.803 / 0.211 vs 0.746 / 0.236. At 60k scratches it gives
+#: 0.880 / 0.201 vs 0.913 / 0.258 (less SSIM, less ghosting: there ``--lambda-g 200 --lambda-x 0
+#: --prune-every 0`` keeps the old SSIM). 0.01 cut
+#: ghosting to 0.077 but SSIM to 0.679; the excess-only baseline (``"targets"``) at 0.03 raised
+#: the ghosting on the other two sets.
+DESIGN_LAMBDA_X = 1e-3
+
+
 #: Learning-rate schedules (`DesignConfig.lr_schedule`).
 LR_SCHEDULES = ("constant", "cosine")
 
@@ -47,8 +61,10 @@ class DesignConfig:
     - `lr_endpoints` [board widths per step] 1e-3 (paper); `lr_width`, `lr_depth` [log m],
       `lr_alpha` [logit], `lr_intensity` [log W/sr]: 1e-2 each.
     - `freeze`: groups not optimised (subset of `GROUPS`). Default ``("alpha",)``.
-    - `loss`: a `loss.LossConfig` (default ``E_p + LAMBDA_G E_g``, filter bank; ``LAMBDA_G``
-      stays 200, issue 17 measured 20 better on SSIM: see `loss.LAMBDA_G`).
+    - `loss`: a `loss.LossConfig`. Default ``E_p + LAMBDA_G E_g + DESIGN_LAMBDA_X E_x`` (filter
+      bank, ``LAMBDA_G = 20``; ``E_x`` with ``ghost_baseline = "zero"``: the raw cross-view SSIM),
+      issue 17's measured defaults (see `DESIGN_LAMBDA_X`). A `LossConfig` built by hand has no
+      ``E_x`` unless it asks (``LossConfig.lambda_x`` defaults to 0).
     - `cull_eps`: per-view culling tolerance of `cull.cull` (0 keeps every pair). Default 0:
       measured on the default run, 1e-3 is 1.9x faster (295 s vs 546 s) but ends at 2.4x the loss
       (0.0323 vs 0.0136; SSIM 0.46/0.76/0.74 vs 0.69/0.75/0.82), 1e-2 far worse (module docstring).
@@ -73,10 +89,10 @@ class DesignConfig:
     - `machine`: the machine profile as a dict (`jscratch.machine.MachineProfile.to_dict`), or
       None for the shipped default; its cutter fixes the carvable grooves.
     - `prune_every` [iterations]: every this many iterations, move the least useful scratches
-      to where the image is most too dark (`design.prune`); 0 (default) never. Measured with E_p
-      (RESULTS.md, issue 17): every 10 with 5 % raised mean SSIM 0.739 -> 0.768 at 128 px / 5k
-      and 0.801 -> 0.813 at 256 px / 20k at the same wall time, but the moved scratches are kept
-      by the discard (+9-20 % scratches, carving time), so it is an option, not the default.
+      to where the image is most too dark (`design.prune`); 0 never. Default 10 (issue 17,
+      session 9: part of the measured defaults, see `DESIGN_LAMBDA_X`). The moved scratches end
+      up useful, so the discard keeps more of them (+9-20 % scratches and carving time;
+      ``target_ssim`` trades quality back for scratches).
     - `prune_fraction`: fraction of the ``N`` scratches moved per round. Default 0.05.
     - `prune_until`: no round after this fraction of ``iterations`` (moved scratches need
       iterations to settle). Default 0.6.
@@ -105,7 +121,8 @@ class DesignConfig:
     lr_alpha: float = 1e-2
     lr_intensity: float = 1e-2
     freeze: tuple[str, ...] = ("alpha",)
-    loss: loss_mod.LossConfig = dataclasses.field(default_factory=loss_mod.LossConfig)
+    loss: loss_mod.LossConfig = dataclasses.field(default_factory=lambda: loss_mod.LossConfig(
+        lambda_x=DESIGN_LAMBDA_X, ghost_baseline="zero"))
     cull_eps: float = 0.0
     coverage_eps: float = 0.0
     skin: float = 0.0
@@ -120,7 +137,7 @@ class DesignConfig:
     dtype: str = "float32"
     groove: str = "free"
     machine: dict | None = None
-    prune_every: int = 0
+    prune_every: int = 10
     prune_fraction: float = 0.05
     prune_until: float = 0.6
     target_ssim: float | None = None

@@ -22,8 +22,9 @@ top of an iteration, after the checkpoint of the previous one, so a resumed run 
 interrupted run had can add rounds that run would not have made, like any schedule.)
 
 Measured (benchmarks/RESULTS.md, issue 17): 128 px / 5k scratches, ``E_p``: mean SSIM 0.739 ->
-0.768 at equal wall time; 256 px / 20k: 0.801 -> 0.813. The moved scratches end up useful, so the
-final discard keeps more of them (+9-20 %), which is part of the price.
+0.768 at equal wall time; 256 px / 20k: 0.801 -> 0.813; with carvable grooves and ``E_p + 200 E_g``
+0.746 -> 0.758. The moved scratches end up useful, so the final discard keeps more of them
+(+9-20 %), which is part of the price. On by default (every 10 iterations) since session 9.
 """
 
 from __future__ import annotations
