@@ -37,7 +37,6 @@ from __future__ import annotations
 import math
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
@@ -209,8 +208,7 @@ def grow_lists(lists: PairLists, counts, margin: float | None = None) -> PairLis
                      lists.cull_eps, lists.coverage_eps)
 
 
-def _arrays(scratches: Scratches):
-    s = jax.lax.stop_gradient(scratches)
+def _arrays(s: Scratches):
     return s.p0, s.p1, s.width, s.depth
 
 

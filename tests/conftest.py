@@ -13,3 +13,20 @@ import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_platforms", "cpu")
+
+
+import pytest  # noqa: E402
+
+
+@pytest.fixture(scope="session")
+def two_view_scene():
+    """The small design scene of the prune and target-quality tests: two default targets at
+    32 x 32 px and two views on a 50-degree circle, ``(targets, views, board)``."""
+    import math
+
+    from jscratch.design.io import default_targets
+    from jscratch.scene import Board, views_on_circle
+
+    targets, _ = default_targets(2, (32, 32))
+    board = Board(shape=(32, 32))
+    return targets, views_on_circle(2, math.radians(50), board=board), board

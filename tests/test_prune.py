@@ -7,25 +7,16 @@ One tiny configuration (2 views, 32x32 px, 300 scratches), so the step compiles 
 """
 
 import json
-import math
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jscratch import render as R
-from jscratch.design import DesignConfig, default_targets, design
+from jscratch.design import DesignConfig, design
 from jscratch.design import prune, solver
 from jscratch.design.run import initial_state, pair_lists, rebin, setup
 
 SIZE = 32
-
-
-def _scene():
-    targets, _ = default_targets(2, (SIZE, SIZE))
-    board = R.Board(shape=(SIZE, SIZE))
-    views = R.views_on_circle(2, math.radians(50), board=board)
-    return targets, views, board
 
 
 def _config(**kw):
@@ -41,8 +32,8 @@ def _ckpt(path):
     return json.loads(bytes(data.pop("meta")).decode()), data
 
 
-def test_round_moves_lowest_scratches_consistently():
-    targets, views, board = _scene()
+def test_round_moves_lowest_scratches_consistently(two_view_scene):
+    targets, views, board = two_view_scene
     cfg = _config()
     params, opt, ctx = setup(targets, views, board, cfg)
     st, warm = initial_state(params, opt, ctx, targets, cfg)
@@ -84,8 +75,8 @@ def test_round_moves_lowest_scratches_consistently():
     assert np.isfinite(float(out[2]["total"]))
 
 
-def test_reseeded_scratches_go_where_needed_and_light_up():
-    targets, views, board = _scene()
+def test_reseeded_scratches_go_where_needed_and_light_up(two_view_scene):
+    targets, views, board = two_view_scene
     cfg = _config()
     params, opt, ctx = setup(targets, views, board, cfg)
     # all the error in one pixel of view 1
@@ -118,8 +109,8 @@ def test_reseeded_scratches_go_where_needed_and_light_up():
     assert light(p0, p1) > 10 * light(mid - turned, mid + turned)
 
 
-def test_resume_across_a_round_is_bitwise(tmp_path):
-    targets, views, board = _scene()
+def test_resume_across_a_round_is_bitwise(tmp_path, two_view_scene):
+    targets, views, board = two_view_scene
     cfg = _config()
     full = tmp_path / "full.npz"
     res = design(targets, views, board, cfg, checkpoint=full)

@@ -7,7 +7,6 @@ target keeps everything, and the design's result stays consistent.
 One tiny configuration (2 views, 32x32 px, 300 scratches), as in test_prune.
 """
 
-import math
 
 import jax.numpy as jnp
 import numpy as np
@@ -15,20 +14,12 @@ import pytest
 from skimage.filters import gaussian
 from skimage.metrics import structural_similarity
 
-from jscratch import render as R
-from jscratch.design import DesignConfig, DesignError, default_targets, design, discard, solver
+from jscratch import render
+from jscratch.design import DesignConfig, DesignError, design, discard, solver
 from jscratch.design.run import initial_state, rebin, setup
 from jscratch.shading import display
 
-SIZE = 32
 N = 300
-
-
-def _scene():
-    targets, _ = default_targets(2, (SIZE, SIZE))
-    board = R.Board(shape=(SIZE, SIZE))
-    views = R.views_on_circle(2, math.radians(50), board=board)
-    return targets, views, board
 
 
 def _mean_ssim_reference(disp, targets):
@@ -44,14 +35,14 @@ def _render_kept(params, keep, views, board):
     """Display images of the kept scratches alone, through the public renderer."""
     p0, p1, w, d, a, inten = (np.asarray(x) for x in solver.physical(params))
     k = np.asarray(keep)
-    s = R.Scratches(p0[k], p1[k], w[k], d[k], a[k])
-    v = R.Views(np.asarray(views.camera), np.asarray(views.light), inten)
-    return np.asarray(display(R.render(s, v, board)))
+    s = render.Scratches(p0[k], p1[k], w[k], d[k], a[k])
+    v = render.Views(np.asarray(views.camera), np.asarray(views.light), inten)
+    return np.asarray(display(render.render(s, v, board)))
 
 
 @pytest.fixture(scope="module")
-def optimised():
-    targets, views, board = _scene()
+def optimised(two_view_scene):
+    targets, views, board = two_view_scene
     cfg = DesignConfig(n_scratches=N, iterations=8, cull_eps=0.0, groove="carvable")
     params, opt, ctx = setup(targets, views, board, cfg)
     st, warm = initial_state(params, opt, ctx, targets, cfg)
@@ -98,8 +89,8 @@ def test_unreachable_target_keeps_everything(optimised):
     assert rep["mean_ssim"] == pytest.approx(full, abs=1e-6)
 
 
-def test_design_with_target_ssim_is_consistent():
-    targets, views, board = _scene()
+def test_design_with_target_ssim_is_consistent(two_view_scene):
+    targets, views, board = two_view_scene
     base = dict(n_scratches=N, iterations=3, cull_eps=0.0)
     full = design(targets, views, board, DesignConfig(**base, discard=False))
     s = 0.9 * float(np.mean(full.metrics["ssim"]))

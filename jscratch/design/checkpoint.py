@@ -60,7 +60,6 @@ def save_checkpoint(path: str, state: State, config: DesignConfig, thash: str) -
         arrays[f"opt/{i}"] = np.asarray(leaf)
     for f in _fields(bvh.Pairs):
         arrays[f"pairs/{f}"] = np.asarray(getattr(state.lists.shared, f))
-    arrays["list_counts"] = np.asarray(state.lists.counts)
     meta = {
         "iteration": state.iteration,
         "spec": {f: getattr(state.lists.spec, f) for f in _fields(bvh.GridSpec)},
@@ -104,7 +103,6 @@ def load_checkpoint(path: str, like: State, config: DesignConfig, thash: str) ->
     opt_state = restore(like.opt_state, "opt")
     missing = [f for f in _fields(bvh.Pairs) if f"pairs/{f}" not in data]
     missing += [f for f in _fields(bvh.GridSpec) if f not in meta["spec"]]
-    missing += [] if "list_counts" in data else ["list_counts"]
     if missing:
         raise DesignError(f"checkpoint {path!r} lacks {', '.join(missing)}: it was written by"
                           " another version of jscratch")
@@ -112,7 +110,8 @@ def load_checkpoint(path: str, like: State, config: DesignConfig, thash: str) ->
     # (JSON turns tuples into lists; the spec is static and hashed by jit, so tuples again)
     spec = bvh.GridSpec(**{f: tuple(v) if isinstance(v, list) else v
                            for f, v in meta["spec"].items()})
-    lists = bvh.PairLists(pairs, spec, jnp.asarray(data["list_counts"]), caps=tuple(meta["caps"]),
+    caps = tuple(meta["caps"])  # (the counts are the next step's: `bvh.update_lists`)
+    lists = bvh.PairLists(pairs, spec, jnp.zeros((len(caps),), jnp.int32), caps=caps,
                           cull_eps=float(config.cull_eps),
                           coverage_eps=float(config.coverage_eps))
     return State(meta["iteration"], params, opt_state, lists, meta["history"], meta["rebins"])
