@@ -22,30 +22,33 @@ def scores(params, lists, ctx) -> np.ndarray:
     return (contrib / np.where(mean > 0, mean, 1.0)).max(axis=0)
 
 
+def _largest_drop(params, lists, ctx, accept, resolution: int, best):
+    """Bisection over how many of the lowest-scoring scratches (`scores`) to drop: the largest
+    count, to within `resolution`, whose render ``accept(keep, radiance, terms)`` accepts
+    (assumed to fail from some count on). Returns the accepted ``(keep, radiance, terms)`` with
+    the most dropped, or `best` (nothing dropped) when none was."""
+    n = params.log_width.shape[0]
+    order = np.argsort(scores(params, lists, ctx), kind="stable")
+    lo, hi = 0, n  # dropping lo is accepted; dropping hi is assumed not to be
+    while hi - lo > resolution:
+        mid = (lo + hi) // 2
+        keep = np.ones(n, bool)
+        keep[order[:mid]] = False
+        rad, terms, _ = solver.evaluate(params, lists, jnp.asarray(keep), ctx)
+        if accept(keep, rad, terms):
+            lo, best = mid, (keep, rad, terms)
+        else:
+            hi = mid
+    return best
+
+
 def discard(params, lists, ctx, loss_all, tol, rad_all, terms_all):
     """Drop the lowest-scoring scratches (`scores`) while the loss stays within
     ``(1 + tol) loss_all``."""
     n = params.log_width.shape[0]
-    order = np.argsort(scores(params, lists, ctx), kind="stable")
     limit = loss_all * (1 + tol)
-
-    def evaluate(k):
-        keep = np.ones(n, bool)
-        keep[order[:k]] = False
-        rad, terms, _ = solver.evaluate(params, lists, jnp.asarray(keep), ctx)
-        return keep, rad, terms
-
-    best = (np.ones(n, bool), rad_all, terms_all)
-    lo, hi = 0, n  # loss(lo) within the limit; search the largest such k
-    resolution = max(1, n // 256)
-    while hi - lo > resolution:
-        mid = (lo + hi) // 2
-        cand = evaluate(mid)
-        if float(cand[2]["total"]) <= limit:
-            lo, best = mid, cand
-        else:
-            hi = mid
-    return best
+    return _largest_drop(params, lists, ctx, lambda k, r, t: float(t["total"]) <= limit,
+                         max(1, n // 256), (np.ones(n, bool), rad_all, terms_all))
 
 
 def fewest_for_ssim(params, lists, ctx, targets, target_ssim, rad_all, terms_all):
@@ -68,29 +71,22 @@ def fewest_for_ssim(params, lists, ctx, targets, target_ssim, rad_all, terms_all
     """
     n = params.log_width.shape[0]
     targets = np.asarray(targets)
-    order = np.argsort(scores(params, lists, ctx), kind="stable")
 
     def mean_ssim(rad):
         return float(np.mean(image_metrics(np.asarray(display(rad)), targets)["ssim"]))
 
     full = mean_ssim(rad_all)
     search = [[n, full]]
-    best = (np.ones(n, bool), rad_all, terms_all, full)
     if full < target_ssim:
-        return best[0], best[1], best[2], {"ssim": float(target_ssim), "reached": False,
-                                           "mean_ssim": full, "search": search}
-    lo, hi = 0, n  # dropping lo meets the target; dropping hi is assumed not to
-    resolution = max(1, n // 1024)
-    while hi - lo > resolution:
-        mid = (lo + hi) // 2
-        keep = np.ones(n, bool)
-        keep[order[:mid]] = False
-        rad, terms, _ = solver.evaluate(params, lists, jnp.asarray(keep), ctx)
-        s = mean_ssim(rad)
-        search.append([n - mid, s])
-        if s >= target_ssim:
-            lo, best = mid, (keep, rad, terms, s)
-        else:
-            hi = mid
-    return best[0], best[1], best[2], {"ssim": float(target_ssim), "reached": True,
-                                       "mean_ssim": best[3], "search": search}
+        return np.ones(n, bool), rad_all, terms_all, {"ssim": float(target_ssim), "reached": False,
+                                                      "mean_ssim": full, "search": search}
+
+    def accept(keep, rad, terms):
+        search.append([int(keep.sum()), mean_ssim(rad)])
+        return search[-1][1] >= target_ssim
+
+    keep, rad, terms = _largest_drop(params, lists, ctx, accept, max(1, n // 1024),
+                                     (np.ones(n, bool), rad_all, terms_all))
+    kept_ssim = dict(map(tuple, search))[int(keep.sum())]
+    return keep, rad, terms, {"ssim": float(target_ssim), "reached": True,
+                              "mean_ssim": kept_ssim, "search": search}
