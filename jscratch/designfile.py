@@ -25,7 +25,7 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
-from jscratch.errors import error_line
+from jscratch.errors import InputError, error_line
 from jscratch.scene import check_scratches, check_views
 
 __all__ = [
@@ -44,7 +44,7 @@ _VIEWS = ("camera", "light", "intensity")
 _MAKER = ("machine", "plunge")
 
 
-class DesignError(ValueError):
+class DesignError(InputError):
     """A design, or a design run's input, that breaks the rules (SPEC section 9; `jscratch.scene`):
     the message names the array and the scratch, view or file. Shared by `jscratch.design`."""
 

@@ -406,7 +406,12 @@ def flat_highlight(camera, light) -> np.ndarray:
     return c[..., :2] + s * (l[..., :2] - c[..., :2])
 
 
-def views_on_circle(M: int, theta: float, distance: float = 1.0, offset: float | None = None,
+#: The default polar angle of the light and cameras of `views_on_circle` (rad): 50 degrees, the
+#: command line's default (`jscratch.design.SceneConfig.theta_deg`).
+DEFAULT_THETA = math.radians(50.0)
+
+
+def views_on_circle(M: int, theta: float = DEFAULT_THETA, distance: float = 1.0, offset: float | None = None,
                     board: Board | None = None, *, light_azimuth: float = 0.0,
                     camera_theta: float | None = None, intensity: ArrayLike = 1.0,
                     dtype=None) -> Views:
@@ -424,7 +429,7 @@ def views_on_circle(M: int, theta: float, distance: float = 1.0, offset: float |
     **Arguments:**
 
     - `M`: number of views (>= 1).
-    - `theta`: polar angle of the light (rad), in ``[0, pi/2)``.
+    - `theta`: polar angle of the light (rad), in ``[0, pi/2)``. Default `DEFAULT_THETA` (50 deg).
     - `distance`: distance of light and cameras from the board centre (m). Default 1.
     - `offset`: azimuth of camera 0 relative to ``light_azimuth`` (rad). Default: ``pi / M`` for
       even ``M`` (the mirror azimuth midway between two cameras, every camera ``pi / M`` from it

@@ -67,16 +67,18 @@ and the last good state stays in the checkpoint.
 from jscratch.design.cli import main as main
 from jscratch.design.config import (
     DEFAULT_IMAGES as DEFAULT_IMAGES,
-    DESIGN_LAMBDA_X as DESIGN_LAMBDA_X,
     GROUPS as GROUPS,
     PARAMETERISATIONS as PARAMETERISATIONS,
     DesignConfig as DesignConfig,
     NonFiniteError as NonFiniteError,
+    SceneConfig as SceneConfig,
 )
 from jscratch.design.io import (
     default_targets as default_targets,
+    load_result as load_result,
+    load_scene as load_scene,
     load_target as load_target,
-    write_outputs as write_outputs,
+    save_result as save_result,
 )
 from jscratch.design.params import DesignParams as DesignParams
 from jscratch.design.result import DesignResult as DesignResult

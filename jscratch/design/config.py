@@ -1,4 +1,7 @@
-"""The configuration of a design run: `DesignConfig`, the parameter groups and the errors."""
+"""The configuration of a design: `DesignConfig` (the optimisation) and `SceneConfig` (targets,
+views and board of the command line), each field declared once with its help, unit and flag
+(`jscratch.options`): ``python -m jscratch.design`` is generated from them, and
+`jscratch.design.design` with the same configs gives the same result bit for bit."""
 
 from __future__ import annotations
 
@@ -9,212 +12,201 @@ from typing import Any
 import numpy as np
 
 from jscratch import loss as loss_mod
+from jscratch.design.carvable import GROOVE_MODES
 from jscratch.designfile import DesignError
+from jscratch.errors import NonFiniteError
+from jscratch.options import option
 from jscratch.render import DEFAULT_CHUNK
+
+__all__ = ["DesignConfig", "SceneConfig", "GROUPS", "PARAMETERISATIONS", "LR_SCHEDULES",
+           "DEFAULT_IMAGES", "NonFiniteError"]
+
 #: Parameter groups (learning rates and freezing are per group).
 GROUPS = ("endpoints", "width", "depth", "alpha", "intensity")
-
 
 #: Scratch position parameterisations: two endpoints (paper) or midpoint + direction + length.
 PARAMETERISATIONS = ("endpoints", "midpoint")
 
-
-#: Default weight of the ghosting term ``E_x`` in a design, against a zero baseline (the raw
-#: cross-view SSIM, SPEC section 7's ghosting). Measured (benchmarks/RESULTS.md, issue 17,
-#: session 9; 256 px, 20k scratches, 3 views, carvable grooves, seed 0): with ``lambda_g = 20``
-#: and prune/re-seed every 10 iterations, 0.001 gave mean SSIM 0.802 and ghosting 0.211 against
-#: the old defaults' 0.746 / 0.235 (camera / astronaut / chelsea), 0.746 / 0.328 vs 0.683 / 0.336
-#: (coins / clock / line art), 0.781 / 0.241 vs 0.712 / 0.271 (text / brick / page); seed 1
-#: (after the grid fix of session 9): 0.803 / 0.211 vs 0.746 / 0.236. At 60k scratches it gives
-#: 0.880 / 0.201 vs 0.913 / 0.258 (less SSIM, less ghosting: there ``--lambda-g 200 --lambda-x 0
-#: --prune-every 0`` keeps the old SSIM). 0.01 cut
-#: ghosting to 0.077 but SSIM to 0.679; the excess-only baseline (``"targets"``) at 0.03 raised
-#: the ghosting on the other two sets.
-DESIGN_LAMBDA_X = 1e-3
-
-
 #: Learning-rate schedules (`DesignConfig.lr_schedule`).
 LR_SCHEDULES = ("constant", "cosine")
-
 
 #: Default targets from ``skimage.data`` (bundled with scikit-image; nothing is downloaded).
 DEFAULT_IMAGES = ("camera", "astronaut", "chelsea", "coffee", "rocket", "moon")
 
 
-class NonFiniteError(RuntimeError):
-    """The loss, a gradient or a parameter became NaN or infinite during the optimisation."""
+def _freeze_list(text: str) -> tuple[str, ...]:
+    """``--freeze`` text: comma-separated groups, or ``none``."""
+    text = text.strip()
+    if text.lower() in ("", "none"):
+        return ()
+    return tuple(g.strip() for g in text.split(",") if g.strip())
+
+
+def _machine_file(path: str) -> dict | None:
+    """``--machine`` text: a machine profile TOML file, read into its dict (a refusal is the
+    option's one-line error)."""
+    import argparse
+
+    from jscratch.machine import MachineProfile
+
+    if path.strip().lower() == "none":
+        return None
+    try:
+        return MachineProfile.from_toml(path).to_dict()
+    except (OSError, ValueError, TypeError) as e:
+        raise argparse.ArgumentTypeError(str(e).splitlines()[0]) from None
 
 
 @dataclasses.dataclass(frozen=True)
 class DesignConfig:
     """Everything that controls an optimisation (JSON-friendly: `to_dict` / `from_dict`).
 
-    **Fields** (units in brackets):
-
-    - `n_scratches`: number of scratches ``N``. Default 20000.
-    - `iterations`: Adam iterations. Default 100 (paper).
-    - `seed`: seed of the initial layout (SPEC section 5).
-    - `parameterisation`: ``"endpoints"`` (default, paper) or ``"midpoint"`` (ablation).
-    - `init_width`, `init_depth` [m]: initial profile (paper Fig. 15: 2.5e-4, 1.28e-4).
-    - `init_alpha`: initial GGX roughness. Default 0.04.
-    - `init_length` [m]: initial lengths uniform in this range. Default (0.005, 0.025).
-    - `lr_endpoints` [board widths per step] 1e-3 (paper); `lr_width`, `lr_depth` [log m],
-      `lr_alpha` [logit], `lr_intensity` [log W/sr]: 1e-2 each.
-    - `freeze`: groups not optimised (subset of `GROUPS`). Default ``("alpha",)``.
-    - `loss`: a `loss.LossConfig`. Default ``E_p + LAMBDA_G E_g + DESIGN_LAMBDA_X E_x`` (filter
-      bank, ``LAMBDA_G = 20``; ``E_x`` with ``ghost_baseline = "zero"``: the raw cross-view SSIM),
-      issue 17's measured defaults (see `DESIGN_LAMBDA_X`). A `LossConfig` built by hand has no
-      ``E_x`` unless it asks (``LossConfig.lambda_x`` defaults to 0).
-    - `cull_eps`: per-view culling tolerance of `cull.cull` (0 keeps every pair). Default 0:
-      measured on the default run, 1e-3 is 1.9x faster (295 s vs 546 s) but ends at 2.4x the loss
-      (0.0323 vs 0.0136; SSIM 0.46/0.76/0.74 vs 0.69/0.75/0.82), 1e-2 far worse (module docstring).
-    - `coverage_eps`: culling tolerance of the coverage pass (`cull.cull_coverage`, same error
-      bound; only with ``cull_eps > 0``). Default 0 (every pair): measured with
-      ``cull_eps = 1e-3``, 1e-3 saved 22% of the time (229 s vs 295 s) but lowered SSIM
-      (0.463/0.738/0.707 vs 0.463/0.758/0.736): in dark regions the board term ``(1 - c) D_S``
-      is the pixel's whole brightness, which the display gamma magnifies, and covering the board
-      is how the optimiser darkens it.
-    - `skin` [m]: groove inflation for binning (`bvh.allocate`); 0 rebins whenever a groove
-      leaves its binned rectangle (about every step; cheaper than the extra pairs of a skin).
-    - `discard`: run the discard step. `discard_tol`: allowed relative loss increase (0.01).
-    - `init_intensity`: ``"match_mean"`` (closed form, default) or ``"given"`` (keep the views').
-    - `adam_b1`, `adam_b2`, `adam_eps`: Adam constants. ``adam_eps = 1e-12`` because our losses
-      are means over pixels (the paper's are sums), so gradients are ``H W`` times smaller.
-    - `checkpoint_every`: iterations between checkpoints (when a checkpoint path is given).
-    - `chunk`: pairs per chunk in the renderer (memory knob).
-    - `dtype`: ``"float32"`` (default) or ``"float64"`` (needs ``jax_enable_x64``).
-    - `groove`: ``"free"`` (default here: ``w, d`` optimised freely, as before issue 15) or
-      ``"carvable"`` (one plunge per scratch within the machine's range, mapped to ``(w, d)`` by
-      `jscratch.design.carvable`; the command line's default).
-    - `machine`: the machine profile as a dict (`jscratch.machine.MachineProfile.to_dict`), or
-      None for the shipped default; its cutter fixes the carvable grooves.
-    - `prune_every` [iterations]: every this many iterations, move the least useful scratches
-      to where the image is most too dark (`design.prune`); 0 never. Default 10 (issue 17,
-      session 9: part of the measured defaults, see `DESIGN_LAMBDA_X`). The moved scratches end
-      up useful, so the discard keeps more of them (+9-20 % scratches and carving time;
-      ``target_ssim`` trades quality back for scratches).
-    - `prune_fraction`: fraction of the ``N`` scratches moved per round. Default 0.05.
-    - `prune_until`: no round after this fraction of ``iterations`` (moved scratches need
-      iterations to settle). Default 0.6.
-    - `target_ssim`: None (default: the discard's loss tolerance decides what is kept) or a mean
-      SSIM (SPEC section 7, mean over views) in ``(0, 1]``: instead of the discard, keep the
-      fewest scratches (dropped in the discard's score order) whose render still reaches it
-      (`discard.fewest_for_ssim`; all are kept when the full design is below it). Reported in
-      ``metrics["target"]``.
-    - `lr_schedule`: ``"constant"`` (default, paper) or ``"cosine"``: every group's learning rate
-      follows ``optax.cosine_decay_schedule`` from its value down to ``lr_final`` of it at
-      ``iterations`` (resuming with a larger ``--iterations`` stretches the schedule).
-    - `lr_final`: the cosine schedule's final fraction, in ``[0, 1]``. Default 0.1.
+    Each field's help, unit and command-line flag are declared with it (``python -m
+    jscratch.design --help`` lists them); `docs/model.md` §5-§6 and §10 give the model behind them.
+    The defaults are the measured ones of `benchmarks/RESULTS.md` (carvable grooves, ``E_p + 20 E_g
+    + 0.001 E_x``, prune/re-seed every 10 iterations). Invalid values raise `DesignError` (an
+    `jscratch.InputError`) naming the field and the accepted values.
     """
 
-    n_scratches: int = 20000
-    iterations: int = 100
-    seed: int = 0
-    parameterisation: str = "endpoints"
-    init_width: float = 2.5e-4
-    init_depth: float = 1.28e-4
-    init_alpha: float = 0.04
-    init_length: tuple[float, float] = (0.005, 0.025)
-    lr_endpoints: float = 1e-3
-    lr_width: float = 1e-2
-    lr_depth: float = 1e-2
-    lr_alpha: float = 1e-2
-    lr_intensity: float = 1e-2
-    freeze: tuple[str, ...] = ("alpha",)
-    loss: loss_mod.LossConfig = dataclasses.field(default_factory=lambda: loss_mod.LossConfig(
-        lambda_x=DESIGN_LAMBDA_X, ghost_baseline="zero"))
-    cull_eps: float = 0.0
-    coverage_eps: float = 0.0
-    skin: float = 0.0
-    discard: bool = True
-    discard_tol: float = 0.01
-    init_intensity: str = "match_mean"
-    adam_b1: float = 0.9
-    adam_b2: float = 0.999
-    adam_eps: float = 1e-12
-    checkpoint_every: int = 10
-    chunk: int = DEFAULT_CHUNK
-    dtype: str = "float32"
-    groove: str = "free"
-    machine: dict | None = None
-    prune_every: int = 10
-    prune_fraction: float = 0.05
-    prune_until: float = 0.6
-    target_ssim: float | None = None
-    lr_schedule: str = "constant"
-    lr_final: float = 0.1
+    n_scratches: int = option(20000, "number of scratches N", flag="--scratches")
+    iterations: int = option(100, "Adam iterations (with --resume: the total to reach)")
+    seed: int = option(0, "seed of the initial layout (docs/model.md §5)")
+    groove: str = option("carvable", "carvable: one plunge per scratch within the machine's range, "
+                         "mapped to the groove profile (every groove cuttable); free: width and "
+                         "depth optimised freely", choices=GROOVE_MODES)
+    machine: dict | None = option(
+        None, "machine profile TOML (python -m jscratch.machine prints the default, the paper's "
+        "ball-end cutter); recorded in the design file for python -m jscratch.fabricate; none: the "
+        "shipped default", parse=_machine_file, metavar="FILE")
+    parameterisation: str = option("endpoints", "scratch position parameters",
+                                   choices=PARAMETERISATIONS)
+    init_width: float = option(2.5e-4, "initial groove width w", unit="m")
+    init_depth: float = option(1.28e-4, "initial groove depth d", unit="m")
+    init_alpha: float = option(0.04, "initial GGX roughness alpha")
+    init_length: tuple[float, float] = option((0.005, 0.025), "initial lengths, uniform in MIN MAX",
+                                              unit="m", metavar=("MIN", "MAX"))
+    lr_endpoints: float = option(1e-3, "learning rate of the endpoints", unit="board widths/step")
+    lr_width: float = option(1e-2, "learning rate of the width (plunge logit when carvable)",
+                             unit="log m")
+    lr_depth: float = option(1e-2, "learning rate of the depth", unit="log m")
+    lr_alpha: float = option(1e-2, "learning rate of the roughness", unit="logit")
+    lr_intensity: float = option(1e-2, "learning rate of the light intensities", unit="log W/sr")
+    freeze: tuple[str, ...] = option(("alpha",), f"groups not optimised, comma-separated from "
+                                     f"{','.join(GROUPS)}, or none", parse=_freeze_list,
+                                     metavar="GROUPS")
+    loss: loss_mod.LossConfig = option(default_factory=loss_mod.LossConfig, nested=True,
+                                       help="the loss (jscratch.loss.LossConfig)")
+    cull_eps: float = option(0.0, "per-view pair culling tolerance (0: every pair; 1e-3 is "
+                             "about 2x faster but optimises worse)")
+    coverage_eps: float = option(0.0, "coverage-pass culling tolerance, with --cull-eps > 0 (0: "
+                                 "every pair; faster but can lose contrast in dark regions)")
+    skin: float = option(0.0, "groove inflation for binning (0: rebin when a groove leaves its "
+                         "binned cells)", unit="m")
+    discard: bool = option(True, "discard the least useful scratches after the optimisation")
+    discard_tol: float = option(0.01, "discard: allowed relative loss increase")
+    init_intensity: str = option("match_mean", "initial light intensities: closed form matching "
+                                 "the targets' means, or the views' given ones",
+                                 choices=("match_mean", "given"))
+    adam_b1: float = option(0.9, "Adam beta1")
+    adam_b2: float = option(0.999, "Adam beta2")
+    adam_eps: float = option(1e-12, "Adam epsilon (losses are pixel means, so gradients are small)")
+    checkpoint_every: int = option(10, "iterations between checkpoints")
+    chunk: int = option(DEFAULT_CHUNK, "pairs per chunk in the renderer (memory knob)")
+    dtype: str = option("float32", "working precision (float64 needs jax_enable_x64)",
+                        choices=("float32", "float64"))
+    prune_every: int = option(10, "iterations between prune/re-seed rounds that move the least "
+                              "useful scratches to where a view is too dark (0: never)")
+    prune_fraction: float = option(0.05, "fraction of the scratches moved per prune/re-seed round")
+    prune_until: float = option(0.6, "no prune/re-seed round after this fraction of the iterations")
+    target_ssim: float | None = option(
+        None, "instead of the discard, keep the fewest scratches whose mean SSIM over the views "
+        "(docs/model.md §7, 0-1) stays at least this (all when the full design is below it)")
+    lr_schedule: str = option("constant", "learning rates constant (paper) or cosine-decayed to "
+                              "--lr-final of their values over the iterations", choices=LR_SCHEDULES)
+    lr_final: float = option(0.1, "cosine schedule: final learning rates as a fraction (0-1)")
 
     def __post_init__(self):
         def bad(name, what):
             raise DesignError(f"DesignConfig.{name} must be {what}, got {getattr(self, name)!r}")
 
-        for name in ("n_scratches", "chunk", "checkpoint_every"):
+        def number(name, lo=-math.inf, hi=math.inf, what=None):
             v = getattr(self, name)
-            if not (isinstance(v, (int, np.integer)) and v >= 1):
-                bad(name, "a positive int")
-        if not (isinstance(self.iterations, (int, np.integer)) and self.iterations >= 0):
-            bad("iterations", "an int >= 0")
-        if self.parameterisation not in PARAMETERISATIONS:
-            bad("parameterisation", f"one of {PARAMETERISATIONS}")
+            ok = isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
+            if not (ok and math.isfinite(v) and lo <= v <= hi):
+                bad(name, what or f"a finite number in [{lo}, {hi}]")
+            object.__setattr__(self, name, float(v))
+
+        def integer(name, lo):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= lo):
+                bad(name, f"an int >= {lo}")
+            object.__setattr__(self, name, int(v))
+
+        for name in ("n_scratches", "iterations", "chunk", "checkpoint_every"):
+            integer(name, 1)
+        integer("seed", 0)
+        integer("prune_every", 0)
+        for name, choices in (("parameterisation", PARAMETERISATIONS), ("groove", GROOVE_MODES),
+                              ("init_intensity", ("match_mean", "given")),
+                              ("dtype", ("float32", "float64")), ("lr_schedule", LR_SCHEDULES)):
+            if getattr(self, name) not in choices:
+                bad(name, f"one of {choices}")
         for name in ("init_width", "init_depth"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v > 0):
+            number(name, 0.0, what="a positive length in metres")
+            if getattr(self, name) <= 0:
                 bad(name, "a positive length in metres")
-        if not (0 < self.init_alpha < 1):
+        number("init_alpha", 0.0, 1.0, "in (0, 1)")
+        if not 0 < self.init_alpha < 1:
             bad("init_alpha", "in (0, 1)")
-        lo, hi = self.init_length
+        try:
+            lo, hi = (float(x) for x in self.init_length)
+        except (TypeError, ValueError):
+            bad("init_length", "(min, max) metres with 0 < min <= max")
         if not (0 < lo <= hi and math.isfinite(hi)):
             bad("init_length", "(min, max) metres with 0 < min <= max")
-        object.__setattr__(self, "init_length", (float(lo), float(hi)))
+        object.__setattr__(self, "init_length", (lo, hi))
         for g in GROUPS:
-            v = getattr(self, f"lr_{g}")
-            if not (math.isfinite(v) and v >= 0):
-                bad(f"lr_{g}", "a finite learning rate >= 0")
-        freeze = tuple(self.freeze)
-        for g in freeze:
-            if g not in GROUPS:
-                bad("freeze", f"a subset of {GROUPS}")
+            number(f"lr_{g}", 0.0, what="a finite learning rate >= 0")
+        freeze = (self.freeze,) if isinstance(self.freeze, str) else tuple(self.freeze)
+        if any(g not in GROUPS for g in freeze):
+            bad("freeze", f"a subset of {GROUPS}")
         object.__setattr__(self, "freeze", tuple(g for g in GROUPS if g in freeze))
         if isinstance(self.loss, dict):
-            object.__setattr__(self, "loss", loss_mod.LossConfig(**self.loss))
+            try:
+                object.__setattr__(self, "loss", loss_mod.LossConfig(**self.loss))
+            except TypeError:
+                unknown = sorted(set(self.loss) - {f.name for f in dataclasses.fields(
+                    loss_mod.LossConfig)})
+                raise DesignError(f"DesignConfig.loss: unknown fields {unknown}") from None
         if not isinstance(self.loss, loss_mod.LossConfig):
             bad("loss", "a jscratch.loss.LossConfig")
         for name in ("cull_eps", "coverage_eps", "skin", "discard_tol"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v >= 0):
-                bad(name, "finite and >= 0")
-        if self.init_intensity not in ("match_mean", "given"):
-            bad("init_intensity", "'match_mean' or 'given'")
-        if self.dtype not in ("float32", "float64"):
-            bad("dtype", "'float32' or 'float64'")
-        from jscratch.design.carvable import GROOVE_MODES
-
-        if self.groove not in GROOVE_MODES:
-            bad("groove", f"one of {GROOVE_MODES}")
-        if self.machine is not None:
-            from jscratch.machine import MachineProfile
-
-            try:
-                prof = MachineProfile.from_dict(dict(self.machine), source="DesignConfig.machine")
-            except (TypeError, ValueError) as e:
-                raise DesignError(str(e)) from None
-            object.__setattr__(self, "machine", prof.to_dict())
-        if not (isinstance(self.prune_every, (int, np.integer)) and self.prune_every >= 0):
-            bad("prune_every", "an int >= 0 (iterations; 0 = never)")
-        if self.lr_schedule not in LR_SCHEDULES:
-            bad("lr_schedule", f"one of {LR_SCHEDULES}")
-        for name in ("prune_fraction", "prune_until", "lr_final"):
-            if not (math.isfinite(getattr(self, name)) and 0 <= getattr(self, name) <= 1):
-                bad(name, "in [0, 1]")
-        if self.target_ssim is not None and not (
-                isinstance(self.target_ssim, (int, float)) and 0 < self.target_ssim <= 1):
-            bad("target_ssim", "None or a mean SSIM in (0, 1]")
-
-    def machine_profile(self):
-        """The `jscratch.machine.MachineProfile` of `machine` (the shipped default when None)."""
+            number(name, 0.0, what="finite and >= 0")
+        for name in ("adam_b1", "adam_b2"):
+            number(name, 0.0, 1.0, "in [0, 1)")
+            if getattr(self, name) >= 1:
+                bad(name, "in [0, 1)")
+        number("adam_eps", 0.0, what="finite and >= 0")
         from jscratch.machine import MachineProfile
 
-        return MachineProfile.from_dict(self.machine or {})
+        try:  # None is the shipped default, recorded explicitly so that a run's config says it
+            prof = MachineProfile.from_dict(dict(self.machine or {}),
+                                            source="DesignConfig.machine")
+        except (TypeError, ValueError) as e:
+            raise DesignError(str(e)) from None
+        object.__setattr__(self, "machine", prof.to_dict())
+        for name in ("prune_fraction", "prune_until", "lr_final"):
+            number(name, 0.0, 1.0, "in [0, 1]")
+        if self.target_ssim is not None:
+            number("target_ssim", 0.0, 1.0, "None or a mean SSIM in (0, 1]")
+            if self.target_ssim <= 0:
+                bad("target_ssim", "None or a mean SSIM in (0, 1]")
+
+    def machine_profile(self):
+        """The `jscratch.machine.MachineProfile` of `machine`."""
+        from jscratch.machine import MachineProfile
+
+        return MachineProfile.from_dict(self.machine)
 
     def learning_rates(self) -> dict[str, float]:
         """Per-group learning rate, 0 for frozen groups."""
@@ -229,11 +221,115 @@ class DesignConfig:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "DesignConfig":
+        """The config of `to_dict`'s form (missing fields take their defaults; unknown ones are
+        refused with `DesignError`)."""
+        if not isinstance(d, dict):
+            raise DesignError(f"a DesignConfig must be a JSON object, got {type(d).__name__}")
         d = dict(d)
-        if "loss" in d and isinstance(d["loss"], dict):
-            d["loss"] = loss_mod.LossConfig(**d["loss"])
+        unknown = sorted(set(d) - {f.name for f in dataclasses.fields(cls)})
+        if unknown:
+            raise DesignError(f"DesignConfig: unknown fields {unknown}")
         if "init_length" in d:
             d["init_length"] = tuple(d["init_length"])
         if "freeze" in d:
             d["freeze"] = tuple(d["freeze"])
         return cls(**d)
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneConfig:
+    """The inputs of a design run that are not optimised: targets, views and board, as the
+    command line sets them up (`jscratch.design.io.load_scene` builds them; `design` uses the same
+    view and board defaults when none are given).
+
+    Angles are in degrees here (the command line's unit); `jscratch.scene.views_on_circle` takes
+    radians. Invalid values raise `DesignError` naming the field.
+    """
+
+    targets: tuple[str, ...] = option((), "target image files, one per view (grayscale or RGB, "
+                                      "the board's aspect); none: images bundled with "
+                                      "scikit-image", flag="targets", metavar="TARGET")
+    views: int | None = option(None, "number of views M (default: the number of targets, or 3)")
+    theta_deg: float = option(50.0, "polar angle of the light and cameras from the board normal",
+                              unit="degrees")
+    camera_theta_deg: float | None = option(None, "polar angle of the cameras (default: "
+                                            "--theta-deg)", unit="degrees")
+    distance: float = option(1.0, "distance of the light and cameras from the board centre",
+                             unit="m")
+    offset_deg: float | None = option(None, "azimuth of camera 0 relative to the light (default "
+                                      "keeps the cameras away from the light's mirror "
+                                      "direction)", unit="degrees")
+    board: float = option(0.3, "board side (square board)", unit="m")
+    size: int = option(256, "image size", unit="pixels per side")
+
+    def __post_init__(self):
+        def bad(name, what):
+            raise DesignError(f"scene {name} must be {what}, got {getattr(self, name)!r}")
+
+        targets = (self.targets,) if isinstance(self.targets, str) else tuple(self.targets)
+        if not all(isinstance(t, str) and t for t in targets):
+            bad("targets", "a list of image file paths")
+        object.__setattr__(self, "targets", targets)
+        if self.views is not None:
+            if not (isinstance(self.views, (int, np.integer)) and self.views >= 1):
+                bad("views", "an int >= 1")
+            if targets and self.views != len(targets):
+                raise DesignError(f"got {len(targets)} target images for {self.views} views: "
+                                  "give one target per view")
+        if not (isinstance(self.size, (int, np.integer)) and self.size >= 16):
+            bad("size", "an int >= 16 (pixels)")
+        for name in ("theta_deg", "camera_theta_deg", "offset_deg", "distance", "board"):
+            v = getattr(self, name)
+            if v is None and name in ("camera_theta_deg", "offset_deg"):
+                continue
+            if not (isinstance(v, (int, float)) and math.isfinite(v)):
+                bad(name, "a finite number")
+        for name in ("theta_deg", "camera_theta_deg"):
+            v = getattr(self, name)
+            if v is not None and not 0 <= v < 90:
+                bad(name, "in [0, 90) degrees (above the board)")
+        for name in ("distance", "board"):
+            if getattr(self, name) <= 0:
+                bad(name, "positive (m)")
+
+    @property
+    def n_views(self) -> int:
+        """The number of views ``M``."""
+        return self.views if self.views is not None else (len(self.targets) or 3)
+
+    def make_board(self):
+        """The square `jscratch.scene.Board` of side `board` with a `size` x `size` image."""
+        from jscratch.scene import Board
+
+        return Board(shape=(self.size, self.size), Sx=self.board, Sy=self.board)
+
+    def make_views(self, m: int | None = None, board=None):
+        """`jscratch.scene.views_on_circle` for ``m`` views (default `n_views`) over `board`."""
+        from jscratch.scene import views_on_circle
+
+        def rad(v):
+            return None if v is None else math.radians(v)
+
+        try:
+            return views_on_circle(self.n_views if m is None else m, rad(self.theta_deg),
+                                   self.distance, rad(self.offset_deg),
+                                   self.make_board() if board is None else board,
+                                   camera_theta=rad(self.camera_theta_deg))
+        except ValueError as e:
+            raise DesignError(f"impossible view set-up: {e}") from None
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain-JSON form (`from_dict` inverts it)."""
+        d = dataclasses.asdict(self)
+        d["targets"] = list(self.targets)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "SceneConfig":
+        """The scene of `to_dict`'s form (unknown fields refused with `DesignError`)."""
+        if not isinstance(d, dict):
+            raise DesignError(f"a SceneConfig must be a JSON object, got {type(d).__name__}")
+        unknown = sorted(set(d) - {f.name for f in dataclasses.fields(cls)})
+        if unknown:
+            raise DesignError(f"SceneConfig: unknown fields {unknown}")
+        return cls(**{k: tuple(v) if k == "targets" else v for k, v in d.items()})

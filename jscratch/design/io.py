@@ -1,6 +1,6 @@
-"""Targets and outputs: checks of the targets and views, loading target images (one-line errors
-naming the file), the default `skimage.data` targets and `write_outputs` (design file, SVG, PNGs,
-plots, metrics)."""
+"""Targets and results on disk: checks of the targets and views, loading target images (one-line
+errors naming the file), the default `skimage.data` targets, `load_scene` (the inputs a
+`SceneConfig` describes), and the round trip of a result: `save_result` / `load_result`."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from jscratch import designfile
 from jscratch.designfile import DesignError
 from jscratch.errors import error_line
 from jscratch.scene import Board, Views, check_views, flat_highlight
-from jscratch.design.config import DEFAULT_IMAGES
+from jscratch.design.config import DEFAULT_IMAGES, SceneConfig
 from jscratch.design.result import DesignResult
 
 
@@ -135,6 +135,20 @@ def default_targets(m: int, shape: tuple[int, int]) -> tuple[np.ndarray, list[st
     return np.stack(imgs), [f"skimage.data.{n}" for n in names]
 
 
+def load_scene(scene: SceneConfig) -> tuple[np.ndarray, list[str], Views, Board]:
+    """The inputs a `SceneConfig` describes: ``(targets (M, H, W), names, views, board)``: the
+    target files (or `default_targets`) at the scene's size, its views on a circle and its board.
+    Raises `DesignError` naming the file or field."""
+    shape = (scene.size, scene.size)
+    board = scene.make_board()
+    if scene.targets:
+        targets = np.stack([load_target(t, shape) for t in scene.targets])
+        names = list(scene.targets)
+    else:
+        targets, names = default_targets(scene.n_views, shape)
+    return targets, names, scene.make_views(targets.shape[0], board), board
+
+
 def write_png(path: str, img: np.ndarray) -> None:
     """Display values ``(H, W)`` in [0, 1] as an 8-bit grayscale PNG."""
     from skimage import io
@@ -142,23 +156,161 @@ def write_png(path: str, img: np.ndarray) -> None:
     io.imsave(path, (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8), check_contrast=False)
 
 
-def write_outputs(result: DesignResult, out: str | os.PathLike, extra_config: dict | None = None) -> None:
-    """Write a result: ``design.npz`` + ``design.svg`` (SPEC section 9), ``view<j>_render.png``
-    and ``view<j>_target.png``, ``comparison.png``, ``loss.png``, ``metrics.json`` and
-    ``config.json`` (the `DesignConfig` plus `extra_config`)."""
+#: The files `save_result` writes into a result folder (besides PNG pictures).
+RESULT_FILES = ("design.npz", "design.svg", "result.npz", "metrics.json", "config.json")
+
+
+def save_result(result: DesignResult, out: str | os.PathLike, *, scene: SceneConfig | None = None,
+                names: list[str] | None = None, as_carved_samples: int = 0,
+                order_time: float = 1.0) -> dict:
+    """Write everything a design result holds into folder `out` (created if needed):
+
+    - ``design.npz``: the kept scratches, board, views, the machine profile and, for carvable
+      grooves, each scratch's plunge (the file `python -m jscratch.fabricate` carves;
+      docs/model.md §9) and ``design.svg``;
+    - ``result.npz``: the optimised parameters (all ``N`` scratches), ``keep``, ``targets``,
+      ``radiance``, ``display`` and the loss history (what `load_result` needs besides the above);
+    - ``metrics.json``: `result.metrics` plus the machine, the groove mode, the carving estimate
+      (ordered toolpath, ``order_time`` s of 2-opt) and, with ``as_carved_samples > 0``, the
+      as-carved SSIM (`jscratch.design.maker.as_carved`; also ``view<j>_carved.png``);
+    - ``config.json``: ``{"design": DesignConfig, "scene": SceneConfig or None, "targets": names,
+      "board", "camera", "light"}``, which ``python -m jscratch.design --config`` reads back;
+    - ``view<j>_render.png``, ``view<j>_target.png``, ``comparison.png``, ``loss.png``.
+
+    `python -m jscratch.design` writes its outputs with this call. Returns the metrics added.
+    """
+    from jscratch.design import maker
+    from jscratch.design.checkpoint import save_npz
+
+    if not isinstance(as_carved_samples, (int, np.integer)) or as_carved_samples < 0:
+        raise DesignError(f"as_carved_samples must be an int >= 0, got {as_carved_samples!r}")
+    out = os.fspath(out)
+    os.makedirs(out, exist_ok=True)
+    s, v, b = result.scratches, result.views, result.board
+    profile = result.config.machine_profile()
+    plunge = result.params.plunge()
+    if plunge is not None:
+        plunge = np.asarray(plunge, np.float64)[np.asarray(result.keep)]
+    d = designfile.save_design(os.path.join(out, "design.npz"), np.asarray(s.p0), np.asarray(s.p1),
+                               np.asarray(s.width), np.asarray(s.depth), np.asarray(s.alpha),
+                               np.array([b.Sx, b.Sy]), np.asarray(v.camera), np.asarray(v.light),
+                               np.asarray(v.intensity), machine=profile.to_dict(), plunge=plunge)
+    designfile.write_svg(os.path.join(out, "design.svg"), d)
+    add = {"machine": profile.to_dict(), "groove": result.config.groove}
+    if as_carved_samples > 0:
+        ac = maker.as_carved(d, profile, b.shape, result.display, samples=int(as_carved_samples))
+        for j, img in enumerate(ac.pop("display")):
+            write_png(os.path.join(out, f"view{j}_carved.png"), img)
+        add["as_carved"] = ac
+    add["carving"] = maker.carving_estimate(d, profile, time_limit=order_time)
+    result.metrics.update(add)
+    p = result.params
+    save_npz(os.path.join(out, "result.npz"), {
+        "geom": np.asarray(p.geom), "log_width": np.asarray(p.log_width),
+        "log_depth": np.asarray(p.log_depth), "logit_alpha": np.asarray(p.logit_alpha),
+        "log_intensity": np.asarray(p.log_intensity), "keep": np.asarray(result.keep, bool),
+        "targets": np.asarray(result.targets), "radiance": np.asarray(result.radiance),
+        "display": np.asarray(result.display),
+        "history": np.frombuffer(json.dumps(result.history).encode(), np.uint8)})
+    _write_pictures(result, out)
+    with open(os.path.join(out, "metrics.json"), "w") as f:
+        json.dump(_json_clean(result.metrics), f, indent=2)
+    cfg = {"design": result.config.to_dict(),
+           "scene": None if scene is None else scene.to_dict(),
+           "targets": names,
+           "board": {"Sx": b.Sx, "Sy": b.Sy, "shape": list(b.shape), "F0": b.F0, "a_G": b.a_G,
+                     "a_S": b.a_S},
+           "camera": np.asarray(v.camera).tolist(), "light": np.asarray(v.light).tolist()}
+    with open(os.path.join(out, "config.json"), "w") as f:
+        json.dump(cfg, f, indent=2)
+    return add
+
+
+def load_result(out: str | os.PathLike) -> DesignResult:
+    """The `DesignResult` that `save_result` wrote into folder `out`, in the library's own types
+    (`Scratches`, `Views`, `Board`, `DesignParams`, `DesignConfig`; arrays in the config's dtype),
+    so that it renders, resumes into notebooks and fabricates as saved.
+
+    **Raises:** `jscratch.DesignFileError` naming the file when one is missing or unreadable.
+    """
+    import jax.numpy as jnp
+
+    from jscratch.design.config import DesignConfig
+    from jscratch.design.params import DesignParams
+    from jscratch.errors import DesignFileError
+    from jscratch.scene import Scratches
+
+    out = os.fspath(out)
+    if not os.path.isdir(out):
+        raise DesignFileError(f"{out!r} is not a result folder (save_result writes one)")
+    for name in ("design.npz", "result.npz", "metrics.json", "config.json"):
+        if not os.path.isfile(os.path.join(out, name)):
+            raise DesignFileError(f"{out!r} lacks {name}: not a complete result folder")
+
+    def read_json(name):
+        try:
+            with open(os.path.join(out, name)) as f:
+                return json.load(f)
+        except (OSError, ValueError) as e:
+            raise DesignFileError(f"{os.path.join(out, name)!r}: not readable JSON "
+                                  f"({error_line(e)})") from None
+
+    cfg, metrics = read_json("config.json"), read_json("metrics.json")
+    if not isinstance(cfg, dict) or "design" not in cfg:
+        raise DesignFileError(f"{os.path.join(out, 'config.json')!r}: no 'design' config")
+    config = DesignConfig.from_dict(cfg["design"])
+    d = designfile.load_design(os.path.join(out, "design.npz"))
+    rpath = os.path.join(out, "result.npz")
+    try:
+        with np.load(rpath, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except Exception as e:  # noqa: BLE001 - any reader failure is an unreadable file
+        raise DesignFileError(f"{rpath!r}: not a readable result file ({error_line(e)})") from None
+    need = ("geom", "log_width", "log_depth", "logit_alpha", "log_intensity", "keep", "targets",
+            "radiance", "display", "history")
+    missing = [k for k in need if k not in arrays]
+    if missing:
+        raise DesignFileError(f"{rpath!r} lacks {', '.join(missing)}")
+    dt = np.dtype(config.dtype)
+    bd = cfg.get("board") or {}
+    board = Board(shape=tuple(arrays["targets"].shape[1:]), Sx=float(d.board[0]),
+                  Sy=float(d.board[1]), **{k: bd[k] for k in ("F0", "a_G", "a_S") if k in bd})
+    groove = None
+    if config.groove == "carvable":
+        from jscratch.design.carvable import groove_map_of
+
+        groove = groove_map_of(config.machine_profile())
+    params = DesignParams(*(jnp.asarray(arrays[k], dt) for k in need[:5]),
+                          parameterisation=config.parameterisation,
+                          board_size=(board.Sx, board.Sy), groove=groove)
+    keep = np.asarray(arrays["keep"], bool)
+    if keep.shape != (config.n_scratches,) or int(keep.sum()) != d.n:
+        raise DesignFileError(f"{rpath!r} does not match {os.path.join(out, 'design.npz')!r}")
+    scratches = Scratches(*(np.asarray(a, dt) for a in (d.p0, d.p1, d.width, d.depth, d.alpha)))
+    views = Views(np.asarray(d.camera, dt), np.asarray(d.light, dt), np.asarray(d.intensity, dt))
+    history = json.loads(bytes(arrays["history"]).decode())
+    return DesignResult(scratches, views, board, params, keep, arrays["radiance"],
+                        arrays["display"], arrays["targets"], history, metrics, config)
+
+
+def _json_clean(x):
+    """`x` with non-finite floats as JSON can hold them (None, "inf", "-inf")."""
+    if isinstance(x, float) and not math.isfinite(x):
+        return None if math.isnan(x) else ("inf" if x > 0 else "-inf")
+    if isinstance(x, dict):
+        return {k: _json_clean(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_json_clean(v) for v in x]
+    return x
+
+
+def _write_pictures(result: DesignResult, out: str) -> None:
+    """``view<j>_render.png``, ``view<j>_target.png``, ``comparison.png`` and ``loss.png``."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    out = os.fspath(out)
-    os.makedirs(out, exist_ok=True)
-    s, v, b = result.scratches, result.views, result.board
-    d = designfile.save_design(os.path.join(out, "design.npz"), np.asarray(s.p0), np.asarray(s.p1),
-                               np.asarray(s.width), np.asarray(s.depth), np.asarray(s.alpha),
-                               np.array([b.Sx, b.Sy]), np.asarray(v.camera), np.asarray(v.light),
-                               np.asarray(v.intensity))
-    designfile.write_svg(os.path.join(out, "design.svg"), d)
     m = result.targets.shape[0]
     for j in range(m):
         write_png(os.path.join(out, f"view{j}_render.png"), result.display[j])
@@ -187,20 +339,3 @@ def write_outputs(result: DesignResult, out: str | os.PathLike, extra_config: di
     fig.tight_layout()
     fig.savefig(os.path.join(out, "loss.png"), dpi=100)
     plt.close(fig)
-
-    def clean(x):
-        if isinstance(x, float) and not math.isfinite(x):
-            return None if math.isnan(x) else ("inf" if x > 0 else "-inf")
-        if isinstance(x, dict):
-            return {k: clean(v) for k, v in x.items()}
-        if isinstance(x, list):
-            return [clean(v) for v in x]
-        return x
-
-    with open(os.path.join(out, "metrics.json"), "w") as f:
-        json.dump(clean(result.metrics), f, indent=2)
-    cfg = {"design": result.config.to_dict(), "board": {"Sx": b.Sx, "Sy": b.Sy, "shape": list(b.shape)},
-           "camera": np.asarray(v.camera).tolist(), "light": np.asarray(v.light).tolist(),
-           **(extra_config or {})}
-    with open(os.path.join(out, "config.json"), "w") as f:
-        json.dump(cfg, f, indent=2)

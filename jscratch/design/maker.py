@@ -10,13 +10,12 @@
   sampling noise.
 - `carving_estimate`: the ordered toolpath (`jscratch.toolpath.order_scratches`) and its
   time with the profile's feeds (`jscratch.machine.carving_seconds`).
-- `write_maker_outputs`: all of it for ``python -m jscratch.design``.
+
+`jscratch.design.io.save_result` records all of it with every result.
 """
 
 from __future__ import annotations
 
-import json
-import os
 import time
 
 import jax
@@ -26,7 +25,7 @@ from jscratch import designfile
 from jscratch.machine import MachineProfile, carving_seconds
 from jscratch.metrics import image_metrics
 
-__all__ = ["plunges", "as_carved", "carving_estimate", "write_maker_outputs"]
+__all__ = ["plunges", "as_carved", "carving_estimate"]
 
 
 def plunges(design: designfile.Design, profile: MachineProfile) -> tuple[np.ndarray, str]:
@@ -128,37 +127,3 @@ def carving_estimate(design: designfile.Design, profile: MachineProfile, *, time
             "cut_length_m": cut / 1000.0, "travel_m": ordering.travel / 1000.0,
             "seconds_per_scratch": est / max(design.n, 1), "ordering_seconds": ordering.seconds,
             "machine": profile.name}
-
-
-def write_maker_outputs(result, out: str, profile: MachineProfile, *, as_carved_samples: int = 32,
-                        order_time: float = 1.0) -> dict:
-    """After `jscratch.design.io.write_outputs`: rewrite ``design.npz`` with the machine profile and
-    the plunges (carvable designs), add ``"machine"``, ``"as_carved"`` and ``"carving"`` to
-    ``metrics.json`` (and `result.metrics`), write ``view<j>_carved.png`` (``as_carved_samples > 0``).
-    The carving estimate orders the toolpath with ``order_time`` s of 2-opt (the dry run orders
-    again with its own limit). Returns the additions."""
-    from jscratch.design.io import write_png
-
-    s, v, b = result.scratches, result.views, result.board
-    plunge = None
-    if result.params.groove is not None:
-        plunge = np.asarray(result.params.plunge(), np.float64)[np.asarray(result.keep)]
-    d = designfile.save_design(os.path.join(out, "design.npz"), np.asarray(s.p0), np.asarray(s.p1),
-                               np.asarray(s.width), np.asarray(s.depth), np.asarray(s.alpha),
-                               np.array([b.Sx, b.Sy]), np.asarray(v.camera), np.asarray(v.light),
-                               np.asarray(v.intensity), machine=profile.to_dict(), plunge=plunge)
-    add = {"machine": profile.to_dict(), "groove": "carvable" if plunge is not None else "free"}
-    if as_carved_samples > 0:
-        ac = as_carved(d, profile, b.shape, result.display, samples=as_carved_samples)
-        for j, img in enumerate(ac.pop("display")):
-            write_png(os.path.join(out, f"view{j}_carved.png"), img)
-        add["as_carved"] = ac
-    add["carving"] = carving_estimate(d, profile, time_limit=order_time)
-    result.metrics.update(add)
-    mpath = os.path.join(out, "metrics.json")
-    with open(mpath) as f:
-        metrics = json.load(f)
-    metrics.update(add)
-    with open(mpath, "w") as f:
-        json.dump(metrics, f, indent=2)
-    return add

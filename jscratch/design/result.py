@@ -27,12 +27,15 @@ class DesignResult:
     - `targets`: ``(M, H, W)`` the targets.
     - `history`: per-iteration lists ``"total"`` and the loss terms (loss at the parameters the
       iteration started from).
-    - `metrics`: SPEC section 7 metrics (`metrics.image_metrics`) plus ``loss``,
-      ``loss_before_discard``, ``metrics_before_discard`` (SPEC 7 metrics with every scratch),
+    - `metrics`: docs/model.md §7 metrics (`metrics.image_metrics`) plus ``loss``,
+      ``loss_before_discard``, ``metrics_before_discard`` (the same metrics with every scratch),
       ``discarded``, ``kept``, ``pairs_total``, ``pairs_per_view``, ``coverage_pairs`` (pairs in
       the coverage pass after `cull.cull_coverage`), ``rebins``,
-      timing (s): ``time_total``, ``time_first_step`` (includes compilation),
-      ``time_step_median``, ``time_discard``.
+      timing (s): ``time_total``, ``time_first_step`` (the first step's wall time; the step is
+      compiled meanwhile on a second thread, whose wall time is ``time_compile_step``),
+      ``time_step_median``, ``time_discard``; ``kernel``: which pair kernel ran
+      (`jscratch.native.status`). `jscratch.design.io.save_result` adds the machine, the groove
+      mode, the carving estimate and (optionally) the as-carved SSIM.
     - `config`: the `DesignConfig`.
     """
 

@@ -20,7 +20,7 @@ from jscratch.metrics import image_metrics
 from jscratch.scene import Board, Scratches, Views
 from jscratch.shading import DISPLAY_GAMMA, board_ndf, display, half_vectors
 from jscratch.design.checkpoint import State, load_checkpoint, save_checkpoint
-from jscratch.design.config import DesignConfig, NonFiniteError
+from jscratch.design.config import DesignConfig, NonFiniteError, SceneConfig
 from jscratch.design.discard import discard, fewest_for_ssim
 from jscratch.design import prune as prune_mod
 from jscratch.design.io import check_design_views, check_targets, targets_hash
@@ -38,7 +38,7 @@ from jscratch.design.solver import (
 
 def design(
     targets: Float[ArrayLike, "M H W"],
-    views: Views,
+    views: Views | None = None,
     board: Board | None = None,
     config: DesignConfig | None = None,
     *,
@@ -51,11 +51,14 @@ def design(
 
     **Arguments:**
 
-    - `targets`: ``(M, H, W)`` display values in ``[0, 1]``, row 0 at the top (SPEC section 1).
-    - `views`: `render.Views` with ``M`` cameras and lights (m, above the board); the intensities
-      are the starting values when ``config.init_intensity == "given"``.
-    - `board`: `render.Board`; its ``shape`` must be ``(H, W)``. Default ``Board(shape=(H, W))``.
-    - `config`: `DesignConfig` (default ``DesignConfig()``).
+    - `targets`: ``(M, H, W)`` display values in ``[0, 1]``, row 0 at the top (docs/model.md §1).
+    - `views`: `jscratch.Views` with ``M`` cameras and lights (m, above the board); the
+      intensities are the starting values when ``config.init_intensity == "given"``. Default: the
+      command line's, ``SceneConfig().make_views(M, board)`` (light and cameras at 50 degrees).
+    - `board`: `jscratch.Board`; its ``shape`` must be ``(H, W)``. Default ``Board(shape=(H, W))``
+      (0.3 m square, as the command line's).
+    - `config`: `DesignConfig` (default ``DesignConfig()``, the command line's defaults: the same
+      inputs and configs give the same result bit for bit).
     - `checkpoint`: path of a checkpoint file, written every ``config.checkpoint_every``
       iterations, at the end, and with the last good state when a NaN stops the run.
     - `resume`: continue from `checkpoint` (same targets and config); the continued run is
@@ -66,13 +69,14 @@ def design(
 
     **Returns:** a `DesignResult`.
 
-    **Raises:** `DesignError` for bad targets, views or config; `NonFiniteError` when the loss, a
-    gradient or a parameter becomes non-finite (after saving the last good state to `checkpoint`).
+    **Raises:** `DesignError` (an `jscratch.InputError`) for bad targets, views or config, before
+    any work; `NonFiniteError` when the loss, a gradient or a parameter becomes non-finite (after
+    saving the last good state to `checkpoint`).
     """
     t_start = time.perf_counter()
     native.prepare()  # the native kernel builds (first run only) while the setup goes on
     config = DesignConfig() if config is None else config
-    tnp, board = _check_inputs(targets, views, board, config, checkpoint, resume)
+    tnp, views, board = check_inputs(targets, views, board, config, checkpoint, resume)
     checkpoint = None if checkpoint is None else os.fspath(checkpoint)
     thash = targets_hash(tnp)
     params, optimizer, ctx = setup(tnp, views, board, config)
@@ -82,8 +86,10 @@ def design(
         state = load_checkpoint(checkpoint, like, config, thash)
     else:
         state, warm = initial_state(params, optimizer, ctx, tnp, config)
+    compile_seconds = None
     if warm is not None:
         warm.join()
+        compile_seconds = warm.seconds
     n_iter = config.iterations if stop_after is None else min(config.iterations, stop_after)
     state, step_times = _iterate(state, optimizer, ctx, config, n_iter, checkpoint, thash, progress)
     result = _finish(state, ctx, tnp, config, discard_now=(
@@ -92,19 +98,28 @@ def design(
         "time_total": time.perf_counter() - t_start,
         "time_first_step": step_times[0] if step_times else None,
         "time_step_median": float(np.median(step_times[1:])) if len(step_times) > 1 else None,
+        "time_compile_step": compile_seconds,
+        "kernel": native.status(),
     })
     return result
 
 
-def _check_inputs(targets, views, board, config, checkpoint, resume):
-    """The checked targets ``(M, H, W)`` (numpy) and the board; raises `DesignError`."""
+def check_inputs(targets, views, board, config, checkpoint=None, resume=False):
+    """Every check `design` makes before any work: ``(targets (M, H, W) numpy, views, board)``
+    with the defaults filled in, the loss built once (a missing VGG file is refused here).
+    Raises `DesignError` naming what is wrong."""
     if not isinstance(config, DesignConfig):
         raise DesignError(f"config must be a DesignConfig, got {type(config).__name__}")
-    if not isinstance(views, Views):
-        raise DesignError(f"views must be a jscratch.render.Views, got {type(views).__name__}")
-    tnp = check_targets(targets, views.m)
+    if views is not None and not isinstance(views, Views):
+        raise DesignError(f"views must be a jscratch.Views, got {type(views).__name__}")
+    tnp = check_targets(targets, None if views is None else views.m)
     h, w = tnp.shape[1:]
-    board = Board(shape=(h, w)) if board is None else board
+    if board is not None and not isinstance(board, Board):
+        raise DesignError(f"board must be a jscratch.Board, got {type(board).__name__}")
+    scene = SceneConfig()  # the command line's defaults for what is not given
+    board = Board(shape=(h, w), Sx=scene.board, Sy=scene.board) if board is None else board
+    if views is None:
+        views = scene.make_views(tnp.shape[0], board)
     if board.shape != (h, w):
         raise DesignError(f"targets are {h}x{w} px but the board's image shape is {board.shape}")
     check_design_views(views, board)
@@ -112,7 +127,8 @@ def _check_inputs(targets, views, board, config, checkpoint, resume):
         raise DesignError("dtype float64 needs jax_enable_x64 (jax.config.update('jax_enable_x64', True))")
     if resume and checkpoint is None:
         raise DesignError("resume=True needs a checkpoint path")
-    return tnp, board
+    loss_mod.make_loss(config.loss)  # refuses a missing or bad VGG weights file now
+    return tnp, views, board
 
 
 def setup(tnp, views, board, config):
@@ -193,12 +209,15 @@ def _compile_step_meanwhile(params, optimizer, lists, ctx) -> threading.Thread:
     second thread, so that it overlaps the setup's own render. Only shapes matter, so the
     intensities set meanwhile do not. A failure here is left to the first real step to report."""
     def work():
+        t0 = time.perf_counter()
         try:
             compile_step(params, optimizer.init(params), lists, ctx, optimizer)
         except Exception:  # the first `step` call compiles again and raises it properly
             pass
+        thread.seconds = time.perf_counter() - t0
 
     thread = threading.Thread(target=work, name="jscratch-compile-step", daemon=True)
+    thread.seconds = None
     thread.start()
     return thread
 

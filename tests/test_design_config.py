@@ -1,0 +1,203 @@
+"""`jscratch.design.config` and `jscratch.options`: one declaration per option, from which the
+command line is generated; every field has a flag that sets it; configs round-trip through JSON;
+bad values are refused with one-line `InputError`s naming the field."""
+
+import dataclasses
+import json
+import typing
+
+import pytest
+
+import jscratch
+import jscratch.machine
+from jscratch import loss as loss_mod
+from jscratch import options
+from jscratch.errors import InputError
+from jscratch.design import cli
+from jscratch.design.config import DesignConfig, SceneConfig
+
+
+def _all_fields(cls, prefix=""):
+    """Every (path, field, type) of an option dataclass, nested ones flattened."""
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        if f.metadata.get("nested"):
+            yield from _all_fields(typing.get_args(hints[f.name])[0] if typing.get_args(
+                hints[f.name]) else hints[f.name], prefix + f.name + ".")
+        else:
+            yield prefix + f.name, f, hints[f.name]
+
+
+def _get(obj, path):
+    for part in path.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+# A value other than the default for every field, as command-line text and as the value the
+# config must then hold (fields whose text is not their value's str are listed here).
+_SPECIAL = {
+    "init_length": (["0.004", "0.02"], (0.004, 0.02)),
+    "freeze": (["endpoints,width"], ("endpoints", "width")),
+    "targets": (["a.png", "b.png"], ("a.png", "b.png")),
+    "loss.vgg_weights": (["w.npz"], "w.npz"),
+    "target_ssim": (["0.5"], 0.5),
+    "views": (["2"], 2),  # with two targets
+    "camera_theta_deg": (["40"], 40.0),
+    "offset_deg": (["10"], 10.0),
+    "loss.lambda_g": (["3"], 3.0),
+    "config": None,  # covered by the --config tests
+    "resume": None,  # covered by the resume tests
+}
+
+
+def _other_value(path, f, tp, default):
+    if path in _SPECIAL:
+        return _SPECIAL[path]
+    choices = f.metadata.get("choices")
+    if choices:
+        other = next(c for c in choices if c != default)
+        return [other], other
+    if tp is bool:
+        return None  # flag form below
+    if tp is int:
+        return [str(default + 1)], default + 1
+    if tp is float:
+        v = 0.5 * default if default else 0.25
+        return [repr(v)], v
+    if tp is str:
+        return ["somewhere"], "somewhere"
+    raise AssertionError(f"no test value for {path} ({tp})")
+
+
+def test_every_field_has_a_flag_that_sets_it(tmp_path):
+    """For every field of RunOptions, SceneConfig, DesignConfig and its LossConfig: the generated
+    flag exists and sets exactly that field (the others keep their defaults)."""
+    machine = tmp_path / "m.toml"
+    prof = jscratch.machine.MachineProfile.from_dict({}, name="other")
+    machine.write_text(prof.to_toml())
+    covered = set()
+    for cls, index in ((cli.RunOptions, 0), (SceneConfig, 1), (DesignConfig, 2)):
+        flag_of = options.flags(cls)
+        defaults = cls()
+        for path, f, tp in _all_fields(cls):
+            assert path in flag_of or not f.metadata.get("cli", True), path
+            flag = flag_of[path]
+            default = _get(defaults, path)
+            if path == "machine":
+                argv, want = [flag, str(machine)], prof.to_dict()
+            else:
+                other = _other_value(path, f, tp, default)
+                if other is None and path in _SPECIAL:
+                    continue
+                if other is None:  # a bool: --x / --no-x
+                    argv = [flag if not default else "--no-" + flag[2:]]
+                    want = not default
+                else:
+                    text, want = other
+                    argv = text if flag == "targets" else [flag, *text]
+            if path == "views":
+                argv = ["a.png", "b.png", *argv]
+            if path == "loss.vgg_weights":
+                argv += ["--lambda-g", "1"]
+            got = cli.configs(argv)[index]
+            assert _get(got, path) == want, (path, argv)
+            covered.add(path)
+    assert {"n_scratches", "seed", "dtype", "loss.lambda_x", "targets", "out"} <= covered
+
+
+def test_flags_are_unique_and_docs_complete():
+    seen = {}
+    for cls in (cli.RunOptions, SceneConfig, DesignConfig):
+        for path, flag in options.flags(cls).items():
+            assert flag not in seen, (flag, path, seen.get(flag))
+            seen[flag] = path
+    for cls in (cli.RunOptions, SceneConfig, DesignConfig, loss_mod.LossConfig):
+        for f in dataclasses.fields(cls):
+            assert f.metadata.get("help"), f"{cls.__name__}.{f.name} has no help"
+
+
+def test_help_shows_each_default_once(capsys):
+    with pytest.raises(SystemExit) as e:
+        cli.parser().parse_args(["--help"])
+    assert e.value.code == 0
+    text = capsys.readouterr().out
+    for block in text.split("\n  --")[1:]:
+        assert block.count("(default") <= 1, block
+
+
+def test_defaults_are_one_truth():
+    """The command line with no options asks for exactly the library's defaults."""
+    run, scene, config = cli.configs([])
+    assert config == DesignConfig()
+    assert scene == SceneConfig()
+    assert config.loss == loss_mod.LossConfig()
+    assert config.groove == "carvable" and config.loss.lambda_x == loss_mod.LAMBDA_X
+    assert config.machine == jscratch.machine.MachineProfile.from_dict({}).to_dict()
+
+
+def test_config_json_round_trip():
+    cfg = DesignConfig(n_scratches=123, freeze=("width", "alpha"), init_length=(0.001, 0.002),
+                       loss=loss_mod.LossConfig(kind="perceptual", lambda_x=0.0),
+                       target_ssim=0.7)
+    back = DesignConfig.from_dict(json.loads(json.dumps(cfg.to_dict())))
+    assert back == cfg
+    scene = SceneConfig(targets=("x.png",), theta_deg=40.0)
+    assert SceneConfig.from_dict(json.loads(json.dumps(scene.to_dict()))) == scene
+
+
+@pytest.mark.parametrize("kw, field", [
+    ({"iterations": 0}, "iterations"),
+    ({"n_scratches": -1}, "n_scratches"),
+    ({"n_scratches": 2.5}, "n_scratches"),
+    ({"init_width": float("nan")}, "init_width"),
+    ({"lr_width": "fast"}, "lr_width"),
+    ({"groove": "deep"}, "groove"),
+    ({"freeze": ("legs",)}, "freeze"),
+    ({"prune_fraction": 1.5}, "prune_fraction"),
+    ({"target_ssim": 0.0}, "target_ssim"),
+    ({"adam_b2": 1.0}, "adam_b2"),
+    ({"machine": {"cutter_radius_mm": -1}}, "cutter_radius_mm"),
+])
+def test_bad_design_config_is_one_line_input_error(kw, field):
+    with pytest.raises(InputError, match=field) as e:
+        DesignConfig(**kw)
+    assert "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize("d, what", [
+    ({"n_scratchez": 5}, "unknown fields"),
+    ({"loss": {"lambda_q": 1}}, "unknown fields"),
+    ([], "JSON object"),
+])
+def test_bad_config_dict(d, what):
+    with pytest.raises(InputError, match=what):
+        DesignConfig.from_dict(d)
+
+
+@pytest.mark.parametrize("kw, field", [
+    ({"size": 8}, "size"),
+    ({"theta_deg": 95.0}, "theta_deg"),
+    ({"targets": ("a.png",), "views": 2}, "target images for 2 views"),
+    ({"board": -0.3}, "board"),
+])
+def test_bad_scene_config(kw, field):
+    with pytest.raises(InputError, match=field):
+        SceneConfig(**kw)
+
+
+def test_scene_views_match_views_on_circle():
+    """Degrees in the scene config, radians in `views_on_circle`: the same views."""
+    import math
+
+    import numpy as np
+
+    scene = SceneConfig(theta_deg=40.0, offset_deg=30.0, views=4, size=32)
+    board = scene.make_board()
+    want = jscratch.views_on_circle(4, math.radians(40.0), 1.0, math.radians(30.0), board)
+    got = scene.make_views()
+    np.testing.assert_array_equal(np.asarray(got.camera), np.asarray(want.camera))
+    np.testing.assert_array_equal(np.asarray(got.light), np.asarray(want.light))
+    default = jscratch.views_on_circle(3, board=board)  # the default polar angle is 50 degrees
+    np.testing.assert_array_equal(np.asarray(SceneConfig(size=32).make_views().camera),
+                                  np.asarray(default.camera))
