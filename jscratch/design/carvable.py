@@ -104,10 +104,14 @@ def ball_slope_fit(plunge_over_r, criterion: str = "slope") -> tuple[np.ndarray,
     p = np.asarray(plunge_over_r, np.float64)
     a = np.sqrt(2.0 * p - p * p)
     t0 = np.log(np.maximum(2.0 / a - 1.0, 1e-3))
-    # float64 when enabled (optimistix's damped operator then carries float64 scalars too).
-    dt = jnp.float64 if jnp.zeros(()).dtype == jnp.float64 else jnp.float32
-    t, rms = _fit_vmapped[criterion](jnp.asarray(t0, dt), jnp.asarray(a, dt))
-    return np.asarray(t, np.float64), np.asarray(rms, np.float64)
+    # Always in float32, whether or not jax_enable_x64 is on: the map is part of a design's
+    # result, so it must not depend on a process-wide flag (a design from a notebook with float64
+    # enabled equals the command line's). Its float32 rounding (~1e-7 in t) is far below the
+    # fit's own wall-angle error.
+    with jax.enable_x64(False):
+        t, rms = _fit_vmapped[criterion](jnp.asarray(t0, jnp.float32),
+                                         jnp.asarray(a, jnp.float32))
+        return np.asarray(t, np.float64), np.asarray(rms, np.float64)
 
 
 @dataclasses.dataclass(frozen=True)

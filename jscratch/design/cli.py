@@ -114,6 +114,8 @@ def configs(argv: Sequence[str] | None = None) -> tuple[RunOptions, SceneConfig,
     source = None
     if run.resume:
         source = os.path.join(run.out, "config.json")
+        if not os.path.isfile(source):
+            raise DesignFileError(f"--resume: no run to continue in {run.out!r} (no {source!r})")
         extra = sorted((set(scene_given) | set(design_given)) - {"iterations"})
         if extra:
             raise DesignError(f"--resume continues the run in {run.out!r} with its own settings; "
