@@ -143,7 +143,7 @@ def write_png(path: str, img: np.ndarray) -> None:
 
 
 def write_outputs(result: DesignResult, out: str | os.PathLike, extra_config: dict | None = None) -> None:
-    """Write a result: ``design.npz`` + ``design.svg`` (SPEC section 9), ``view<j>_render.png``
+    """Write a result: ``design.npz`` + ``design.svg`` (docs/model.md §9), ``view<j>_render.png``
     and ``view<j>_target.png``, ``comparison.png``, ``loss.png``, ``metrics.json`` and
     ``config.json`` (the `DesignConfig` plus `extra_config`)."""
     import matplotlib

@@ -27,8 +27,9 @@ class DesignResult:
     - `targets`: ``(M, H, W)`` the targets.
     - `history`: per-iteration lists ``"total"`` and the loss terms (loss at the parameters the
       iteration started from).
-    - `metrics`: SPEC section 7 metrics (`metrics.image_metrics`) plus ``loss``,
-      ``loss_before_discard``, ``metrics_before_discard`` (SPEC 7 metrics with every scratch),
+    - `metrics`: the metrics of docs/model.md §7 (`metrics.image_metrics`) plus ``loss``,
+      ``loss_before_discard``, ``metrics_before_discard`` (the same metrics with every
+      scratch),
       ``discarded``, ``kept``, ``pairs_total``, ``pairs_per_view``, ``coverage_pairs`` (pairs in
       the coverage pass after `cull.cull_coverage`), ``rebins``,
       timing (s): ``time_total``, ``time_first_step`` (includes compilation),

@@ -51,7 +51,7 @@ def design(
 
     **Arguments:**
 
-    - `targets`: ``(M, H, W)`` display values in ``[0, 1]``, row 0 at the top (SPEC section 1).
+    - `targets`: ``(M, H, W)`` display values in ``[0, 1]``, row 0 at the top (docs/model.md §1).
     - `views`: `render.Views` with ``M`` cameras and lights (m, above the board); the intensities
       are the starting values when ``config.init_intensity == "given"``.
     - `board`: `render.Board`; its ``shape`` must be ``(H, W)``. Default ``Board(shape=(H, W))``.
