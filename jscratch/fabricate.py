@@ -5,7 +5,7 @@ A separate, imperative stage (docs/model.md §8): it reads a design file (docs/m
 progress survives crashes.
 
 - `jscratch.machine.MachineProfile` (also ``MachineConfig``): the machine profile, read
-  from ``--machine FILE`` (TOML; ``--config`` is the older name) or recorded in the design file;
+  from ``--machine FILE`` (TOML; ``--config`` is an alias) or recorded in the design file;
   `machine_for_design` reconciles the two (a different cutter is refused).
 - Carvable designs (``plunge`` in the design file) are cut at their recorded plunges; other
   designs get a fitted plunge:
@@ -457,7 +457,7 @@ def _parser():
     p.add_argument("--machine", "--config", dest="machine",
                    help="machine profile, TOML (keys as the options below, underscores; see python -m "
                         "jscratch.machine); a design that records its profile is cut with that one, and a "
-                        "different cutter here is refused (--config is the older name)")
+                        "different cutter here is refused (--config is an alias)")
     p.add_argument("--override-machine", action="store_true",
                    help="cut even when --machine or the options change the cutter the design was made for")
     p.add_argument("--demo-n", type=int, default=400, help="scratches in the demo design (default 400)")
