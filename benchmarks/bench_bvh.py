@@ -1,6 +1,6 @@
 """Benchmark of `jscratch.bvh`: binning time, padding efficiency, binning against shading, culling.
 
-Scenes follow SPEC section 5 (midpoints uniform on a 0.3 m board, directions uniform, lengths
+Scenes follow docs/model.md §5 (midpoints uniform on a 0.3 m board, directions uniform, lengths
 uniform in [0.005, 0.025] m; width 2.5e-4 m, depth 1.28e-4 m, alpha 0.04), float32, CPU.
 
 Table 1 (binning): for each scratch count N and image size,
@@ -268,7 +268,7 @@ def main(argv=None):
         f"({jax.devices()[0].platform}); jax {jax.__version__}; float32.",
         f"Command: `python {' '.join(['benchmarks/bench_bvh.py', *sys.argv[1:]])}` "
         f"(run at {datetime.datetime.now().isoformat(timespec='seconds')}).",
-        "Scenes: SPEC section 5 defaults (lengths U[5, 25] mm, width 2.5e-4 m, depth 1.28e-4 m, "
+        "Scenes: defaults of docs/model.md §5 (lengths U[5, 25] mm, width 2.5e-4 m, depth 1.28e-4 m, "
         "alpha 0.04) on a 0.3 m board. Times are medians of `block_until_ready` runs; compile "
         "times apart. The machine may be shared: numbers are provisional, rerun on a quiet one.",
         "",

@@ -9,7 +9,7 @@ Usage (from the repository root)::
 - **default**: ``design`` with the CLI defaults (3 views, 20,000 scratches, 256x256, 100
   iterations, skimage.data targets); wall time end to end (including compilation, binning, the
   discard and the metrics), the first step (mostly compilation) and the median step apart, and
-  per-view SSIM / PSNR / ghosting (SPEC section 7).
+  per-view SSIM / PSNR / ghosting (docs/model.md §7).
 - **ablations** (paper Figs. 17, 19, 20, 21), each at a reduced size with the same budget:
   loss ``l2`` vs ``perceptual`` vs ``perceptual+gram``; two endpoints vs midpoint + direction +
   length; ``alpha = 4e-4`` vs ``0.04`` (frozen); discard on vs off (from the default-loss run).

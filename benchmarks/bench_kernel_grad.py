@@ -3,8 +3,7 @@ by which arguments are differentiated: where the kernel's reverse pass spends it
 
     python benchmarks/bench_kernel_grad.py [--pairs 4096] [--repeats 7]
 
-To compare with an older kernel, check out its `jscratch/ndf.py` and rerun (RESULTS.md's
-"session 2" row is commit 671b9ed). Prints a Markdown table (ns per pair, medians of
+To compare with another kernel, check out its `jscratch/ndf.py` and rerun. Prints a Markdown table (ns per pair, medians of
 `block_until_ready` runs after one warm-up; compile time excluded).
 """
 

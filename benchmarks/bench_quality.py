@@ -1,8 +1,9 @@
-"""Quality per scratch (issue 17): run design rows and write a markdown table.
+"""Quality per scratch: run design rows (loss weights, ghosting term, prune/re-seed) and write a
+markdown table.
 
 Each row is one `jscratch.design.design` run in its own Python process (so that its wall time
 includes its own compilation, like a user's run), on one of the target sets below, with the same
-seed and scene. The table reports per-view SSIM, PSNR, ghosting (SPEC section 7), the texture
+seed and scene. The table reports per-view SSIM, PSNR, ghosting (docs/model.md §7), the texture
 distance (`metrics.texture_distance`), scratches kept, the ghosting in excess of the targets' own
 (`excess`), the carving estimate and the wall time of ``design`` (compilation included; the
 carving estimate is not timed).
@@ -10,8 +11,8 @@ carving estimate is not timed).
 Carving estimate: the machine profile's (`jscratch.design.maker.carving_estimate`: the kept
 scratches ordered with 1 s of 2-opt, then `jscratch.machine.carving_seconds` with the shipped
 profile's feeds, plunges and overheads), the number ``python -m jscratch.design`` writes to
-``metrics.json`` ("carving"). SPEC section 8's rule (one second per scratch plus the cutting
-length at 1.5 cm/s) is kept in the ``.jsonl`` as ``hours_spec8`` for comparison with older tables.
+``metrics.json`` ("carving"). The rule of docs/model.md §8 (one second per scratch plus the cutting
+length at 1.5 cm/s) is kept in the ``.jsonl`` as ``hours_spec8``, a machine-independent figure.
 
 Every row uses the command line's groove model (``--groove carvable``, one plunge per scratch)
 unless ``--groove free`` is given; ``--iterations`` sets the Adam iterations of every row,
@@ -21,11 +22,11 @@ unless ``--groove free`` is given; ``--iterations`` sets the Adam iterations of 
         --out /tmp/w17/lambda128.md
 
 Suites: ``lambda`` (the ``lambda_g`` sweep), ``ghost`` (``lambda_x``), ``prune`` (re-seed
-rounds), ``pieces`` (today's defaults, each new piece alone,
-the proposed defaults), ``s9`` (session 9: the command line's defaults before it, ``lambda_g`` 20
-alone, prune alone, both, both with ``E_x`` at the ``--lx`` values, and with the raw-ghosting
-``E_x`` (``ghost_baseline = "zero"``) at the ``--lx`` values: session 9's candidate is
-``--lx 0.001 --only 5``). ``--sets`` picks target sets (``default``: camera/astronaut/chelsea; ``other``:
+rounds), ``pieces`` (the baseline ``E_p + 200 E_g`` without prune or ``E_x``, each piece of
+the shipped defaults alone, then ``E_p + 20 E_g`` with prune), ``s9`` (the shipped defaults built up
+from that baseline: ``lambda_g`` 20 alone, prune alone, both, both with ``E_x`` at the ``--lx``
+values, and with the raw-ghosting ``E_x`` (``ghost_baseline = "zero"``) at the ``--lx`` values;
+the shipped defaults are ``--lx 0.001 --only 5``). ``--sets`` picks target sets (``default``: camera/astronaut/chelsea; ``other``:
 coins/clock/line art; ``other2``: text/brick/page).
 """
 
@@ -47,7 +48,7 @@ SETS = {
     "other2": ("text", "brick", "page"),
 }
 
-#: SPEC section 8: about one second per scratch (moves, plunge) plus cutting at 1.5 cm/s.
+#: docs/model.md §8: about one second per scratch (moves, plunge) plus cutting at 1.5 cm/s.
 SECONDS_PER_SCRATCH = 1.0
 CUT_SPEED = 0.015  # m/s
 
@@ -165,25 +166,25 @@ def suite(name: str, lx=(0.003, 0.01, 0.03), prune=((10, 0.05), (20, 0.1)), lg_n
         ep = {"loss": {"kind": "perceptual", "lambda_x": 0.0}, "prune_every": 0}
         (pe, pf), x = prune[0], lx[0]
         return [
-            ("today's defaults (E_p + 200 E_g)", old),
+            ("baseline (E_p + 200 E_g, no prune, no E_x)", old),
             ("E_p alone (lambda_g 0)", ep),
             ("E_p + 20 E_g", {**ep, "loss": {"kind": "perceptual+gram", "lambda_g": 20.0}}),
             (f"E_p + {x} E_x (ghosting term)", {**ep, "loss": {**ep["loss"], "lambda_x": x}}),
             (f"E_p + prune every {pe}, {pf:.0%}", {**ep, "prune_every": pe, "prune_fraction": pf}),
-            ("proposed defaults (E_p + 20 E_g, prune every 10, 5%)",
+            ("E_p + 20 E_g, prune every 10, 5%",
              {"loss": {"kind": "perceptual+gram", "lambda_g": 20.0, "lambda_x": 0.0},
               "prune_every": 10, "prune_fraction": 0.05}),
         ]
     if name == "s9":
-        # "today's defaults" = the command line's before session 9 (E_p + 200 E_g, no prune, no
-        # E_x); every row names its weights explicitly, so it does not move with the defaults
+        # the baseline (E_p + 200 E_g, no prune, no E_x) and every other row name their weights
+        # explicitly, so that the suite does not move with the defaults
         old = {"loss": {"kind": "perceptual+gram", "lambda_g": 200.0, "lambda_x": 0.0},
                "prune_every": 0}
         g20 = {"kind": "perceptual+gram", "lambda_g": 20.0, "lambda_x": 0.0}
         (pe, pf) = prune[0]
         pr = {"prune_every": pe, "prune_fraction": pf}
         rows = [
-            ("today's defaults (E_p + 200 E_g)", old),
+            ("baseline (E_p + 200 E_g, no prune, no E_x)", old),
             ("E_p + 20 E_g alone", {**old, "loss": g20}),
             (f"prune every {pe}, {pf:.0%} alone (E_p + 200 E_g)", {**old, **pr}),
             (f"proposal: E_p + 20 E_g, prune every {pe}, {pf:.0%}", {"loss": g20, **pr}),

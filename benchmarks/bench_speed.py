@@ -1,5 +1,5 @@
 """The pair kernel, the renderer and the design step against an earlier commit, in one run on the
-same pairs: the speed issue's yardstick.
+same pairs: how much faster (or slower) the working tree is than a given commit.
 
     python benchmarks/bench_speed.py [--base 57360a2] [--sections kernel render design]
                                      [--out benchmarks/results/speed]

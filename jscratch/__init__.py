@@ -3,7 +3,8 @@
 Stages (data flows one way): ``ndf`` (per-pair scratch NDF) <- ``bvh`` (pixel/scratch binning)
 <- ``render`` (multi-view shading) <- ``loss`` <- ``design`` (optimisation); ``scene`` holds the
 board, scratches and views every stage shares; ``fabricate`` reads a saved design and drives a
-GRBL carver. The README's "Layout" section lists each module and what it may import.
+GRBL carver. docs/architecture.md lists each module and what it may import; docs/api.md the
+public names by stage; docs/model.md the model.
 
 The public API is re-exported here; the submodules stay importable (``jscratch.render``, ...).
 """

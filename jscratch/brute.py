@@ -1,9 +1,9 @@
-"""Brute-force supersampled validation renderer (SPEC sections 1, 2 and 4; no analytic integral).
+"""Brute-force supersampled validation renderer (docs/model.md §1, §2 and §4; no analytic integral).
 
 The independent ground truth for `jscratch.render`: every pixel footprint is supersampled with an
 ``n x n`` jittered stratified pattern (one uniform point per stratum, fresh for every pixel); at each
 sample point ``q`` and for every scratch whose groove contains ``q`` it computes the real groove
-geometry (SPEC section 2: local coordinates ``x = (q - p0).b``, ``y = (q - p0).t``; inside when
+geometry (docs/model.md §2: local coordinates ``x = (q - p0).b``, ``y = (q - p0).t``; inside when
 ``|x| < x_max`` and ``0 <= y <= |p1 - p0|``; the normal from the slope of the height profile
 ``h(x) = -(w/2) log(1 - 4x^2/w^2) - d``, differentiated by autodiff, not from Eq. 5) and evaluates the
 GGX point NDF there. The pixel's ``D_P`` and coverage ``c`` are sample means::
@@ -14,7 +14,7 @@ Overlapping grooves: each groove that contains a sample contributes its own ``D_
 area, exactly the additive superposition of the analytic model (``D_P = sum_i D_hat_i / S_P``,
 ``c = sum_i A_i / S_P``); this is the model's rule, not a physical union of cuts.
 
-Shading is re-implemented here from SPEC section 4 (in algebraically different but equivalent forms)
+Shading is re-implemented here from docs/model.md §4 (in algebraically different but equivalent forms)
 so that it checks `render.shade` too. Nothing here imports `jscratch.ndf`.
 
 **As carved** (``ball_radius=R``): each scratch's groove is instead the circular arc a ball-end
@@ -139,7 +139,7 @@ def brute_sums(scratches, views, board, *, n: int = 16, key=None, pairs=None,
     - `pairs`: optional `bvh.Pairs` ``(L,)`` restricting which scratches are tested against which
       pixel (for speed); default: every scratch against every pixel (fully independent of binning).
     - `batch`: pairs per `lax.map` step (memory ``batch * n^2 * M``).
-    - `ball_radius`: None (the SPEC section 2 profile) or ``R`` (m): the grooves are a ball's cut
+    - `ball_radius`: None (the profile of docs/model.md §2) or ``R`` (m): the grooves are a ball's cut
       at plunge ``depth`` (module docstring).
     """
     dt = scratches.dtype
@@ -173,10 +173,10 @@ def brute_sums(scratches, views, board, *, n: int = 16, key=None, pairs=None,
 
 
 def brute_shade(D_P, coverage, views, board) -> Float[Array, "m p"]:
-    """SPEC section 4 shading, written independently of `render.shade`.
+    """docs/model.md §4 shading, written independently of `render.shade`.
 
-    ``G1 = 2 / (1 + sqrt(1 + a_G^2 tan^2 theta))`` (equal to the SPEC form), GGX in the textbook
-    ``cos`` form, Schlick Fresnel; ``radiance = I (D_P + max(0, 1-c) D_S) G F / (4 wo_z r2)``.
+    ``G1 = 2 / (1 + sqrt(1 + a_G^2 tan^2 theta))`` (equal to the form of docs/model.md §4),
+    GGX in the textbook ``cos`` form, Schlick Fresnel; ``radiance = I (D_P + max(0, 1-c) D_S) G F / (4 wo_z r2)``.
     """
     dt = D_P.dtype
     wo, wi, h, r2 = _half_vectors(views, board, dt)

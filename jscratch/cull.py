@@ -2,8 +2,8 @@
 the per-view cull (`cull`) and the coverage cull (`cull_coverage`) of a pair list. The per-view
 lists at fixed capacities built from them are `bvh.PairLists`.
 
-**View culling: the bound.** For one view, pixel `P` with half vector `h` and scratch `i`, SPEC
-section 3 gives `D_hat = ∫∫_{F ∩ groove} D_x(h, n(x)) dx dy <= A * max_x D_x(h, n(x))`. In the
+**View culling: the bound.** For one view, pixel `P` with half vector `h` and scratch `i`,
+docs/model.md §3 gives `D_hat = ∫∫_{F ∩ groove} D_x(h, n(x)) dx dy <= A * max_x D_x(h, n(x))`. In the
 scratch-local frame the groove normals are `n(psi) = (-sin psi, 0, cos psi)` for `|psi| <= psi_max`
 (Eq. 5 with `tan(psi/2) = 2u`, `u = x/w`), and the wall is steepest at the groove edge:
 `tan(psi_max/2) = 2 x_max / w = sqrt(s)`, `s = 1 - exp(-2d/w)`, so `cos psi_max = (1-s)/(1+s)` and
@@ -31,7 +31,7 @@ contribute. `c_max` gets 4 ulps added so that the bound survives rounding. `cull
     0 <= D_P - D_P_culled < eps * sum_dropped A_i / (pi alpha_i^2 S_P) <= eps * c / (pi alpha_min^2),
 
 with `c = sum_i A_i / S_P` the pixel's coverage. The coverage must come from the *unculled* list
-(a culled pair still covers the board; `render.render` does this), so the board term of SPEC 4 is
+(a culled pair still covers the board; `render.render` does this), so the board term of docs/model.md §4 is
 unchanged and the radiance error is the same bound times the shading factor:
 `0 <= radiance - radiance_culled < eps * (I wi_z / r^2) G F / (4 wi_z wo_z) * sum_dropped A_i /
 (pi alpha_i^2 S_P)`, i.e. at most `eps` times the radiance the pixel would have if every groove in
@@ -41,7 +41,7 @@ culling saves shading time. The default `DEFAULT_EPS` comes from the time-agains
 in `benchmarks/results/bvh.md`.
 
 **Coverage culling.** The coverage enters shading only through the board term
-`max(0, 1 - c) D_S(h)` (SPEC 4, `D_S` the flat board's GGX at the pixel's half vector), so a pair
+`max(0, 1 - c) D_S(h)` (docs/model.md §4, `D_S` the flat board's GGX at the pixel's half vector), so a pair
 left out of the coverage sum raises `D` by at most `D_S(h) A_i / S_P`. `cull_coverage` keeps a
 pair for the coverage pass only where `D_S(h) > eps / (pi alpha_i^2)` in some view, which bounds that
 error by the same `eps A_i / (pi alpha_i^2 S_P)` as view culling (the two errors have opposite
@@ -71,8 +71,8 @@ __all__ = [
 
 DEFAULT_EPS = 1e-3
 """Default culling threshold (fraction of a pair's largest possible contribution), from the
-time-against-error table in `benchmarks/results/bvh.md` (20k SPEC-default scratches, 256x256, 4
-views at 30 deg): `eps = 1e-3` keeps ~55% of the pairs and cuts shading time ~40% for a radiance
+time-against-error table in `benchmarks/results/bvh.md` (20k scratches with the
+defaults of docs/model.md §5, 256x256, 4 views at 30 deg): `eps = 1e-3` keeps ~55% of the pairs and cuts shading time ~40% for a radiance
 error of ~3e-4 of the image's peak (`1e-2`: ~31% kept, error ~2e-3 of the peak)."""
 
 
@@ -163,7 +163,7 @@ def cull(
     A pair is dropped when `rho < eps` (`cull_ratio`); `eps = 0` keeps every pair. Per pixel
     the dropped pairs change `D_P` by at most `(1/S_P) sum_dropped rho_i A_i / (pi alpha_i^2)
     < eps (1/S_P) sum_dropped A_i / (pi alpha_i^2)` (and never increase it). The coverage `c` of
-    SPEC 4 must still come from the unculled list, else the board term adds its own error (module
+    docs/model.md §4 must still come from the unculled list, else the board term adds its own error (module
     docstring). Use `grid.compact` to turn the dropped slots into saved time.
 
     **Arguments:** as `cull_ratio`, plus `eps >= 0` (scalar; may be traced).

@@ -1,4 +1,4 @@
-"""The design file (SPEC section 9): what an optimisation saves and what ``fabricate`` reads.
+"""The design file (docs/model.md §9): what an optimisation saves and what ``fabricate`` reads.
 
 A design is one ``.npz`` file holding
 
@@ -45,17 +45,17 @@ _MAKER = ("machine", "plunge")
 
 
 class DesignError(InputError):
-    """A design, or a design run's input, that breaks the rules (SPEC section 9; `jscratch.scene`):
+    """A design, or a design run's input, that breaks the rules (docs/model.md §9; `jscratch.scene`):
     the message names the array and the scratch, view or file. Shared by `jscratch.design`."""
 
 
 class Design(NamedTuple):
-    """A scratch design, all arrays float64 numpy, SI units (SPEC section 9).
+    """A scratch design, all arrays float64 numpy, SI units (docs/model.md §9).
 
     **Fields:**
 
     - `p0`, `p1`: `(N, 2)` endpoints, board metres.
-    - `width`, `depth`: `(N,)` profile parameters `w`, `d` of SPEC section 2, metres.
+    - `width`, `depth`: `(N,)` profile parameters `w`, `d` of docs/model.md §2, metres.
     - `alpha`: `(N,)` GGX roughness.
     - `board`: `(2,)` board size `(Sx, Sy)`, metres.
     - `camera`, `light`: `(M, 3)` view positions, metres, or `None`.
@@ -89,7 +89,7 @@ class Design(NamedTuple):
 
 
 def groove_half_width(width, depth):
-    """Half width `x_max = (w/2) sqrt(1 - exp(-2d/w))` of the groove (SPEC section 2), numpy, metres."""
+    """Half width `x_max = (w/2) sqrt(1 - exp(-2d/w))` of the groove (docs/model.md §2), numpy, metres."""
     width = np.asarray(width, dtype=np.float64)
     depth = np.asarray(depth, dtype=np.float64)
     return 0.5 * width * np.sqrt(-np.expm1(-2.0 * depth / width))
@@ -110,7 +110,7 @@ def _as_float_array(name, value, source):
 
 def validate_design(p0, p1, width, depth, alpha, board, camera=None, light=None, intensity=None,
                     machine=None, plunge=None, *, source="design") -> Design:
-    """Check a design against SPEC section 9 and return it as a float64 `Design`.
+    """Check a design against docs/model.md §9 and return it as a float64 `Design`.
 
     **Arguments:** the design arrays (anything `np.asarray` reads, e.g. jax arrays), see
     `Design`; `source` names the design in messages (a file name).
@@ -215,7 +215,7 @@ def _umask() -> int:
 
 def save_design(path, p0, p1, width, depth, alpha, board, camera=None, light=None, intensity=None,
                 machine=None, plunge=None) -> Design:
-    """Validate and write a design to a `.npz` file (SPEC section 9), atomically.
+    """Validate and write a design to a `.npz` file (docs/model.md §9), atomically.
 
     **Arguments:** `path` (the file; written as given, no suffix added), then the arrays of
     `Design` (numpy or jax, float32 or float64; stored as float64).
@@ -249,7 +249,7 @@ def save_design(path, p0, p1, width, depth, alpha, board, camera=None, light=Non
 
 
 def load_design(path) -> Design:
-    """Read and check a design `.npz` (SPEC section 9).
+    """Read and check a design `.npz` (docs/model.md §9).
 
     **Arguments:** `path` to the file.
 
@@ -289,7 +289,7 @@ def write_svg(path, design: Design, *, min_stroke_mm: float = 0.02) -> None:
     The page is the board, `Sx x Sy` mm (`width="...mm"` with a matching `viewBox`, so Inkscape and
     vpype read true sizes). SVG's y axis points down, so board point `(x, y)` is drawn at
     `(1000 x, 1000 (Sy - y))`: the picture looks like the board seen from above, with the edge
-    `y = Sy` at the top (SPEC section 1). Each line's stroke width is the groove width `2 x_max`
+    `y = Sy` at the top (docs/model.md §1). Each line's stroke width is the groove width `2 x_max`
     (at least `min_stroke_mm`, to stay visible) and its `id` is `s<index>`.
 
     **Arguments:** `path` of the SVG; `design` a `Design`; `min_stroke_mm` the thinnest stroke.
@@ -320,7 +320,7 @@ def write_svg(path, design: Design, *, min_stroke_mm: float = 0.02) -> None:
 def demo_design(n: int = 400, seed: int = 0, board=(0.3, 0.3)) -> Design:
     """A small built-in design: `n` brushed scratches on rings around the board centre.
 
-    Lengths are uniform in `[5, 25]` mm and the profile is the optimisation start of SPEC section 5
+    Lengths are uniform in `[5, 25]` mm and the profile is the optimisation start of docs/model.md §5
     (`w = 2.5e-4`, `d = 1.28e-4` m, `alpha = 0.04`); each scratch runs tangent to the circle through
     its midpoint (a brushed-ring look) with a little random tilt. Every endpoint lies on the board.
 

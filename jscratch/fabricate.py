@@ -1,11 +1,11 @@
 """Fabrication: order a design's scratches, fit the cutter, write GRBL 1.1 G-code, stream it.
 
-A separate, imperative stage (SPEC section 8): it reads a design file (SPEC section 9) and drives a
+A separate, imperative stage (docs/model.md §8): it reads a design file (docs/model.md §9) and drives a
 3-axis carver with a ball-end cutter for hours, so every step is checked before any motion and the
 progress survives crashes.
 
 - `jscratch.machine.MachineProfile` (also ``MachineConfig``): the machine profile, read
-  from ``--machine FILE`` (TOML; ``--config`` is the older name) or recorded in the design file;
+  from ``--machine FILE`` (TOML; ``--config`` is an alias) or recorded in the design file;
   `machine_for_design` reconciles the two (a different cutter is refused).
 - Carvable designs (``plunge`` in the design file) are cut at their recorded plunges; other
   designs get a fitted plunge:
@@ -132,7 +132,7 @@ def fit_plunge(width, depth, radius: float, *, mode: str = "per-scratch") -> Cut
     """Fit the plunge depth `p` of a ball-end cutter of radius `radius` to groove profiles.
 
     The cut of a ball plunged to `p` has height `min(0, R - p - sqrt(R^2 - x^2))` (surface width
-    `2 sqrt(2Rp - p^2)`, SPEC section 8); the design groove is `min(0, h(x))` of SPEC section 2. The
+    `2 sqrt(2Rp - p^2)`, docs/model.md §8); the design groove is `min(0, h(x))` of docs/model.md §2. The
     plunge minimises the squared height difference over `|x| <= 1.25 x_max` (optimistix
     Levenberg-Marquardt on `p = R sigmoid(theta)`, so `0 < p < R`); `"global"` fits one plunge for all
     scratches. Unique `(w, d)` pairs are fitted once.
@@ -211,7 +211,7 @@ def machine_for_design(design: Design, file_profile: MachineProfile | None, over
                        override: bool = False, warn=None) -> MachineProfile:
     """The profile to fabricate `design` with.
 
-    A design that records its machine (SPEC section 9) is cut with that profile. A `file_profile`
+    A design that records its machine (docs/model.md §9) is cut with that profile. A `file_profile`
     (``--machine``) or `overrides` (options) that change the cutter (`jscratch.machine.CUT_KEYS`)
     are refused, since the grooves would not be the designed ones, unless `override`; other
     differences (feeds, offsets: the machine on the day) are taken from the file and options, with
@@ -448,7 +448,8 @@ def _parser():
         description="Order a scratch design, write GRBL 1.1 G-code (mm, absolute) with a line map and a toolpath "
                     "preview, and optionally stream it to a GRBL controller with a crash-safe journal.",
     )
-    p.add_argument("design", nargs="?", help="design .npz (SPEC section 9); default: a built-in demo design")
+    p.add_argument("design", nargs="?", help="design .npz (docs/model.md §9); default: a built-in demo"
+                   " design")
     p.add_argument("--dry-run", action="store_true", help="write G-code, preview and summary; never open a port")
     p.add_argument("--out", help="output prefix (default: the design path without .npz, or ./jscratch_demo); "
                                  "writes PREFIX.gcode, PREFIX.gcode.map.csv, PREFIX.preview.png, PREFIX.summary.json")
@@ -456,7 +457,7 @@ def _parser():
     p.add_argument("--machine", "--config", dest="machine",
                    help="machine profile, TOML (keys as the options below, underscores; see python -m "
                         "jscratch.machine); a design that records its profile is cut with that one, and a "
-                        "different cutter here is refused (--config is the older name)")
+                        "different cutter here is refused (--config is an alias)")
     p.add_argument("--override-machine", action="store_true",
                    help="cut even when --machine or the options change the cutter the design was made for")
     p.add_argument("--demo-n", type=int, default=400, help="scratches in the demo design (default 400)")

@@ -6,8 +6,8 @@ scene needs (times a margin), a jitted `update` rebins at those fixed capacities
 `overflow` flag instead of dropping pairs, and the host driver `build_pairs` re-allocates and
 recomputes on overflow, so it never hands back an incomplete list.
 
-**Which pairs.** Pixel `(r, c)` has the closed axis-aligned footprint of SPEC section 1; scratch `i`
-has the closed groove rectangle of SPEC section 2 (local `|x| <= x_max`, `0 <= y <= |p1 - p0|`).
+**Which pairs.** Pixel `(r, c)` has the closed axis-aligned footprint of docs/model.md §1; scratch `i`
+has the closed groove rectangle of docs/model.md §2 (local `|x| <= x_max`, `0 <= y <= |p1 - p0|`).
 The list holds every pair whose footprint and groove intersect with positive area (none is ever
 missed), plus pairs that only touch or miss by at most a slack `tol = 16 eps (Sx + Sy)` (`eps` the
 machine epsilon of the input dtype: about `1.1e-6 m` in float32, `2e-15 m` in float64) that absorbs
@@ -19,7 +19,7 @@ into *strips*: one per image column it crosses when it runs more along x than y 
 (else one per row). Strips of all scratches share one flat list whose length (`strip_capacity`) is
 measured, so a board-diagonal scratch takes ~W strips and a short one a few, and no scratch is
 padded to the longest. Within a strip the groove covers a short run of cells along the other axis
-(at most `rows_per_strip`, measured: 3 for the SPEC section 5 defaults, whose grooves are narrower
+(at most `rows_per_strip`, measured: 3 for the defaults of docs/model.md §5, whose grooves are narrower
 than a pixel). Every candidate cell is then tested exactly (separating axes of the rectangle and the
 square, four axes) and the survivors are compacted, in scratch order, into the flat pair list of
 `pair_capacity` slots. The flat list beats a per-pixel `(P, K)` layout on padding because pairs
@@ -117,7 +117,7 @@ class Pairs(eqx.Module):
 
     **Fields:**
 
-    - `pixel`: `(L,)` int32 flat pixel index `r * W + c`, row 0 at the top of the image (SPEC 1);
+    - `pixel`: `(L,)` int32 flat pixel index `r * W + c`, row 0 at the top of the image (docs/model.md §1);
       0 in padding slots.
     - `scratch`: `(L,)` int32 scratch index; padding slots hold the sentinel `N` (the number of
       scratches).
@@ -223,7 +223,7 @@ def pair_tolerance(board: tuple[float, float], dtype) -> float:
     return 16.0 * float(jnp.finfo(dtype).eps) * (float(board[0]) + float(board[1]))
 
 
-# The scratch frame and groove half-width are the kernel's (SPEC 1-2), not re-derived here.
+# The scratch frame and groove half-width are the kernel's (docs/model.md §1-§2), not re-derived here.
 _frame = local_frame
 
 

@@ -1,4 +1,4 @@
-"""The GGX lobe of SPEC section 3 in a groove's ``u = x / w`` coordinate, and its integrals along
+"""The GGX lobe of docs/model.md §3 in a groove's ``u = x / w`` coordinate, and its integrals along
 straight boundary pieces with their partial derivatives: the per-view arithmetic of the closed
 form in `jscratch.ndf` (whose docstring derives it), kept in a module of its own. Functions of
 arrays of any (broadcasting) shape; jittable and vmappable.

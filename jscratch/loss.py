@@ -1,4 +1,4 @@
-"""Image losses for scratch design (SPEC section 6, paper section 3.4).
+"""Image losses for scratch design (docs/model.md §6, paper section 3.4).
 
 All losses compare a stack of rendered display images with a stack of targets, both display values
 (nominally in ``[0, 1]``) of shape ``(M, H, W)``: ``M`` views, ``H`` rows (row 0 at the top), ``W``
@@ -48,19 +48,18 @@ __all__ = [
 #: Standard deviation (pixels) of the 3x3 Gaussian ``g`` in ``E_p``. With sigma = 1 px the 1D
 #: weights are ``[e, 1, e] / (1 + 2e)``, ``e = exp(-1/2)``, i.e. ``[0.2741, 0.4519, 0.2741]``:
 #: a genuine low-pass over the whole 3x3 support (a smaller sigma would make ``g`` nearly a delta
-#: and ``E_p`` nearly plain L2); it also matches the sigma of the SPEC section 7 metrics.
+#: and ``E_p`` nearly plain L2); it also matches the sigma of the metrics of docs/model.md §7.
 BLUR_SIGMA = 1.0
 
 #: Default ``lambda_g`` for the default ``FilterBank`` features (with ``lambda_p = 1``), settled by
-#: measurement (issue 17; benchmarks/RESULTS.md "Issue 17" has the sweep: 3 views, seed 0, 100
-#: iterations, SSIM and ``metrics.texture_distance``, an LBP texture measure neither loss
-#: optimises). ``E_g`` trades SSIM for texture monotonically; at 256 px / 20k free grooves 0 gives
-#: SSIM 0.801 / texture 0.246, **20 gives 0.815 / 0.226** (better than ``E_p`` alone on both),
-#: 200 (the default until session 9) 0.755 / 0.202. With carvable grooves (session 9) 200 -> 20
-#: raised mean SSIM 0.746 -> 0.809; 20 became the default there together with prune/re-seed and
-#: the raw-ghosting term (`jscratch.design.DesignConfig`), which met the rule for new defaults
-#: (SSIM up and SPEC-7 ghosting down on the default and two other target sets, seeds 0 and 1;
-#: at 60k scratches it trades 0.033 SSIM for 0.057 less ghosting: RESULTS.md). Not valid for
+#: measurement (benchmarks/RESULTS.md has the sweep: 3 views, seed 0, 100 iterations, SSIM and
+#: ``metrics.texture_distance``, an LBP texture measure neither loss optimises). ``E_g`` trades
+#: SSIM for texture monotonically; at 256 px / 20k free grooves 0 gives SSIM 0.801 / texture
+#: 0.246, **20 gives 0.815 / 0.226** (better than ``E_p`` alone on both), 200 gives 0.755 / 0.202.
+#: With carvable grooves 20 rather than 200 raises mean SSIM from 0.746 to 0.809. Together with
+#: prune/re-seed and the raw-ghosting term (`jscratch.design.DesignConfig`) it raised SSIM and
+#: lowered the ghosting of docs/model.md §7 on the default and two other target sets, seeds 0 and
+#: 1; at 60k scratches it trades 0.033 SSIM for 0.057 less ghosting (RESULTS.md). Not valid for
 #: VGG features (different scale; see ``calibrate_lambda_g``).
 LAMBDA_G = 20.0
 
@@ -177,7 +176,7 @@ def blur3(images: Float[Array, "... H W"], sigma: float = BLUR_SIGMA) -> Float[A
 
 
 def perceptual_loss(render: Float[Array, "M H W"], target: Float[Array, "M H W"]) -> Array:
-    """Perceptual loss ``E_p = sum_j mean_pixels((g * (I_j - T_j))^2)`` (SPEC section 6, Eq. 12).
+    """Perceptual loss ``E_p = sum_j mean_pixels((g * (I_j - T_j))^2)`` (docs/model.md §6, Eq. 12).
 
     ``g`` is ``gaussian_kernel3()`` (sigma 1 px, edge-replicate boundary, see ``blur3``). A
     constant offset ``c`` between render and target gives exactly ``E_p = M c^2``.
@@ -207,7 +206,7 @@ def ghost_loss(render: Float[Array, "M H W"], target: Float[Array, "M H W"],
     """Cross-view ghosting penalty ``E_x = sum_j sum_{k != j} max(0, S[j, k] - B[j, k])``.
 
     ``S = cross_ssim(render, target)``: how much view ``j``'s render resembles view ``k``'s target
-    (SPEC section 7's ghosting, up to the 3x3 truncation of ``g``); ``B = cross_ssim(target,
+    (the ghosting of docs/model.md §7, up to the 3x3 truncation of ``g``); ``B = cross_ssim(target,
     target)`` (default): the resemblance a perfect render would have, so the term only penalises
     ghosting *beyond* what the targets share and is 0 at the optimum of ``E_p``.
 
@@ -574,7 +573,7 @@ def total_loss(
     lambda_g: float = LAMBDA_G,
     features: Features | None = None,
 ) -> Array:
-    """``E = lambda_p E_p + lambda_g E_g`` (SPEC section 6, Eq. 14).
+    """``E = lambda_p E_p + lambda_g E_g`` (docs/model.md §6, Eq. 14).
 
     **Arguments:**
 

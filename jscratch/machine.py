@@ -1,6 +1,6 @@
 """The machine profile: one small TOML file that both the design and the fabrication read.
 
-A `MachineProfile` (``MachineConfig`` is the same class, its older name) describes the carver:
+A `MachineProfile` (``MachineConfig`` is an alias of the same class) describes the carver:
 the cutter (a ball end of radius ``R`` on a spring holder, paper section 5), the plunge range it can
 cut well, the feeds, and the G-code settings. ``python -m jscratch.design --machine FILE`` designs
 grooves that this cutter can cut (`jscratch.design.carvable`) and records the profile in the design
@@ -223,7 +223,7 @@ class MachineProfile:
         return self.plunge_min_mm / 1000.0, self.plunge_max_mm / 1000.0
 
 
-#: The older name, kept for `jscratch.fabricate`'s callers.
+#: An alias, for `jscratch.fabricate`'s callers.
 MachineConfig = MachineProfile
 
 

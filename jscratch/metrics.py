@@ -1,4 +1,4 @@
-"""Image quality metrics of a multi-view design (SPEC section 7), host side (numpy/scikit-image).
+"""Image quality metrics of a multi-view design (docs/model.md §7), host side (numpy/scikit-image).
 
 Per view ``j``, with ``g`` a Gaussian of sigma 1 px (``skimage.filters.gaussian``, boundary mode
 ``"nearest"``) applied to the display images ``I_j`` and the targets ``T_j``:
@@ -48,14 +48,14 @@ def image_metrics(
     sigma: float = METRIC_SIGMA,
     clip: bool = True,
 ) -> dict[str, list]:
-    """SSIM, PSNR and cross-view ghosting per view (SPEC section 7).
+    """SSIM, PSNR and cross-view ghosting per view (docs/model.md §7).
 
     **Arguments:**
 
     - `display_images`: ``(M, H, W)`` rendered display values (``render.display`` of the radiance;
       numpy or JAX array, floating).
     - `targets`: ``(M, H, W)`` target display values in ``[0, 1]``.
-    - `sigma`: Gaussian sigma in pixels applied to both before comparing (SPEC: 1).
+    - `sigma`: Gaussian sigma in pixels applied to both before comparing (docs/model.md §7: 1).
     - `clip`: clip the display images to ``[0, 1]`` first (what a screen or PNG shows); default
       True.
 

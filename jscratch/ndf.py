@@ -1,4 +1,4 @@
-"""The scratch NDF: groove geometry and the per-pair boundary integral (SPEC sections 1-3).
+"""The scratch NDF: groove geometry and the per-pair boundary integral (docs/model.md §1-§3).
 
 One pixel footprint ``F`` (convex quad, board metres) and one scratch (``p0, p1, width, depth,
 alpha``) under a half vector ``h`` give
@@ -22,8 +22,8 @@ alpha``) under a half vector ``h`` give
 - Building blocks: `height_profile`, `groove_half_width` (``x_max``), `normal`, `ggx`,
   `point_ndf`, `local_frame`, `lit_interval`.
 
-**How the closed form works.** In the scratch frame (SPEC section 1) write ``u = x / w``. The GGX
-of SPEC section 3 with ``k = sqrt(1 - alpha^2)``, ``B = 1 + 4u^2``, ``N = hz (1 - 4u^2) - 4 hx u``,
+**How the closed form works.** In the scratch frame (docs/model.md §1) write ``u = x / w``. The GGX
+of docs/model.md §3 with ``k = sqrt(1 - alpha^2)``, ``B = 1 + 4u^2``, ``N = hz (1 - 4u^2) - 4 hx u``,
 ``P1 = B - kN``, ``P2 = B + kN`` is, with ``T1 = B / P1`` and ``T2 = B / P2`` (use
 ``P1 + P2 = 2B``),
 
@@ -193,7 +193,7 @@ def _cross_accurate(o, p0, p1):
 
 
 # ---------------------------------------------------------------------------------------------
-# Geometry (SPEC section 2).
+# Geometry (docs/model.md §2).
 
 
 def height_profile(x: ArrayLike, width: ArrayLike, depth: ArrayLike) -> Array:
@@ -246,7 +246,7 @@ def point_ndf(h_local: ArrayLike, x: ArrayLike, width: ArrayLike, alpha: ArrayLi
 
 
 def local_frame(p0: ArrayLike, p1: ArrayLike):
-    """Scratch frame (SPEC section 1): `(t, b, L)`, `t` along, `b = (t_y, -t_x)` across, `L` the
+    """Scratch frame (docs/model.md §1): `(t, b, L)`, `t` along, `b = (t_y, -t_x)` across, `L` the
     length (m). A zero-length scratch gets `t = (0, 1)` (finite gradients)."""
     p0, p1 = jnp.asarray(p0), jnp.asarray(p1)
     d = p1 - p0
@@ -714,7 +714,7 @@ def pair_integral(
     depth: Float[ArrayLike, ""],
     alpha: Float[ArrayLike, ""],
 ) -> tuple[Float[Array, ""], Float[Array, ""]]:
-    """Closed-form pair integral of SPEC section 3 for one footprint and one scratch.
+    """Closed-form pair integral of docs/model.md §3 for one footprint and one scratch.
 
     **Arguments:**
 

@@ -1,9 +1,9 @@
-"""Differentiable multi-view rendering of a scratched board (SPEC sections 1, 4 and 5).
+"""Differentiable multi-view rendering of a scratched board (docs/model.md §1, §4 and §5).
 
 The forward model: for every view ``j`` and pixel ``P`` the patch NDF ``D_P`` and the scratch
 coverage ``c`` are sums of the per-pair integrals ``jscratch.ndf.pair_integral`` over the
 (pixel, scratch) pairs that ``jscratch.bvh`` finds, divided by the footprint area ``S_P``; the pixel
-is then shaded at its footprint centre (SPEC section 4) into linear radiance.
+is then shaded at its footprint centre (docs/model.md §4) into linear radiance.
 
 The scene objects (`Board`, `Scratches`, `Views`, `views_on_circle`) live in `jscratch.scene`
 and the shading (`pixel_footprints`, `half_vectors`, `shade`, `display`) in `jscratch.shading`;

@@ -1,4 +1,4 @@
-"""The scene: board, scratches and views (SPEC sections 1, 2, 4 and 5), and the one set of rules
+"""The scene: board, scratches and views (docs/model.md §1, §2, §4 and §5), and the one set of rules
 every stage checks them by.
 
 **Scene objects** (equinox modules, data only):
@@ -7,7 +7,7 @@ every stage checks them by.
   Smith roughness ``a_G``, board GGX roughness ``a_S``); all static.
 - `Scratches`: ``p0, p1`` ``(N, 2)`` (m), ``width, depth`` ``(N,)`` (m), ``alpha`` ``(N,)``.
 - `Views`: ``camera, light`` ``(M, 3)`` (m), ``intensity`` ``(M,)`` (W/sr).
-- `views_on_circle`: the paper's view layout (SPEC section 5); `flat_highlight`.
+- `views_on_circle`: the paper's view layout (docs/model.md §5); `flat_highlight`.
 
 **The rules** (`SCRATCH_RULES`, `check_scratches`, `check_views`, `scene_checks`): every value
 finite; ``width > 0``, ``depth > 0`` (m); ``0 < alpha < 1`` (the domain of
@@ -185,7 +185,7 @@ class Board(eqx.Module):
 
     **Arguments:**
 
-    - `shape`: image ``(H, W)`` in pixels; row 0 lies along the board edge ``y = Sy`` (SPEC 1).
+    - `shape`: image ``(H, W)`` in pixels; row 0 lies along the board edge ``y = Sy`` (docs/model.md §1).
     - `Sx`, `Sy`: board size (m). Default 0.3.
     - `F0`: Schlick reflectance at normal incidence. Default 0.91 (aluminium).
     - `a_G`: roughness of the Smith GGX shadowing-masking term. Default 0.04.
@@ -244,7 +244,7 @@ def _float_dtype(*xs):
 
 
 class Scratches(eqx.Module):
-    """``N`` straight scratches (SPEC sections 1-2).
+    """``N`` straight scratches (docs/model.md §1-§2).
 
     **Arguments:**
 
@@ -305,7 +305,7 @@ class Scratches(eqx.Module):
     def random(key, n: int, board: Board | None = None, *, length=(0.005, 0.025),
                width: float = 1e-4, depth: float = 1e-4, alpha: float = 0.04,
                dtype=None) -> "Scratches":
-        """The SPEC section 5 initial layout: midpoints uniform on the board, directions uniform,
+        """The initial layout of docs/model.md §5: midpoints uniform on the board, directions uniform,
         lengths uniform in ``length`` (m); a segment that would leave the board is shortened about
         its midpoint (keeping its direction) so both endpoints lie on the board.
 
@@ -342,7 +342,7 @@ def _random_endpoints(key, n: int, Sx: float, Sy: float, length: tuple, dtype):
 
 
 class Views(eqx.Module):
-    """``M`` view/light configurations (SPEC section 4).
+    """``M`` view/light configurations (docs/model.md §4).
 
     **Arguments:**
 
@@ -415,7 +415,7 @@ def views_on_circle(M: int, theta: float = DEFAULT_THETA, distance: float = 1.0,
                     board: Board | None = None, *, light_azimuth: float = 0.0,
                     camera_theta: float | None = None, intensity: ArrayLike = 1.0,
                     dtype=None) -> Views:
-    """The paper's view layout (section 4.1, SPEC section 5), angles in radians.
+    """The paper's view layout (section 4.1, docs/model.md §5), angles in radians.
 
     One light at polar angle ``theta`` (from the board normal) and azimuth ``light_azimuth``;
     camera ``j`` at polar angle ``camera_theta`` (default ``theta``) and azimuth

@@ -1,4 +1,4 @@
-"""Shading (SPEC sections 1 and 4): pixel footprints and centres, half vectors, the flat
+"""Shading (docs/model.md §1 and §4): pixel footprints and centres, half vectors, the flat
 board's NDF, `shade` (patch NDF and coverage to linear radiance) and `display` (radiance to
 display values).
 
@@ -45,7 +45,7 @@ def pixel_edges(board: Board) -> tuple[np.ndarray, np.ndarray]:
 
 
 def pixel_footprints(board: Board, dtype=None) -> Float[Array, "p 4 2"]:
-    """Pixel footprints (SPEC section 1) as counter-clockwise quads.
+    """Pixel footprints (docs/model.md §1) as counter-clockwise quads.
 
     **Returns:** ``(H*W, 4, 2)`` board metres; pixel ``r*W + c`` is
     ``(x0, y0), (x1, y0), (x1, y1), (x0, y1)`` with ``x0 = c Sx/W``, ``y1 = Sy - r Sy/H``.
@@ -93,7 +93,7 @@ def _geometry(views: Views, board: Board, dtype) -> _Geometry:
 
 
 def half_vectors(views: Views, board: Board, dtype=None) -> Float[Array, "m p 3"]:
-    """Board-frame unit half vectors at every footprint centre, ``(M, H*W, 3)`` (SPEC section 4),
+    """Board-frame unit half vectors at every footprint centre, ``(M, H*W, 3)`` (docs/model.md §4),
     as `cull.cull` wants them (``h_pixel = half_vectors(...)[j]``)."""
     dtype = views.camera.dtype if dtype is None else dtype
     return _geometry(views, board, dtype).h
@@ -120,7 +120,7 @@ def _smith_g1(vz, a):
 
 def shade(D_P: Float[Array, "m p"], coverage: Float[Array, "m p"], views: Views,
           board: Board) -> Float[Array, "m p"]:
-    """Per-pixel shading (SPEC section 4) at the footprint centres.
+    """Per-pixel shading (docs/model.md §4) at the footprint centres.
 
     ``f = (D_P + max(0, 1 - c) D_ggx(h_z; a_S)) G F / (4 wi_z wo_z)``,
     ``radiance = I f wi_z / r2``.

@@ -1,5 +1,6 @@
-"""A differentiable SSIM equal to scikit-image's (`ssim_mean`): the measure of SPEC section 7's
-ghosting, which `jscratch.loss.ghost_loss` penalises. Pure jax; imports nothing of jscratch."""
+"""A differentiable SSIM equal to scikit-image's (`ssim_mean`): the measure of the
+ghosting of docs/model.md §7, which `jscratch.loss.ghost_loss` penalises. Pure jax; imports
+nothing of jscratch."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ SSIM_C1, SSIM_C2 = 0.01**2, 0.03**2  # its constants for data_range 1
 def ssim_mean(x: Float[Array, "... H W"], y: Float[Array, "... H W"]) -> Float[Array, "..."]:
     """Mean SSIM of ``x`` against ``y`` as ``skimage.metrics.structural_similarity`` computes it
     (7x7 uniform window, sample covariance, ``data_range = 1``, mean over the pixels whose window
-    lies inside the image), differentiable: the measure of SPEC section 7's ghosting.
+    lies inside the image), differentiable: the measure of the ghosting of docs/model.md §7.
 
     **Arguments:** `x`, `y`: ``(..., H, W)`` with ``H, W >= 7``. **Returns:** ``(...)``.
     """

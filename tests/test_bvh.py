@@ -389,7 +389,7 @@ def _ggx(c, alpha):
 
 
 def dhat_numeric(h, p0, p1, width, depth, alpha, rect, n_x=2001):
-    """`(D_hat, A, n.h)` for a batch of `Q` pairs by midpoint quadrature across the groove (SPEC 3)
+    """`(D_hat, A, n.h)` for a batch of `Q` pairs by midpoint quadrature across the groove (docs/model.md §3)
     with the exact length of each along-scratch line inside the footprint (numpy float64).
 
     `h` `(Q, 3)` board frame; `p0, p1` `(Q, 2)`; `width, depth, alpha` `(Q,)`; `rect` `(Q, 4)` as
@@ -520,7 +520,7 @@ def test_cull_keeps_all_at_zero_and_obeys_the_error_bound():
 
 def test_cull_error_bound_with_the_ndf_kernel():
     # The rendered path: per-pixel D sums of jscratch.ndf.pair_integral over the unculled and the
-    # culled list (SPEC section 5 grooves, narrower than a pixel), float64.
+    # culled list (grooves of docs/model.md §5, narrower than a pixel), float64.
     from jscratch import ndf
 
     board, shape = BOARD, (48, 48)

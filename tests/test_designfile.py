@@ -1,4 +1,4 @@
-"""Design file (SPEC section 9): round trip, validation messages naming the bad scratch, SVG export."""
+"""Design file (docs/model.md §9): round trip, validation messages naming the bad scratch, SVG export."""
 
 import xml.etree.ElementTree as ET
 
@@ -90,14 +90,14 @@ def test_svg_lines_in_board_millimetres(tmp_path):
     for i, ln in enumerate(lines):
         assert ln.get("id") == f"s{i}"
         x1, y1, x2, y2 = (float(ln.get(k)) for k in ("x1", "y1", "x2", "y2"))
-        # y flipped: the board edge y = Sy is the top of the page (SPEC section 1).
+        # y flipped: the board edge y = Sy is the top of the page (docs/model.md §1).
         np.testing.assert_allclose([x1, 300 - y1, x2, 300 - y2], 1000 * np.r_[d.p0[i], d.p1[i]], atol=1e-4)
         np.testing.assert_allclose(float(ln.get("stroke-width")),
                                    2000 * groove_half_width(d.width[i], d.depth[i]), atol=1e-4)
 
 
 def test_groove_half_width_and_demo():
-    # x_max solves h(x_max) = 0 for the profile of SPEC section 2.
+    # x_max solves h(x_max) = 0 for the profile of docs/model.md §2.
     w, dd = 2.5e-4, 1.28e-4
     xm = groove_half_width(w, dd)
     assert abs(-(w / 2) * np.log(1 - 4 * xm**2 / w**2) - dd) < 1e-15

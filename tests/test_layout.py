@@ -1,6 +1,8 @@
-"""The package layout the README's "Layout" section states, checked against the code (AST).
+"""The package layout that docs/architecture.md's "Layout" table states, checked against the
+code (AST).
 
-Each module imports only the jscratch modules its README row allows; no import cycle; no private
+Each module imports only the jscratch modules its row allows (every module may import
+``jscratch.errors``); no import cycle; no private
 name (leading underscore) of one jscratch module used in another; no module over 800 lines; no
 ``sys.path`` edits in benchmarks, scripts or notebooks.
 """
@@ -25,17 +27,23 @@ def _module_name(path: Path) -> str:
     return "/".join(parts) if parts else ""
 
 
+ARCHITECTURE = ROOT / "docs" / "architecture.md"
+#: Every module may import the error family (docs/architecture.md states the rule).
+ALWAYS_ALLOWED = {"errors"}
+
+
 def _row_key(mod: str) -> str:
-    """The README row that covers ``mod`` (``bench/`` covers the whole bench package; a
+    """The layout row that covers ``mod`` (``bench/`` covers the whole bench package; a
     package's ``__init__`` and ``__main__`` are its face)."""
     if mod.startswith("bench"):
         return "bench/"
     return mod.removesuffix("/__main__")
 
 
-def _readme_rules() -> dict[str, set[str] | None]:
-    """README layout rows: module -> allowed jscratch imports (None: any)."""
-    text = (ROOT / "README.md").read_text()
+def _layout_rules(text: str | None = None) -> dict[str, set[str] | None]:
+    """Layout table rows of docs/architecture.md: module -> allowed jscratch imports (None:
+    any)."""
+    text = ARCHITECTURE.read_text() if text is None else text
     section = text.split("## Layout", 1)[1].split("\n## ", 1)[0]
     rules: dict[str, set[str] | None] = {}
     for line in section.splitlines():
@@ -60,7 +68,7 @@ def _modules() -> dict[str, Path]:
 
 
 def _imports(path: Path, mod: str) -> set[str]:
-    """jscratch modules imported by ``path`` (as README names: ``design/run``, ``bvh``)."""
+    """jscratch modules imported by ``path`` (as layout names: ``design/run``, ``bvh``)."""
     tree = ast.parse(path.read_text())
     known = set(_modules())
     out = set()
@@ -90,15 +98,15 @@ def _imports(path: Path, mod: str) -> set[str]:
 
 
 def _allowed(imported: str, allowed: set[str]) -> bool:
-    if imported in allowed:
+    if imported in allowed or imported in ALWAYS_ALLOWED:
         return True
     if "design/*" in allowed and imported.startswith("design"):
         return True
     return imported.split("/")[0] + "/" in allowed
 
 
-def test_every_module_has_a_readme_row_and_imports_only_what_it_allows():
-    rules = _readme_rules()
+def _layout_problems(rules: dict[str, set[str] | None]) -> list[str]:
+    """Modules without a row, and imports their row does not allow."""
     problems = []
     for mod, path in sorted(_modules().items()):
         if mod == "":  # the package face re-exports the public API
@@ -107,7 +115,7 @@ def test_every_module_has_a_readme_row_and_imports_only_what_it_allows():
         if key not in rules:
             if mod in ("design", "design/__main__"):  # the design package's face
                 continue
-            problems.append(f"{mod}: no README layout row")
+            problems.append(f"{mod}: no layout row in docs/architecture.md")
             continue
         allowed = rules[key]
         if allowed is None:
@@ -116,8 +124,28 @@ def test_every_module_has_a_readme_row_and_imports_only_what_it_allows():
         for imp in sorted(_imports(path, mod)):
             if _row_key(imp) in own or _allowed(imp, allowed):
                 continue
-            problems.append(f"{mod} imports {imp}, not in its README row")
+            problems.append(f"{mod} imports {imp}, not in its docs/architecture.md row")
+    return problems
+
+
+def test_every_module_has_a_layout_row_and_imports_only_what_it_allows():
+    problems = _layout_problems(_layout_rules())
     assert not problems, "\n".join(problems)
+
+
+def test_errors_imports_no_jscratch_module_and_every_module_may_import_it():
+    rules = _layout_rules()
+    assert rules["errors"] == set()
+    assert not _imports(PKG / "errors.py", "errors")
+    assert _allowed("errors", set()) and not _allowed("bvh", set())
+
+
+def test_the_layout_check_can_fail():
+    """A table that forbids an import the code makes is reported."""
+    rules = _layout_rules()
+    rules["designfile"] = set()  # designfile imports machine and scene
+    problems = _layout_problems(rules)
+    assert any(p.startswith("designfile imports ") for p in problems), problems
 
 
 def test_no_import_cycle_between_top_level_modules():

@@ -1,4 +1,4 @@
-"""Tests of jscratch.metrics (SPEC section 7): SSIM against an independent numpy implementation,
+"""Tests of jscratch.metrics (docs/model.md §7): SSIM against an independent numpy implementation,
 PSNR by hand, ghosting bookkeeping, the sigma-1 blur, clipping and errors. Host code only (no JAX
 compilation)."""
 
@@ -51,7 +51,7 @@ def test_ssim_psnr_against_independent_reference_without_blur():
 def test_blur_is_gaussian_sigma_one_nearest():
     t = _rng_images(2)
     i = _rng_images(3)
-    m = image_metrics(i, t)  # sigma = 1 px (SPEC 7)
+    m = image_metrics(i, t)  # sigma = 1 px (docs/model.md §7)
     blur = lambda x: np.stack([scipy.ndimage.gaussian_filter(v, 1.0, mode="nearest") for v in x])
     bi, bt = blur(i), blur(t)
     for j in range(3):

@@ -85,7 +85,7 @@ def test_reseeded_scratches_go_where_needed_and_light_up(two_view_scene):
     p0, p1 = prune.new_scratches(dens, ctx.hs, board, 50, cfg, np.random.default_rng(0))
     mid = 0.5 * (p0 + p1)
     px = board.Sx / SIZE
-    # midpoints in that pixel's footprint (SPEC 1), unless clipped at the board edge (not here)
+    # midpoints in that pixel's footprint (docs/model.md §1), unless clipped at the board edge (not here)
     assert np.all((mid[:, 0] >= 20 * px) & (mid[:, 0] <= 21 * px))
     assert np.all((mid[:, 1] >= board.Sy - 6 * px) & (mid[:, 1] <= board.Sy - 5 * px))
     t = (p1 - p0) / np.linalg.norm(p1 - p0, axis=1, keepdims=True)

@@ -23,7 +23,7 @@ N = 300
 
 
 def _mean_ssim_reference(disp, targets):
-    """SPEC section 7 mean SSIM written out with scikit-image (not `jscratch.metrics`)."""
+    """The mean SSIM of docs/model.md §7 written out with scikit-image (not `jscratch.metrics`)."""
     out = []
     for d, t in zip(np.clip(np.asarray(disp, np.float64), 0, 1), np.asarray(targets, np.float64)):
         g = lambda x: gaussian(x, sigma=1.0, mode="nearest", preserve_range=True)  # noqa: E731

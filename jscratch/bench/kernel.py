@@ -235,7 +235,7 @@ def bench_stability(quick: bool, out: Path) -> dict:
         "within_tolerance_fraction": float(np.mean(ratio <= 1)),
         "worst_case": {k: np.asarray(v[worst]).tolist() for k, v in zip(C._fields, C.args())},
         "by_alpha": bins,
-        "note": "tolerance = max(1e-3 |ref|, 1e-5 A/(pi alpha)) (issue 2's float32 bound); "
+        "note": "tolerance = max(1e-3 |ref|, 1e-5 A/(pi alpha)) (the kernel's float32 accuracy bound); "
                 "reference = float64 closed form at the float32-rounded inputs.",
     }
     res["markdown"] = (

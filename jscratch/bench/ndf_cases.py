@@ -13,7 +13,8 @@ arrays with a leading batch axis, in the argument order of the kernel. Everythin
 - `random_cases(n=512, seed=20261120) -> Cases`: realistic pairs (0.3 m board, 256 px footprints,
   widths around 2.5e-4 m, alpha 0.01..0.5, half vectors from views at 20..70 degrees or near the lit
   direction).
-- `adversarial_families() -> dict[str, Cases]`: the families the issue lists (see each `_fam_*`).
+- `adversarial_families() -> dict[str, Cases]`: one family per numerical hazard of
+  the pair integral (see each `_fam_*`).
 - `all_families() -> dict[str, Cases]`: `{"random": random_cases(), **adversarial_families()}`.
 - `local_half_vector(h_local, p0, p1) -> h_board`, `lit_half_vector(u0, hy, p0, p1)`: helpers.
 """
@@ -26,7 +27,7 @@ import numpy as np
 
 BOARD = 0.3
 PIXEL = BOARD / 256  # footprint side of a 256 x 256 image, metres
-W0, D0 = 2.5e-4, 1.28e-4  # paper's optimisation start (SPEC section 5)
+W0, D0 = 2.5e-4, 1.28e-4  # paper's optimisation start (docs/model.md §5)
 U = 2.0**-12  # a length unit (~2.44e-4 m) in which exact binary geometry is written
 
 
@@ -71,7 +72,7 @@ def _build(rows) -> Cases:
 
 
 def x_max(width, depth):
-    """Groove half-width (SPEC section 2), float64."""
+    """Groove half-width (docs/model.md §2), float64."""
     return 0.5 * width * np.sqrt(-np.expm1(-2.0 * depth / width))
 
 
@@ -177,7 +178,9 @@ def random_cases(n: int = 512, seed: int = 20261120) -> Cases:
 
 
 # ---------------------------------------------------------------------------------------------
-# Adversarial families (issue 2, "What it must show").
+# Adversarial families: the numerical hazards of the pair integral (docs/model.md §3): sharp
+# peaks down to alpha = 1e-4, grazing half vectors, footprints much larger or smaller than the
+# groove, vertices on groove edges, scratches parallel to footprint edges.
 
 _FP = square(0.15, 0.15, PIXEL)
 _FC = np.array([0.15 + PIXEL / 2, 0.15 + PIXEL / 2])
@@ -415,7 +418,8 @@ def _fam_miss():
 
 
 def adversarial_families() -> dict[str, Cases]:
-    """The adversarial families of issue 2 (and footprints that miss), name -> Cases."""
+    """The adversarial families of the pair integral's numerical hazards (and footprints that
+    miss), name -> Cases."""
     return {
         "alpha": _fam_alpha(),
         "grazing_hz": _fam_grazing(),

@@ -1,8 +1,8 @@
-"""Independent high-precision reference for the scratch pair integral (SPEC sections 1-3).
+"""Independent high-precision reference for the scratch pair integral (docs/model.md §1-§3).
 
 Written without the closed form: for one pixel footprint and one scratch it
 
-1. moves the footprint into the scratch-local frame (SPEC section 1) in `mpmath` arithmetic,
+1. moves the footprint into the scratch-local frame (docs/model.md §1) in `mpmath` arithmetic,
 2. clips it to the groove box `x in [-x_max, x_max]`, `y in [0, |p1 - p0|]` (Sutherland-Hodgman,
    exact up to the working precision),
 3. writes the clipped polygon's vertical section length `chord(x)` (piecewise linear between the
@@ -42,7 +42,7 @@ def _mpf(v):
 
 
 def groove_half_width(width, depth):
-    """`x_max = (w/2) sqrt(1 - exp(-2d/w))` (SPEC section 2), metres, as an mpf."""
+    """`x_max = (w/2) sqrt(1 - exp(-2d/w))` (docs/model.md §2), metres, as an mpf."""
     w = _mpf(width) if not isinstance(width, mpmath.mpf) else width
     d = _mpf(depth) if not isinstance(depth, mpmath.mpf) else depth
     return (w / 2) * mpmath.sqrt(-mpmath.expm1(-2 * d / w))
@@ -151,7 +151,7 @@ def section(poly, x):
 
 
 def point_ndf(u, hx, hy, hz, alpha):
-    """`D_x` of SPEC section 3 at `u = x/w` for local half vector components (mpf), with chi+."""
+    """`D_x` of docs/model.md §3 at `u = x/w` for local half vector components (mpf), with chi+."""
     B = 1 + 4 * u * u
     N = hz * (1 - 4 * u * u) - 4 * hx * u
     if N <= 0:
@@ -226,7 +226,7 @@ def _pair_setup(h, footprint, p0, p1, width, depth, alpha):
 
 
 def _integrate_mpmath(S):
-    """`∫ chord D_x dx` in mpf with the GGX written directly as in SPEC section 3."""
+    """`∫ chord D_x dx` in mpf with the GGX written directly as in docs/model.md §3."""
     total = mpmath.mpf(0)
     hx, hy, hz, w, al = S["hx"], S["hy"], S["hz"], S["w"], S["alpha"]
     for xa, xb, ca, cb in S["pieces"]:

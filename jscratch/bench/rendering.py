@@ -15,7 +15,7 @@ optimiser (`RUNNERS`, picked up by `jscratch.bench.cli.run_bench`).
   one run from its checkpoint. Plot ``design_ssim.png``.
 
 Every function here returns a dict with a ``markdown`` entry (what `run_bench` prints) and plain
-numbers (what it writes to JSON). Scenes follow SPEC section 5 (`render.Scratches.random`).
+numbers (what it writes to JSON). Scenes follow docs/model.md §5 (`render.Scratches.random`).
 """
 
 from __future__ import annotations
@@ -57,7 +57,7 @@ def compiled_mib(compiled) -> float:
 
 
 def scene(n: int, res: int, views: int, dtype=jnp.float32, seed: int = 0, theta_deg: float = 40.0):
-    """`(board, scratches, views)`: `n` random scratches (SPEC section 5) on a `res x res` board,
+    """`(board, scratches, views)`: `n` random scratches (docs/model.md §5) on a `res x res` board,
     `views` cameras on a circle at `theta_deg` from the normal."""
     board = Board(shape=(res, res))
     s = Scratches.random(jax.random.PRNGKey(seed), n, board, dtype=dtype)

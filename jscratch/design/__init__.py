@@ -1,5 +1,5 @@
 """Multi-view scratch design: optimise scratches and light intensities so that the board shows each
-target image from its view (paper sections 3.4 and 4.1, SPEC section 6).
+target image from its view (paper sections 3.4 and 4.1, docs/model.md §6).
 
 **Library:** `design(targets, views, board=None, config=DesignConfig()) -> DesignResult`.
 **Command line:** ``python -m jscratch.design [TARGET ...] [options]`` (``--help`` lists every
@@ -55,7 +55,7 @@ and the last good state stays in the checkpoint.
 - `jscratch.design.params`: `DesignParams`, `group_tree`.
 - `jscratch.design.solver`: the jitted step (`Context`, `view_lists`, `evaluate`, `step`, ...).
 - `jscratch.design.carvable`: carvable grooves (one plunge per scratch in the machine's range,
-  mapped to the groove profile); `jscratch.design.prune`: prune/re-seed rounds (on by default since issue 17).
+  mapped to the groove profile); `jscratch.design.prune`: prune/re-seed rounds (on by default).
 - `jscratch.design.discard`, `jscratch.design.checkpoint`, `jscratch.design.result`.
 - `jscratch.design.io`: targets, images and outputs; `jscratch.design.maker`: the machine's
   outputs (as-carved render, carving estimate); `jscratch.design.run`: `design` and its seams

@@ -2,9 +2,9 @@
 
 A ball-end cutter of radius ``R`` plunged to ``p`` cuts the circular arc
 ``z(x) = R - p - sqrt(R^2 - x^2)`` over ``|x| < a = sqrt(2Rp - p^2)``; its wall slope angle is
-``theta_ball(x) = asin(x / R)``. The renderer's groove (SPEC section 2) has
+``theta_ball(x) = asin(x / R)``. The renderer's groove (docs/model.md §2) has
 ``theta(x) = 2 atan(2x / w)`` over ``|x| < x_max``. What shading sees is the distribution of wall
-normals over the groove's projected area (SPEC section 3 integrates the NDF in board area), so the
+normals over the groove's projected area (docs/model.md §3 integrates the NDF in board area), so the
 map chooses, for each plunge, the ``(w, d)`` whose groove
 
 1. has the cut's width exactly (``x_max = a``, so coverage and binning are the cut's), i.e.
@@ -19,7 +19,7 @@ map chooses, for each plunge, the ``(w, d)`` whose groove
      slope distributions (what shading integrates);
    - ``"cdf"``: the area below each wall angle, at angles uniform over the cut's range.
 
-   Measured on the default design (`benchmarks/RESULTS.md`, issue 15): SSIM of the as-carved
+   Measured on the default design (`benchmarks/RESULTS.md`): SSIM of the as-carved
    render against the render of the mapped grooves, same plunges, 32x32 samples per pixel:
    height 0.918/0.986/0.966, slope 0.888/0.988/0.960, cdf 0.869/0.990/0.955. The paper profile
    cannot follow the ball's arc everywhere (its wall-angle density ``(w/2) sec^2(theta/2)`` against

@@ -1,5 +1,5 @@
 """The discard step (paper Fig. 21): drop the dimmest scratches while the loss allows; and its
-target-quality variant (issue 17): drop them while the mean SSIM stays at a requested value."""
+target-quality variant: drop them while the mean SSIM stays at a requested value."""
 
 from __future__ import annotations
 
@@ -52,7 +52,7 @@ def discard(params, lists, ctx, loss_all, tol, rad_all, terms_all):
 
 
 def fewest_for_ssim(params, lists, ctx, targets, target_ssim, rad_all, terms_all):
-    """The fewest scratches whose mean SSIM (SPEC section 7, `jscratch.metrics.image_metrics`,
+    """The fewest scratches whose mean SSIM (docs/model.md §7, `jscratch.metrics.image_metrics`,
     mean over views) stays ``>= target_ssim``: scratches are dropped in increasing `scores` order
     (the discard's), and bisection over the number dropped finds the largest count, to within
     ``max(1, N // 1024)`` scratches, whose render still meets the target. Every accepted count

@@ -5,7 +5,7 @@
   height, as `jscratch.fabricate` would, for free ones).
 - `as_carved`: render the design with the grooves the ball really cuts (`jscratch.brute`
   with ``ball_radius``, an independent supersampling path) and compare it, per view, with the
-  design's own render (SPEC section 7 SSIM: Gaussian sigma 1 px, then SSIM). The same samples
+  design's own render (the SSIM of docs/model.md §7: Gaussian sigma 1 px, then SSIM). The same samples
   also render the design's own profile, so the report separates the profile's effect from the
   sampling noise.
 - `carving_estimate`: the ordered toolpath (`jscratch.toolpath.order_scratches`) and its

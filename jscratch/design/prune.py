@@ -1,4 +1,4 @@
-"""Prune and re-seed during the optimisation (issue 17): the scratch budget goes where it helps.
+"""Prune and re-seed during the optimisation: the scratch budget goes where it helps.
 
 Every ``config.prune_every`` iterations (until ``config.prune_until`` of the run), the
 ``config.prune_fraction`` of the scratches that send the least light to any view (the discard's
@@ -21,10 +21,10 @@ top of an iteration, after the checkpoint of the previous one, so a resumed run 
 (The last round is at ``prune_until * iterations``: resuming with a larger ``--iterations`` than the
 interrupted run had can add rounds that run would not have made, like any schedule.)
 
-Measured (benchmarks/RESULTS.md, issue 17): 128 px / 5k scratches, ``E_p``: mean SSIM 0.739 ->
+Measured (benchmarks/RESULTS.md): 128 px / 5k scratches, ``E_p``: mean SSIM 0.739 ->
 0.768 at equal wall time; 256 px / 20k: 0.801 -> 0.813; with carvable grooves and ``E_p + 200 E_g``
 0.746 -> 0.758. The moved scratches end up useful, so the final discard keeps more of them
-(+9-20 %), which is part of the price. On by default (every 10 iterations) since session 9.
+(+9-20 %), which is part of the price. On by default (every 10 iterations).
 """
 
 from __future__ import annotations
