@@ -230,7 +230,7 @@ def main(argv=None):
     p.add_argument("--extra", default="{}", help="JSON DesignConfig overrides merged into every "
                    "row (e.g. '{\"target_ssim\": 0.75}')")
     p.add_argument("--label", default="", help="suffix of every row's label")
-    p.add_argument("--out", default="/tmp/w17/quality.md", help="markdown table (appended)")
+    p.add_argument("--out", default="/tmp/jscratch-quality.md", help="markdown table (appended)")
     p.add_argument("--one", default=None, help=argparse.SUPPRESS)  # child: JSON spec
     a = p.parse_args(argv)
     if a.one is not None:
