@@ -51,22 +51,16 @@ __all__ = [
 #: and ``E_p`` nearly plain L2); it also matches the sigma of the metrics of docs/model.md §7.
 BLUR_SIGMA = 1.0
 
-#: Default ``lambda_g`` for the default ``FilterBank`` features (with ``lambda_p = 1``), settled by
-#: measurement (benchmarks/RESULTS.md has the sweep: 3 views, seed 0, 100 iterations, SSIM and
-#: ``metrics.texture_distance``, an LBP texture measure neither loss optimises). ``E_g`` trades
-#: SSIM for texture monotonically; at 256 px / 20k free grooves 0 gives SSIM 0.801 / texture
-#: 0.246, **20 gives 0.815 / 0.226** (better than ``E_p`` alone on both), 200 gives 0.755 / 0.202.
-#: With carvable grooves 20 rather than 200 raises mean SSIM from 0.746 to 0.809. Together with
-#: prune/re-seed and the raw-ghosting term (`jscratch.design.DesignConfig`) it raised SSIM and
-#: lowered the ghosting of docs/model.md §7 on the default and two other target sets, seeds 0 and
-#: 1; at 60k scratches it trades 0.033 SSIM for 0.057 less ghosting (RESULTS.md). Not valid for
-#: VGG features (different scale; see ``calibrate_lambda_g``).
+#: Default ``lambda_g`` for the default ``FilterBank`` features (with ``lambda_p = 1``), measured
+#: (benchmarks/RESULTS.md): ``E_g`` trades SSIM for texture (``metrics.texture_distance``)
+#: monotonically; at 256 px / 20k free grooves 0 gives SSIM 0.801 / texture 0.246, **20 gives
+#: 0.815 / 0.226**, 200 gives 0.755 / 0.202. With prune/re-seed and ``LAMBDA_X`` it raised SSIM
+#: and lowered ghosting on three target sets, seeds 0 and 1, at 20k scratches; at 60k it trades
+#: 0.033 SSIM for 0.057 less ghosting. Not valid for VGG features (see ``calibrate_lambda_g``).
 LAMBDA_G = 20.0
 
-#: Default ``lambda_x``, the weight of the cross-view ghosting term ``E_x`` against a zero
-#: baseline (the raw cross-view SSIM, the ghosting of docs/model.md §7): with ``LAMBDA_G`` and
-#: prune/re-seed it raised mean SSIM and lowered ghosting at 20k scratches on three target sets
-#: (benchmarks/RESULTS.md); 0.01 cut ghosting further but lost much SSIM.
+#: Default ``lambda_x``: the weight of ``E_x`` against a zero baseline (the raw cross-view SSIM,
+#: the ghosting of docs/model.md §7); 0.01 cut ghosting further but lost much SSIM.
 LAMBDA_X = 1e-3
 
 #: Allowed ``LossConfig.kind`` values.
