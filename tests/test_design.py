@@ -86,14 +86,14 @@ def test_cli_end_to_end_resume_and_nan(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: checkpoint ") and "lacks bin_tol" in err and "\n" not in err
 
-    # 3. A learning rate that blows up the width: stop, name iteration and parameter, keep the
+    # 3. A learning rate that blows up a free groove's width: stop, name iteration and parameter, keep the
     #    last good state in the checkpoint.
     targets, _ = default_targets(2, (SIZE, SIZE))
     board = render.Board(shape=(SIZE, SIZE))
     views = render.views_on_circle(2, math.radians(50), board=board)
     ck = tmp_path / "nan" / "checkpoint.npz"
     with pytest.raises(NonFiniteError, match=r"updated width at iteration 0 \(first bad scratch"):
-        design(targets, views, board, _tiny_config(lr_width=1e4), checkpoint=ck)
+        design(targets, views, board, _tiny_config(groove="free", lr_width=1e4), checkpoint=ck)
     meta, data = _ckpt(ck)
     assert meta["iteration"] == 0  # the last good state: the start
     assert all(np.all(np.isfinite(v)) for k, v in data.items() if k.startswith("params/"))
@@ -170,15 +170,16 @@ def test_cli_input_errors(tmp_path, capsys):
     assert main([str(wide), "--size", "16", "--out", str(tmp_path / "o3"), "--quiet"]) == 2
     assert "aspect" in capsys.readouterr().err
     assert main([str(wide), str(wide), "--views", "3", "--out", str(tmp_path / "o4"), "--quiet"]) == 2
-    assert "2 target images for --views 3" in capsys.readouterr().err
+    assert "2 target images for 3 views" in capsys.readouterr().err
     # Cameras below the board (polar angle beyond 90 degrees).
     assert main(TINY + ["--camera-theta-deg", "95", "--out", str(tmp_path / "o5")]) == 2
-    assert "impossible view set-up" in capsys.readouterr().err
+    assert "camera_theta_deg must be in [0, 90) degrees" in capsys.readouterr().err
     # A camera at the light's mirror direction: 2 views with camera 0 at azimuth 180 deg.
     assert main(TINY + ["--offset-deg", "180", "--out", str(tmp_path / "o6")]) == 2
     assert "mirror" in capsys.readouterr().err
     assert main(["--resume", "--out", str(tmp_path / "nothing"), "--quiet"]) == 2
     assert "--resume: no" in capsys.readouterr().err
+    assert not any((tmp_path / f"o{j}").exists() for j in range(1, 7))  # nothing written
     # A valid image file loads as [0, 1] grayscale of the asked size.
     sq = tmp_path / "sq.png"
     io.imsave(sq, np.full((20, 20, 3), 255, np.uint8), check_contrast=False)
