@@ -41,8 +41,7 @@ LR_SCHEDULES = ("constant", "cosine")
 DEFAULT_IMAGES = ("camera", "astronaut", "chelsea", "coffee", "rocket", "moon")
 
 
-class NonFiniteError(RuntimeError):
-    """The loss, a gradient or a parameter became NaN or infinite during the optimisation."""
+from jscratch.errors import NonFiniteError as NonFiniteError  # noqa: E402 (defined with its family)
 
 
 @dataclasses.dataclass(frozen=True)
