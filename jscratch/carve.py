@@ -12,16 +12,15 @@ from __future__ import annotations
 import os
 import sys
 
+from jscratch.errors import CarveError
 from jscratch.grbl import clip
 from jscratch.gcode import Program, read_program
+
+__all__ = ["CarveError", "carve"]
 
 
 # ----------------------------------------------------------------------------------------------
 # Streaming with a journal.
-
-
-class CarveError(RuntimeError):
-    """Carving stopped (fault, lost device, interrupt); the message says where and how to resume."""
 
 
 def _strip(text: str) -> str:
