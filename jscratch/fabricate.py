@@ -455,7 +455,8 @@ def _parser():
     p.add_argument("--dry-run", action="store_true", help="write G-code, preview and summary; never open a port")
     p.add_argument("--out", help="output prefix (default: the design path without .npz, or ./jscratch_demo); "
                                  "writes PREFIX.gcode, PREFIX.gcode.map.csv, PREFIX.preview.png, PREFIX.summary.json")
-    p.add_argument("--gcode", help="stream this existing G-code file (with its .map.csv) instead of generating one")
+    p.add_argument("--gcode", help="stream this existing G-code file (with its .map.csv) instead of generating one; "
+                                   "without --port it is only read and checked")
     p.add_argument("--machine", "--config", dest="machine",
                    help="machine profile, TOML (keys as the options below, underscores; see python -m "
                         "jscratch.machine); a design that records its profile is cut with that one, and a "
