@@ -47,7 +47,7 @@ _MAKER = ("machine", "plunge")
 
 
 class DesignError(InputError):
-    """A design, or a design run's input, that breaks the rules (SPEC section 9; `jscratch.scene`):
+    """A design, or a design run's input, that breaks the rules (docs/model.md §9; `jscratch.scene`):
     the message names the array and the scratch, view or file. Shared by `jscratch.design`.
     A design *file* that cannot be read or breaks the rules is a `DesignFileError` instead
     (`load_design`); both are `InputError`s (and `ValueError`s)."""

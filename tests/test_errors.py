@@ -340,6 +340,15 @@ def test_fabricate_with_a_nonsense_port_exits_4(program, capsys):
     assert not os.path.exists(str(program) + ".journal")
 
 
+def test_fabricate_gcode_without_port_only_checks_the_program(program, tmp_path, capsys):
+    assert fabricate.main(["--gcode", str(program)]) == 0
+    assert "checked program of 6 scratches" in capsys.readouterr().out
+    bad = tmp_path / "bad.gcode"
+    bad.write_text("G0 X1.000 Y1.000\n")
+    assert fabricate.main(["--gcode", str(bad)]) == 2
+    _one_error_line(capsys.readouterr().err, "line map", "does not exist")
+
+
 @pytest.mark.parametrize("args,words", [
     (["--frames", "1"], ("--frames", ">= 2")),
     (["--size", "4"], ("--size", ">= 8")),
