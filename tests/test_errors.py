@@ -2,6 +2,7 @@
 with a one-line message naming what is wrong, and the command-line tools print it as one line
 ``error: ...``, exit 2 (input) or 4 (carving), and write nothing."""
 
+import io
 import os
 import subprocess
 import sys
@@ -25,6 +26,7 @@ from jscratch.errors import (  # noqa: E402
     JscratchError,
     NonFiniteError,
     exit_status,
+    report,
 )
 from jscratch.gcode import check_program_lines, read_program, write_program  # noqa: E402
 from jscratch.grbl import AlarmLocked, DeviceLost, GrblError, JobFault, NotGrblError, PortError, Stalled  # noqa: E402
@@ -77,6 +79,14 @@ def test_except_jscratch_error_catches_each(cls):
         raise cls(*args)
     except jscratch.JscratchError as exc:
         assert str(exc) == "stopped"
+
+
+def test_report_prints_one_line():
+    buf = io.StringIO()
+    assert report(CarveError("stopped\n  at line 3"), buf) == 4 and buf.getvalue() == "error: stopped at line 3\n"
+    buf = io.StringIO()
+    assert report(PermissionError(13, "Permission denied", "/x/job.gcode"), buf) == 1
+    assert buf.getvalue() == "error: Permission denied: '/x/job.gcode'\n"
 
 
 # ----------------------------------------------------------------------------------------------
