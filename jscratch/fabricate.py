@@ -543,6 +543,8 @@ def _check_options(args) -> None:
         raise InputError("--out names the files written from a design; --gcode streams an existing program")
     if args.resume and not args.port:
         raise InputError("--resume continues carving a job: give --port")
+    if args.port and args.port.startswith("/") and not os.path.exists(args.port):
+        raise InputError(f"--port {args.port!r} does not exist (is the controller plugged in?)")
     if args.rezeroed and not args.resume:
         raise InputError("--rezeroed accepts a changed work zero when resuming: it needs --resume")
     if args.demo_n < 1:

@@ -339,7 +339,12 @@ def test_fabricate_refuses_bad_options_before_any_work(tmp_path, monkeypatch, ca
     assert sorted(os.listdir(tmp_path)) == ["d.npz"]
 
 
-def test_fabricate_with_a_nonsense_port_exits_4(program, capsys):
+def test_fabricate_with_a_nonsense_port_exits_4(program, tmp_path, capsys):
+    # A port that is not there is refused before the program is written.
+    assert fabricate.main(["--demo-n", "5", "--port", str(tmp_path / "ttyNONE"), "--out", str(tmp_path / "new" / "j"),
+                           "--quiet"]) == 2
+    _one_error_line(capsys.readouterr().err, "--port", "does not exist")
+    assert os.listdir(tmp_path) == []
     sim = GrblSim(not_grbl=True)
     try:
         code = fabricate.main(["--gcode", str(program), "--port", sim.port, "--quiet", "--banner-timeout", "1"])
