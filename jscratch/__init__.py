@@ -9,6 +9,13 @@ public names by stage; docs/model.md the model.
 The public API is re-exported here; the submodules stay importable (``jscratch.render``, ...).
 """
 
+from jscratch.errors import (
+    CarveError as CarveError,
+    DesignFileError as DesignFileError,
+    InputError as InputError,
+    JscratchError as JscratchError,
+    NonFiniteError as NonFiniteError,
+)
 from jscratch.designfile import (
     Design as Design,
     DesignError as DesignError,
@@ -46,7 +53,6 @@ from jscratch.loss import LossConfig as LossConfig, make_loss as make_loss
 from jscratch.design import (
     DesignConfig as DesignConfig,
     DesignResult as DesignResult,
-    NonFiniteError as NonFiniteError,
 )
 
 __version__ = "0.1.0"

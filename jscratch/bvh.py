@@ -41,6 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from jscratch.errors import InputError
 from jscratch.cull import DEFAULT_EPS as DEFAULT_EPS
 from jscratch.cull import cull as cull
 from jscratch.cull import cull_coverage as cull_coverage
@@ -146,7 +147,7 @@ class PairLists(eqx.Module):
         if not self.culled:
             return self.shared, None
         if self.views is None:
-            raise ValueError("PairLists: the per-view lists are not culled yet (update_lists)")
+            raise InputError("PairLists: the per-view lists are not culled yet (update_lists)")
         return list(self.views), self.shared if self.coverage is None else self.coverage
 
 
@@ -231,9 +232,9 @@ def allocate_lists(scratches: Scratches, board: Board, hs: Float[Array, "M P 3"]
     ``coverage_eps`` the tolerances of `cull` / `cull_coverage` (finite, ``>= 0``)."""
     for name, v in (("cull_eps", cull_eps), ("coverage_eps", coverage_eps)):
         if not (math.isfinite(v) and v >= 0):
-            raise ValueError(f"allocate_lists: `{name}` must be finite and >= 0; got {v}")
+            raise InputError(f"allocate_lists: `{name}` must be finite and >= 0; got {v}")
     if coverage_eps > 0 and board_ndf is None:
-        raise ValueError("allocate_lists: `coverage_eps > 0` needs `board_ndf`")
+        raise InputError("allocate_lists: `coverage_eps > 0` needs `board_ndf`")
     shared, spec = build_pairs(*_arrays(scratches), board=(board.Sx, board.Sy),
                                shape=board.shape, skin=skin, margin=margin)
     m = hs.shape[0]
@@ -336,7 +337,7 @@ def cull_pairs(pairs, scratches: Scratches, views: Views, board: Board, eps: flo
     **Returns:** `Pairs` ``(M, Lv)`` for `render_pairs`.
     """
     if eps <= 0 or not math.isfinite(eps):
-        raise ValueError(f"cull_pairs: `eps` must be finite and > 0; got {eps}")
+        raise InputError(f"cull_pairs: `eps` must be finite and > 0; got {eps}")
     hs = half_vectors(views, board, scratches.dtype)
     keep = [np.asarray(cull(pairs, scratches.p0, scratches.p1, scratches.width,
                             scratches.depth, scratches.alpha, hs[j], eps).valid)

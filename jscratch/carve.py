@@ -12,16 +12,15 @@ from __future__ import annotations
 import os
 import sys
 
+from jscratch.errors import CarveError, DesignFileError
 from jscratch.grbl import clip
 from jscratch.gcode import Program, read_program
+
+__all__ = ["CarveError", "carve"]
 
 
 # ----------------------------------------------------------------------------------------------
 # Streaming with a journal.
-
-
-class CarveError(RuntimeError):
-    """Carving stopped (fault, lost device, interrupt); the message says where and how to resume."""
 
 
 def _strip(text: str) -> str:
@@ -50,8 +49,8 @@ def _program_setup(prog: Program, path) -> tuple:
         if role == "pre":
             coord = next((w for w in words if w in ("G54", "G55", "G56", "G57", "G58", "G59")), coord)
     if not zs:
-        raise CarveError(f"G-code {clip(path, 60)!r} has no 'G0 Z' line (safe height): refusing to carve, "
-                         "an emergency retract would not know where to go")
+        raise DesignFileError(f"G-code {clip(path, 60)!r} has no 'G0 Z' line (safe height): refusing to carve, "
+                              "an emergency retract would not know where to go")
     return max(zs), coord
 
 
@@ -66,7 +65,8 @@ def carve(gcode_path, port: str, *, baud: int = 115200, resume: bool = False, co
           on_scratch=None) -> dict:
     """Stream a G-code file (with its line map) to GRBL, journalling carved scratches.
 
-    Before any motion: the G-code and map are read and checked, the journal checked (none, or on
+    Before any motion: the G-code and map are read and checked (a bad program: `DesignFileError`,
+    before any port is opened), the journal checked (none, or on
     `resume` matching the G-code's SHA-256), the port opened and GRBL 1.1 recognised (no reset
     when it reports `Idle`); an Alarm state stops the run unless `home` (`$H`) or `unlock` (`$X`).
     The work zero is checked (`$#`): no `G92` or tool length offset (GRBL clears both at reset), and

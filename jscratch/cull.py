@@ -59,6 +59,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from jscratch.errors import InputError
 from jscratch.grid import Pairs, checked_scratches
 from jscratch.ndf import local_frame
 
@@ -107,14 +108,14 @@ def cull_ratio(
     dtype = p0.dtype
     alpha = jnp.asarray(alpha, dtype)
     if alpha.shape not in ((), (n,)):
-        raise ValueError(f"alpha must be a scalar or have shape ({n},), got {alpha.shape}")
+        raise InputError(f"alpha must be a scalar or have shape ({n},), got {alpha.shape}")
     alpha = jnp.broadcast_to(alpha, (n,))
     alpha = eqx.error_if(
         alpha, ~jnp.all(jnp.isfinite(alpha) & (alpha > 0)), "alpha must be finite and > 0"
     )
     h_pixel = jnp.asarray(h_pixel, dtype)
     if h_pixel.ndim != 2 or h_pixel.shape[-1] != 3:
-        raise ValueError(f"h_pixel must have shape (H*W, 3), got {h_pixel.shape}")
+        raise InputError(f"h_pixel must have shape (H*W, 3), got {h_pixel.shape}")
     h_pixel = eqx.error_if(h_pixel, ~jnp.all(jnp.isfinite(h_pixel)), "h_pixel has non-finite entries")
     t, b, length = local_frame(p0, p1)
     # cos/sin of psi_max from 2 u_max = sqrt(1 - exp(-2d/w)) =: sqrt(s): tan(psi_max/2) = 2 u_max.
@@ -143,7 +144,7 @@ def _checked_eps(eps, dtype) -> Array:
     """The culling tolerance as a scalar of `dtype`; `eqx.error_if` unless finite and >= 0."""
     eps = jnp.asarray(eps, dtype)
     if eps.shape != ():
-        raise ValueError(f"eps must be a scalar, got shape {eps.shape}")
+        raise InputError(f"eps must be a scalar, got shape {eps.shape}")
     return eqx.error_if(eps, ~(jnp.isfinite(eps) & (eps >= 0)), "eps must be finite and >= 0")
 
 
@@ -197,7 +198,7 @@ def cull_coverage(
     """
     board_ndf = jnp.asarray(board_ndf)
     if board_ndf.ndim != 1:
-        raise ValueError(f"board_ndf must have shape (H*W,), got {board_ndf.shape}")
+        raise InputError(f"board_ndf must have shape (H*W,), got {board_ndf.shape}")
     dtype = board_ndf.dtype
     n = pairs.bin_p0.shape[0] if pairs.bin_p0 is not None else None
     alpha = jnp.asarray(alpha, dtype)
@@ -205,7 +206,7 @@ def cull_coverage(
         a = jnp.broadcast_to(alpha, pairs.scratch.shape)
     else:
         if n is not None and alpha.shape != (n,):
-            raise ValueError(f"alpha must be a scalar or have shape ({n},), got {alpha.shape}")
+            raise InputError(f"alpha must be a scalar or have shape ({n},), got {alpha.shape}")
         a = alpha.at[pairs.scratch].get(mode="clip")
     eps = _checked_eps(eps, dtype)
     d = board_ndf.at[pairs.pixel].get(mode="clip")

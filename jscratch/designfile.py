@@ -20,17 +20,19 @@ from __future__ import annotations
 
 import os
 import tempfile
+import zipfile
 from typing import NamedTuple
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
-from jscratch.errors import InputError, error_line
+from jscratch.errors import DesignFileError, InputError, error_line
 from jscratch.scene import check_scratches, check_views
 
 __all__ = [
     "Design",
     "DesignError",
+    "DesignFileError",
     "save_design",
     "load_design",
     "validate_design",
@@ -46,7 +48,9 @@ _MAKER = ("machine", "plunge")
 
 class DesignError(InputError):
     """A design, or a design run's input, that breaks the rules (docs/model.md §9; `jscratch.scene`):
-    the message names the array and the scratch, view or file. Shared by `jscratch.design`."""
+    the message names the array and the scratch, view or file. Shared by `jscratch.design`.
+    A design *file* that cannot be read or breaks the rules is a `DesignFileError` instead
+    (`load_design`); both are `InputError`s (and `ValueError`s)."""
 
 
 class Design(NamedTuple):
@@ -255,27 +259,34 @@ def load_design(path) -> Design:
 
     **Returns:** a `Design` of float64 numpy arrays.
 
-    **Raises:** `FileNotFoundError` for a missing file; `DesignError` naming the array and
-    the first bad scratch for a file that is not a valid design.
+    **Raises:** `DesignFileError` (one line naming the file, and the array and first bad scratch
+    where there is one) for a missing or unreadable file, or one that is not a valid design.
     """
     path = os.fspath(path)
     if not os.path.exists(path):
-        raise FileNotFoundError(f"design file {path!r} does not exist")
+        raise DesignFileError(f"design file {path!r} does not exist")
+    if os.path.isdir(path):
+        raise DesignFileError(f"design file {path!r} is a folder, not an .npz design file")
+    if not zipfile.is_zipfile(path):
+        raise DesignFileError(f"{path}: not a readable .npz design file (not a zip archive of arrays)")
     try:
         npz = np.load(path, allow_pickle=False)
     except Exception as exc:
-        raise DesignError(f"{path}: not a readable .npz design file ({error_line(exc)})") from None
+        raise DesignFileError(f"{path}: not a readable .npz design file ({error_line(exc)})") from None
     with npz:
         if not hasattr(npz, "files"):
-            raise DesignError(f"{path}: expected an .npz archive of arrays, got a single array")
+            raise DesignFileError(f"{path}: expected an .npz archive of arrays, got a single array")
         missing = [k for k in _REQUIRED if k not in npz.files]
         if missing:
-            raise DesignError(f"{path}: missing array(s) {missing}; a design holds {list(_REQUIRED)}")
+            raise DesignFileError(f"{path}: missing array(s) {missing}; a design holds {list(_REQUIRED)}")
         try:
             arrays = {k: npz[k] for k in _REQUIRED + _VIEWS + _MAKER if k in npz.files}
         except Exception as exc:
-            raise DesignError(f"{path}: cannot read arrays ({error_line(exc)})") from None
-    return validate_design(**arrays, source=path)
+            raise DesignFileError(f"{path}: cannot read arrays ({error_line(exc)})") from None
+    try:
+        return validate_design(**arrays, source=path)
+    except DesignError as exc:
+        raise DesignFileError(str(exc)) from None
 
 
 def _fmt(v):
@@ -329,7 +340,7 @@ def demo_design(n: int = 400, seed: int = 0, board=(0.3, 0.3)) -> Design:
     **Returns:** a `Design` without views.
     """
     if int(n) < 1:
-        raise ValueError(f"n must be >= 1, got {n}")
+        raise InputError(f"demo_design: n (the number of scratches) must be >= 1, got {n}")
     n = int(n)
     rng = np.random.default_rng(seed)
     b = np.asarray(board, dtype=np.float64)

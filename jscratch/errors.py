@@ -12,8 +12,8 @@ in a notebook catches "jscratch refused this"; the kinds beneath it say what was
 - `CarveError` (also a `RuntimeError`): carving or the device stopped (serial port, controller
   fault, journal); the message says where and how to resume.
 
-Each message is one line. The command-line tools print it as ``error: ...`` and exit non-zero
-without a traceback.
+Each message is one line. The command-line tools print it as ``error: ...`` (`report`) and exit
+with `exit_status` (`EXIT_STATUS_HELP`), without a traceback.
 
 Imports: nothing from jscratch.
 """
@@ -25,9 +25,17 @@ __all__ = [
     "DesignFileError",
     "InputError",
     "JscratchError",
+    "EXIT_STATUS_HELP",
     "NonFiniteError",
     "error_line",
+    "exit_status",
+    "report",
 ]
+
+#: The exit statuses of the command-line tools, as their ``--help`` states them.
+EXIT_STATUS_HELP = ("exit status: 0 done; 1 a file could not be written (operating-system error); "
+                    "2 refused input (option, file or design; nothing is written); 3 a non-finite "
+                    "value; 4 carving or the device stopped; 130 interrupted (Ctrl-C).")
 
 
 class JscratchError(Exception):
@@ -61,3 +69,30 @@ def error_line(exc: BaseException, limit: int = 160) -> str:
     if len(text) > limit:
         text = text[: limit - 3] + "..."
     return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+def exit_status(exc: BaseException) -> int:
+    """The command-line exit status of an error (`EXIT_STATUS_HELP`): 2 `InputError`, 3
+    `NonFiniteError`, 4 `CarveError`, 1 an `OSError` or any other `JscratchError`."""
+    if isinstance(exc, InputError):
+        return 2
+    if isinstance(exc, NonFiniteError):
+        return 3
+    if isinstance(exc, CarveError):
+        return 4
+    return 1
+
+
+def report(exc: BaseException, stream=None) -> int:
+    """Print ``error: <message>`` as one line to `stream` (default stderr); return `exit_status`.
+
+    An `OSError` is reported by its reason and file name (``error: Permission denied: 'out/x'``)."""
+    import sys
+
+    if isinstance(exc, OSError) and exc.strerror:
+        text = exc.strerror + (f": {exc.filename!r}" if exc.filename is not None else "")
+    else:
+        text = str(exc)
+    text = " ".join(text.split()) or type(exc).__name__
+    print(f"error: {text}", file=sys.stderr if stream is None else stream)
+    return exit_status(exc)

@@ -54,6 +54,7 @@ from typing import NamedTuple
 import numpy as np
 
 from jscratch.designfile import Design, DesignError, demo_design, groove_half_width, load_design
+from jscratch.errors import EXIT_STATUS_HELP, InputError, JscratchError, report
 from jscratch.grbl import clip, gword
 from jscratch.carve import CarveError, carve
 from jscratch.gcode import Program, check_program_lines, read_program, write_program
@@ -146,9 +147,9 @@ def fit_plunge(width, depth, radius: float, *, mode: str = "per-scratch") -> Cut
     width = np.asarray(width, np.float64)
     depth = np.asarray(depth, np.float64)
     if not (math.isfinite(radius) and radius > 0):
-        raise ValueError(f"radius must be a finite positive length in metres, got {radius!r}")
+        raise InputError(f"fit_plunge: radius must be a finite length > 0 in metres, got {radius!r}")
     if mode not in ("per-scratch", "global"):
-        raise ValueError(f"mode must be 'per-scratch' or 'global', got {mode!r}")
+        raise InputError(f"fit_plunge: mode must be 'per-scratch' or 'global', got {mode!r}")
     n = width.shape[0]
     xm_all = groove_half_width(width, depth)
     if n == 0:
@@ -217,7 +218,7 @@ def machine_for_design(design: Design, file_profile: MachineProfile | None, over
     differences (feeds, offsets: the machine on the day) are taken from the file and options, with
     a `warn` line. Without a recorded machine: `file_profile` (or the default) plus `overrides`.
 
-    **Raises:** `ValueError`, one line naming the keys that differ.
+    **Raises:** `InputError`, one line naming the keys that differ.
     """
     if design.machine is None:
         base = file_profile.to_dict() if file_profile is not None else {}
@@ -229,7 +230,7 @@ def machine_for_design(design: Design, file_profile: MachineProfile | None, over
     cut = rec.cut_mismatch(new)
     if cut and not override:
         diffs = ", ".join(f"{k} {getattr(rec, k)!r} (design) vs {getattr(new, k)!r}" for k in cut)
-        raise ValueError(f"machine mismatch: the design was made for another cutter: {diffs}; use the "
+        raise InputError(f"machine mismatch: the design was made for another cutter: {diffs}; use the "
                          "design's profile (drop --machine), re-design with this one, or pass --override-machine")
     other = [k for k in rec.to_dict() if k not in CUT_KEYS and getattr(rec, k) != getattr(new, k)]
     if (cut or other) and warn is not None:
@@ -266,7 +267,7 @@ def make_program(design: Design, cfg: MachineConfig, *, improve: bool = True, ti
     `improve`/`time_limit` for `jscratch.toolpath.order_scratches`; `quiet`.
 
     **Returns:** a `Program`. **Raises:** `DesignError` for scratches too short to cut,
-    `ValueError` if a coordinate would leave the board (+ margin).
+    `InputError` if a coordinate would leave the board (+ margin).
     """
     keep = check_design_for_cutting(design, cfg)
     idx = np.flatnonzero(keep)
@@ -447,13 +448,16 @@ def _parser():
         prog="python -m jscratch.fabricate",
         description="Order a scratch design, write GRBL 1.1 G-code (mm, absolute) with a line map and a toolpath "
                     "preview, and optionally stream it to a GRBL controller with a crash-safe journal.",
+        epilog="Every option and input file is checked before anything is written or sent; a refusal is one "
+               "line 'error: ...' on stderr. " + EXIT_STATUS_HELP,
     )
     p.add_argument("design", nargs="?", help="design .npz (docs/model.md §9); default: a built-in demo"
                    " design")
     p.add_argument("--dry-run", action="store_true", help="write G-code, preview and summary; never open a port")
     p.add_argument("--out", help="output prefix (default: the design path without .npz, or ./jscratch_demo); "
                                  "writes PREFIX.gcode, PREFIX.gcode.map.csv, PREFIX.preview.png, PREFIX.summary.json")
-    p.add_argument("--gcode", help="stream this existing G-code file (with its .map.csv) instead of generating one")
+    p.add_argument("--gcode", help="stream this existing G-code file (with its .map.csv) instead of generating one; "
+                                   "without --port it is only read and checked")
     p.add_argument("--machine", "--config", dest="machine",
                    help="machine profile, TOML (keys as the options below, underscores; see python -m "
                         "jscratch.machine); a design that records its profile is cut with that one, and a "
@@ -509,12 +513,12 @@ def _refuse_overwrite(gcode: str):
         header, done = Journal.read(jp)
         what = f"{done} of {header.get('n_scratches', '?')} scratches carved"
         finished = done == header.get("n_scratches")
-    except RuntimeError as exc:
+    except (JscratchError, OSError) as exc:
         what, finished = f"unreadable: {clip(exc, 80)}", False
     if finished:
-        raise CarveError(f"{gcode!r} is the program of a finished job (journal {jp!r}: {what}); choose another "
+        raise InputError(f"{gcode!r} is the program of a finished job (journal {jp!r}: {what}); choose another "
                          "--out, or move the G-code and its journal away, to write a new program")
-    raise CarveError(f"{gcode!r} is the program of an unfinished job (journal {jp!r}: {what}); continue it with "
+    raise InputError(f"{gcode!r} is the program of an unfinished job (journal {jp!r}: {what}); continue it with "
                      "--resume, or move the G-code and its journal away to start a new one; nothing was written")
 
 
@@ -530,19 +534,57 @@ def _attach_as_carved(info: dict, design_path: str):
     info["as_carved"] = {"ssim": ac["ssim"], "source": mpath} if ac and "ssim" in ac else None
 
 
+def _check_options(args) -> None:
+    """Refuse option values and combinations before any work (`InputError`, one line)."""
+    if args.dry_run and args.port:
+        raise InputError("--dry-run never opens a port; drop --port or --dry-run")
+    if args.gcode and args.design:
+        raise InputError(f"give a design or --gcode, not both (got {args.design!r} and --gcode {args.gcode!r})")
+    if args.gcode and args.out:
+        raise InputError("--out names the files written from a design; --gcode streams an existing program")
+    if args.resume and not args.port:
+        raise InputError("--resume continues carving a job: give --port")
+    if args.port and args.port.startswith("/") and not os.path.exists(args.port):
+        raise InputError(f"--port {args.port!r} does not exist (is the controller plugged in?)")
+    if args.rezeroed and not args.resume:
+        raise InputError("--rezeroed accepts a changed work zero when resuming: it needs --resume")
+    if args.demo_n < 1:
+        raise InputError(f"--demo-n must be an int >= 1 (scratches in the demo design), got {args.demo_n}")
+    if not (math.isfinite(args.order_time) and args.order_time >= 0):
+        raise InputError(f"--order-time must be a finite number of seconds >= 0, got {args.order_time}")
+    if args.baud < 1:
+        raise InputError(f"--baud must be a positive int (e.g. 115200), got {args.baud}")
+    for opt, v in (("--banner-timeout", args.banner_timeout), ("--idle-timeout", args.idle_timeout)):
+        if not (math.isfinite(v) and v > 0):
+            raise InputError(f"{opt} must be a finite number of seconds > 0, got {v}")
+    if args.out is not None:
+        folder, name = os.path.split(args.out)
+        if not name or name in (".", ".."):
+            raise InputError(f"--out is a prefix of file names (e.g. DIR/job), got {args.out!r}")
+        if folder and os.path.exists(folder) and not os.path.isdir(folder):
+            raise InputError(f"--out {args.out!r}: {folder!r} exists and is not a folder")
+
+
 def main(argv=None) -> int:
-    """Command line entry point; returns the exit status (0 ok, 1 error, 130 interrupted)."""
+    """Command line entry point; returns the exit status (`jscratch.errors.EXIT_STATUS_HELP`: 0 ok,
+    1 a file could not be written, 2 refused input, 4 carving or the device stopped, 130
+    interrupted)."""
     args = _parser().parse_args(argv)
     names = [f.name for f in dataclasses.fields(MachineConfig)]
     over = {k: getattr(args, k) for k in names if hasattr(args, k) and getattr(args, k) is not None}
-    if args.dry_run and args.port:
-        print("error: --dry-run never opens a port; drop --port or --dry-run", file=sys.stderr)
-        return 1
     try:
+        _check_options(args)
+        # Read and check everything (profile, design, program) before anything is written.
         file_prof = MachineProfile.from_toml(args.machine) if args.machine else None
-        cfg = MachineProfile.from_dict(file_prof.to_dict() if file_prof else {}, **over)
+        cfg = MachineProfile.from_dict(file_prof.to_dict() if file_prof else {}, source="the machine options",
+                                       **over)
+        prog = None
         if args.gcode:
             gcode = args.gcode
+            if not args.port:
+                n = read_program(gcode).info["scratches"]  # check it, as the carver would
+                if not args.quiet:
+                    print(f"{gcode}: a checked program of {n} scratches; give --port to carve it")
         else:
             if args.design:
                 design = load_design(args.design)
@@ -555,22 +597,23 @@ def main(argv=None) -> int:
             gcode = prefix + ".gcode"
             if args.resume:
                 if not os.path.exists(gcode):
-                    raise FileNotFoundError(f"--resume: G-code {gcode!r} does not exist")
+                    raise InputError(f"--resume: G-code {gcode!r} does not exist (no job to resume there)")
             else:
                 _refuse_overwrite(gcode)
-                folder = os.path.dirname(gcode)
-                if folder:  # `--out NEWDIR/job`: the folder is made, as the design command does
-                    os.makedirs(folder, exist_ok=True)
                 prog = make_program(design, cfg, improve=not args.no_improve, time_limit=args.order_time)
-                if args.design:
-                    _attach_as_carved(prog.info, args.design)
-                write_program(prog, gcode)
-                write_preview(prog, prefix + ".preview.png", 1000.0 * design.board, cfg.board_offset_mm)
-                with open(prefix + ".summary.json", "w") as f:
-                    json.dump(prog.info, f, indent=1)
-                if not args.quiet:
-                    print(summarize(prog.info))
-                    print(f"wrote {gcode}, {gcode}.map.csv, {prefix}.preview.png, {prefix}.summary.json")
+        if prog is not None:
+            folder = os.path.dirname(gcode)
+            if folder:  # `--out NEWDIR/job`: the folder is made, as the design command does
+                os.makedirs(folder, exist_ok=True)
+            if args.design:
+                _attach_as_carved(prog.info, args.design)
+            write_program(prog, gcode)
+            write_preview(prog, prefix + ".preview.png", 1000.0 * design.board, cfg.board_offset_mm)
+            with open(prefix + ".summary.json", "w") as f:
+                json.dump(prog.info, f, indent=1)
+            if not args.quiet:
+                print(summarize(prog.info))
+                print(f"wrote {gcode}, {gcode}.map.csv, {prefix}.preview.png, {prefix}.summary.json")
         if args.port:
             res = carve(gcode, args.port, baud=args.baud, resume=args.resume, counting=args.counting,
                         check=args.check, home=args.home, unlock=args.unlock, rezeroed=args.rezeroed,
@@ -579,9 +622,8 @@ def main(argv=None) -> int:
                 print(f"carved {res['done']} of {res['total']} scratches")
     except KeyboardInterrupt:
         return 130
-    except (DesignError, CarveError, FileNotFoundError, ValueError, RuntimeError) as exc:
-        print(f"error: {clip(exc, 600)}", file=sys.stderr)
-        return 1
+    except (JscratchError, OSError) as exc:
+        return report(exc)
     return 0
 
 

@@ -1,7 +1,7 @@
 """G-code programs with their line maps: `Program` (the lines and, per line, the scratch and its
 role), the dry run's checker (`check_program_lines`), `write_program` and `read_program`.
 
-Imports: `jscratch.grbl`.
+Imports: `jscratch.grbl`, `jscratch.errors`.
 """
 
 from __future__ import annotations
@@ -12,11 +12,15 @@ from typing import NamedTuple
 
 import numpy as np
 
+from jscratch.errors import DesignFileError, InputError
 from jscratch.grbl import check_words, clip
 
 __all__ = ["MAX_LINE", "Program", "check_program_lines", "read_program", "write_program"]
 
 MAX_LINE = 79  # characters, without the newline (GRBL's line buffer is 80 bytes)
+
+#: The roles of a program's lines (`Program.role`).
+ROLES = ("comment", "pre", "travel", "plunge", "cut", "retract", "sync", "post")
 
 class Program(NamedTuple):
     """G-code with its line map.
@@ -42,16 +46,16 @@ def check_program_lines(lines, lo, hi) -> dict:
     **Arguments:** `lines` G-code text lines; `lo`, `hi` the allowed `(x, y, z)` limits in mm.
 
     **Returns:** the program's extents `{"x": [min, max], "y": .., "z": ..}` in mm (None for an axis
-    never written). **Raises:** `ValueError` naming the line.
+    never written). **Raises:** `InputError` naming the line.
     """
     ext = {a: None for a in "xyz"}
     for ln, text in enumerate(lines, start=1):
         if len(text) > MAX_LINE:
-            raise ValueError(f"G-code line {ln} is {len(text)} characters (> {MAX_LINE}): {clip(text, 40)!r}")
+            raise InputError(f"G-code line {ln} is {len(text)} characters (> {MAX_LINE}): {clip(text, 40)!r}")
         try:
             check_words(text)
-        except ValueError as exc:
-            raise ValueError(f"G-code line {ln} {clip(text, 40)!r}: {exc}") from None
+        except InputError as exc:
+            raise InputError(f"G-code line {ln} {clip(text, 40)!r}: {exc}") from None
         if text.startswith("("):
             continue
         for word in text.split():
@@ -59,7 +63,7 @@ def check_program_lines(lines, lo, hi) -> dict:
             if axis >= 0:
                 v = float(word[1:])
                 if not (lo[axis] - 5e-4 <= v <= hi[axis] + 5e-4):
-                    raise ValueError(f"G-code line {ln} {text!r}: {word[0]} = {v} outside [{lo[axis]:.3f}, {hi[axis]:.3f}] mm")
+                    raise InputError(f"G-code line {ln} {text!r}: {word[0]} = {v} outside [{lo[axis]:.3f}, {hi[axis]:.3f}] mm")
                 e = ext["xyz"[axis]]
                 ext["xyz"[axis]] = [v, v] if e is None else [min(e[0], v), max(e[1], v)]
     return ext
@@ -83,30 +87,53 @@ def write_program(prog: Program, gcode_path) -> str:
 
 
 def read_program(gcode_path) -> Program:
-    """Read a G-code file and its line map (as written by `write_program`); checks they agree."""
+    """Read a G-code file and its line map (as written by `write_program`); checks that every line
+    is one `write_program` could write (length, words: `jscratch.grbl.check_words`) and that the
+    map agrees with the lines.
+
+    **Raises:** `DesignFileError`, one line naming the file and the line or row, for a missing,
+    unreadable or inconsistent program.
+    """
     gcode_path = os.fspath(gcode_path)
-    if not os.path.exists(gcode_path):
-        raise FileNotFoundError(f"G-code file {gcode_path!r} does not exist")
     map_path = gcode_path + ".map.csv"
-    if not os.path.exists(map_path):
-        raise FileNotFoundError(f"line map {map_path!r} does not exist (write it with the G-code)")
-    with open(gcode_path, encoding="ascii") as f:
-        lines = f.read().split("\n")
+    for path, what in ((gcode_path, "G-code file"), (map_path, "line map")):
+        if not os.path.isfile(path):
+            hint = " (write it with the G-code: python -m jscratch.fabricate)" if path == map_path else ""
+            raise DesignFileError(f"{what} {path!r} does not exist{hint}")
+    texts = []
+    for path, what in ((gcode_path, "G-code file"), (map_path, "line map")):
+        try:
+            with open(path, encoding="ascii") as f:
+                texts.append(f.read())
+        except UnicodeDecodeError as exc:
+            raise DesignFileError(f"{what} {path!r} is not ASCII text (byte {exc.start}): not a program "
+                                  "written by jscratch") from None
+    lines = texts[0].split("\n")
+    rows = list(csv.reader(texts[1].splitlines()))[1:]
     if lines and lines[-1] == "":
         lines.pop()
-    with open(map_path, encoding="ascii", newline="") as f:
-        rows = list(csv.reader(f))[1:]
+    for ln, text in enumerate(lines, start=1):
+        if len(text) > MAX_LINE:
+            raise DesignFileError(f"G-code file {gcode_path!r}: line {ln} is {len(text)} characters (> {MAX_LINE})")
+        try:
+            check_words(text)
+        except InputError as exc:
+            raise DesignFileError(f"G-code file {gcode_path!r}: line {ln} {clip(text, 40)!r}: {exc}") from None
     if len(rows) != len(lines):
-        raise ValueError(f"line map {map_path!r} has {len(rows)} rows for {len(lines)} G-code lines")
+        raise DesignFileError(f"line map {map_path!r} has {len(rows)} rows for {len(lines)} G-code lines")
     ks, ss, roles = [], [], []
     for i, row in enumerate(rows, start=1):
-        if int(row[0]) != i:
-            raise ValueError(f"line map {map_path!r}: row {i} names line {row[0]}")
-        ks.append(int(row[1]))
-        ss.append(int(row[2]))
+        try:
+            if len(row) != 4 or int(row[0]) != i or row[3] not in ROLES:
+                raise ValueError
+            ks.append(int(row[1]))
+            ss.append(int(row[2]))
+        except ValueError:
+            raise DesignFileError(f"line map {map_path!r}: row {i} {clip(','.join(row), 40)!r} is not "
+                                  f"'{i},k,scratch,role' with a role from {ROLES}") from None
         roles.append(row[3])
     k = np.asarray(ks)
     syncs = [i for i, r in enumerate(roles) if r == "sync"]
     if [int(k[i]) for i in syncs] != list(range(len(syncs))):
-        raise ValueError(f"line map {map_path!r}: scratch blocks are not numbered 0..{len(syncs) - 1} in order")
+        raise DesignFileError(f"line map {map_path!r}: scratch blocks are not numbered 0..{len(syncs) - 1} in order")
     return Program(lines, k, np.asarray(ss), roles, {"scratches": len(syncs)})

@@ -31,6 +31,8 @@ import time
 from collections import deque
 from typing import Callable, NamedTuple, Sequence
 
+from jscratch.errors import CarveError, InputError
+
 __all__ = [
     "Reply", "classify", "GrblError", "PortError", "NotGrblError", "AlarmLocked", "DeviceLost",
     "JobFault", "Stalled", "Grbl", "gword", "check_words",
@@ -65,17 +67,18 @@ _COMMANDS = {"G": {0, 1, 4, 17, 21, 49, 54, 55, 56, 57, 58, 59, 90, 94}, "M": {2
 def gword(letter: str, value: float) -> str:
     """One G-code word, e.g. `gword("F", 900) == "F900.0"`: fixed decimals, no exponent, in range.
 
-    **Raises:** `ValueError` naming the word when `value` is not finite or outside `WORD_FORMAT`.
+    **Raises:** `InputError` (a `ValueError`) naming the word when `value` is not finite or outside
+    `WORD_FORMAT`.
     """
     dec, lo, hi = WORD_FORMAT[letter]
     v = float(value)
     if not math.isfinite(v):
-        raise ValueError(f"G-code word {letter}: {value!r} is not a finite number")
+        raise InputError(f"G-code word {letter}: {value!r} is not a finite number")
     text = f"{v:.{dec}f}"
     if float(text) == 0.0:
         text = text.lstrip("-")
     if not lo <= float(text) <= hi:
-        raise ValueError(f"G-code word {letter}{text} is outside GRBL's range [{lo:.{dec}f}, {hi:.{dec}f}]")
+        raise InputError(f"G-code word {letter}{text} is outside GRBL's range [{lo:.{dec}f}, {hi:.{dec}f}]")
     return letter + text
 
 
@@ -83,22 +86,22 @@ def check_words(line: str) -> None:
     """Check that every word of a G-code line (comments allowed) is as `gword` writes it.
 
     Commands `G`/`M` must be whole numbers jscratch uses; `X Y Z F S P` fixed decimals in range.
-    **Raises:** `ValueError` naming the first bad word.
+    **Raises:** `InputError` (a `ValueError`) naming the first bad word.
     """
     body = re.sub(r"\([^()]*\)", " ", line).split(";")[0]
     for tok in body.split():
         letter = tok[:1]
         if letter in _COMMANDS:
             if not (re.fullmatch(r"[GM](0|[1-9]\d*)", tok) and int(tok[1:]) in _COMMANDS[letter]):
-                raise ValueError(f"G-code word {tok!r} is not a command jscratch writes")
+                raise InputError(f"G-code word {tok!r} is not a command jscratch writes")
         elif letter in WORD_FORMAT:
             dec = WORD_FORMAT[letter][0]
             frac = rf"\.\d{{{dec}}}" if dec else ""
             if not re.fullmatch(rf"{letter}-?\d{{1,8}}{frac}", tok):
-                raise ValueError(f"G-code word {tok!r}: not fixed-point with {dec} decimals (no exponent)")
+                raise InputError(f"G-code word {tok!r}: not fixed-point with {dec} decimals (no exponent)")
             gword(letter, float(tok[1:]))
         else:
-            raise ValueError(f"G-code word {tok!r}: letter {letter!r} is not written by jscratch")
+            raise InputError(f"G-code word {tok!r}: letter {letter!r} is not written by jscratch")
 
 
 class Reply(NamedTuple):
@@ -142,8 +145,8 @@ def parse_status(line: str) -> dict:
     return out
 
 
-class GrblError(RuntimeError):
-    """Base class of controller and streaming errors."""
+class GrblError(CarveError):
+    """Base class of controller and streaming errors (a `CarveError`)."""
 
 
 class PortError(GrblError):

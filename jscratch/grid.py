@@ -52,6 +52,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from jscratch.errors import InputError
 from jscratch.ndf import groove_half_width, local_frame
 
 
@@ -105,11 +106,11 @@ class GridSpec(eqx.Module):
         for name in ("strip_capacity", "rows_per_strip", "pair_capacity"):
             value = getattr(self, name)
             if not isinstance(value, int) or value < 1:
-                raise ValueError(f"GridSpec.{name} must be a positive int, got {value!r}")
+                raise InputError(f"GridSpec.{name} must be a positive int, got {value!r}")
         if not (math.isfinite(self.skin) and self.skin >= 0):
-            raise ValueError(f"GridSpec.skin must be finite and >= 0 m, got {self.skin!r}")
+            raise InputError(f"GridSpec.skin must be finite and >= 0 m, got {self.skin!r}")
         if not (math.isfinite(self.margin) and self.margin >= 1):
-            raise ValueError(f"GridSpec.margin must be >= 1, got {self.margin!r}")
+            raise InputError(f"GridSpec.margin must be >= 1, got {self.margin!r}")
 
 
 class Pairs(eqx.Module):
@@ -156,13 +157,13 @@ def _check_board_shape(board, shape):
     if len(tuple(board)) != 2 or not all(
         isinstance(s, (int, float)) and math.isfinite(s) and s > 0 for s in board
     ):
-        raise ValueError(f"board must be (Sx, Sy) with positive finite metres, got {board!r}")
+        raise InputError(f"board must be (Sx, Sy) with positive finite metres, got {board!r}")
     if len(tuple(shape)) != 2 or not all(
         isinstance(n, (int, np.integer)) and n >= 1 for n in shape
     ):
-        raise ValueError(f"shape must be (H, W) with positive ints, got {shape!r}")
+        raise InputError(f"shape must be (H, W) with positive ints, got {shape!r}")
     if int(shape[0]) * int(shape[1]) >= 2**31 - 1:
-        raise ValueError(f"shape {shape!r} has too many pixels for int32 indices")
+        raise InputError(f"shape {shape!r} has too many pixels for int32 indices")
 
 
 def checked_scratches(p0, p1, width, depth):
@@ -170,9 +171,9 @@ def checked_scratches(p0, p1, width, depth):
     p0 = jnp.asarray(p0)
     p1 = jnp.asarray(p1)
     if p0.ndim != 2 or p0.shape[-1] != 2:
-        raise ValueError(f"p0 must have shape (N, 2), got {p0.shape}")
+        raise InputError(f"p0 must have shape (N, 2), got {p0.shape}")
     if p1.shape != p0.shape:
-        raise ValueError(f"p1 must have the shape of p0 {p0.shape}, got {p1.shape}")
+        raise InputError(f"p1 must have the shape of p0 {p0.shape}, got {p1.shape}")
     n = p0.shape[0]
     dtype = jnp.result_type(p0, p1, width, depth)
     if not jnp.issubdtype(dtype, jnp.floating):
@@ -181,7 +182,7 @@ def checked_scratches(p0, p1, width, depth):
     depth = jnp.asarray(depth, dtype)
     for name, a in (("width", width), ("depth", depth)):
         if a.shape not in ((), (n,)):
-            raise ValueError(f"{name} must be a scalar or have shape ({n},), got {a.shape}")
+            raise InputError(f"{name} must be a scalar or have shape ({n},), got {a.shape}")
     p0 = p0.astype(dtype)
     p1 = p1.astype(dtype)
     width = jnp.broadcast_to(width, (n,))
@@ -201,17 +202,17 @@ def _host_check(p0, p1, width, depth):
     """Host-side (numpy) checks naming the bad argument, for the non-jitted entry points."""
     p0n, p1n, wn, dn = (np.asarray(a) for a in (p0, p1, width, depth))
     if p0n.ndim != 2 or p0n.shape[-1] != 2:
-        raise ValueError(f"p0 must have shape (N, 2), got {p0n.shape}")
+        raise InputError(f"p0 must have shape (N, 2), got {p0n.shape}")
     if p1n.shape != p0n.shape:
-        raise ValueError(f"p1 must have the shape of p0 {p0n.shape}, got {p1n.shape}")
+        raise InputError(f"p1 must have the shape of p0 {p0n.shape}, got {p1n.shape}")
     for name, a in (("p0", p0n), ("p1", p1n), ("width", wn), ("depth", dn)):
         if not np.all(np.isfinite(a)):
             bad = np.argwhere(~np.isfinite(a))[0]
-            raise ValueError(f"{name} has non-finite entries (first at index {tuple(bad)})")
+            raise InputError(f"{name} has non-finite entries (first at index {tuple(bad)})")
     if np.any(wn <= 0):
-        raise ValueError("width must be > 0")
+        raise InputError(f"width must be > 0 m for every scratch, got {float(np.min(wn))!r} (the smallest)")
     if np.any(dn < 0):
-        raise ValueError("depth must be >= 0")
+        raise InputError(f"depth must be >= 0 m for every scratch, got {float(np.min(dn))!r} (the smallest)")
 
 
 # --------------------------------------------------------------------------------------------
@@ -506,9 +507,9 @@ def allocate(
     board = (float(board[0]), float(board[1]))
     shape = (int(shape[0]), int(shape[1]))
     if not (math.isfinite(margin) and margin >= 1):
-        raise ValueError(f"margin must be >= 1, got {margin!r}")
+        raise InputError(f"margin must be >= 1, got {margin!r}")
     if not (math.isfinite(skin) and skin >= 0):
-        raise ValueError(f"skin must be finite and >= 0 m, got {skin!r}")
+        raise InputError(f"skin must be finite and >= 0 m, got {skin!r}")
     _host_check(p0, p1, width, depth)
     strips, rows = (int(v) for v in _setup_counts(p0, p1, width, depth, board, shape, skin))
     strip_cap = _round_up(strips)
@@ -561,7 +562,7 @@ def build_pairs(
     if spec is None:
         spec = allocate(p0, p1, width, depth, board=board, shape=shape, margin=margin, skin=skin)
     elif spec.board != board or spec.shape != shape:
-        raise ValueError(
+        raise InputError(
             f"spec is for board {spec.board} and shape {spec.shape}, not {board} and {shape}"
         )
     pairs = _update_jit(spec, p0, p1, width, depth)
@@ -603,10 +604,10 @@ def needs_rebin(
         f is None
         for f in (pairs.bin_p0, pairs.bin_p1, pairs.bin_half_width, pairs.bin_extend, pairs.bin_tol)
     ):
-        raise ValueError("pairs has no bin_* fields (was it built by update/build_pairs?)")
+        raise InputError("pairs has no bin_* fields (was it built by update/build_pairs?)")
     p0, p1, width, depth = checked_scratches(p0, p1, width, depth)
     if p0.shape != pairs.bin_p0.shape:
-        raise ValueError(f"p0 has shape {p0.shape} but pairs was binned for {pairs.bin_p0.shape}")
+        raise InputError(f"p0 has shape {p0.shape} but pairs was binned for {pairs.bin_p0.shape}")
     p0, p1, width, depth = jax.lax.stop_gradient((p0, p1, width, depth))
     t_o, b_o, len_o = _frame(pairs.bin_p0.astype(p0.dtype), pairs.bin_p1.astype(p0.dtype))
     m_o = 0.5 * (pairs.bin_p0 + pairs.bin_p1).astype(p0.dtype)
@@ -668,7 +669,7 @@ def compact(pairs: Pairs, capacity: int) -> Pairs:
     from the padding of `pairs` (or `N` from `bin_p0` when `pairs` has no padding).
     """
     if not isinstance(capacity, (int, np.integer)) or capacity < 1:
-        raise ValueError(f"capacity must be a positive int, got {capacity!r}")
+        raise InputError(f"capacity must be a positive int, got {capacity!r}")
     capacity = int(capacity)
     if pairs.bin_p0 is not None:
         sentinel = jnp.asarray(pairs.bin_p0.shape[0], jnp.int32)

@@ -10,6 +10,8 @@ import json
 import os
 import time
 
+from jscratch.errors import CarveError
+
 __all__ = ["Journal", "JournalError", "sha256_file"]
 
 
@@ -22,8 +24,8 @@ def sha256_file(path) -> str:
     return h.hexdigest()
 
 
-class JournalError(RuntimeError):
-    """A journal that does not belong to this G-code, or cannot be continued."""
+class JournalError(CarveError):
+    """A journal that does not belong to this G-code, or cannot be continued (a `CarveError`)."""
 
 
 class Journal:
@@ -80,15 +82,21 @@ class Journal:
     @staticmethod
     def records(path) -> list:
         """All records of a journal (a torn final line dropped); the first is the header."""
-        with open(path, encoding="utf-8") as f:
-            lines = f.read().split("\n")
+        try:
+            with open(path, encoding="utf-8") as f:
+                lines = f.read().split("\n")
+        except UnicodeDecodeError:
+            raise JournalError(f"journal {path!r} is not a jscratch journal (not UTF-8 text)") from None
         recs = []
         for n, line in enumerate(lines):
             if not line.strip():
                 continue
             try:
-                recs.append(json.loads(line))
-            except json.JSONDecodeError:
+                rec = json.loads(line)
+                if not isinstance(rec, dict):
+                    raise ValueError("not a JSON object")
+                recs.append(rec)
+            except ValueError:  # json.JSONDecodeError, or a record that is not an object
                 if any(x.strip() for x in lines[n + 1:]):
                     raise JournalError(f"journal {path!r}: line {n + 1} is corrupt") from None
                 break  # torn final record

@@ -33,9 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from jscratch.errors import DesignFileError, InputError, error_line
 from jscratch.options import option
-
-from jscratch.errors import error_line
 from jscratch.ssim import ssim_mean
 
 __all__ = [
@@ -75,17 +74,17 @@ def _check_images(render, target, name: str = "render") -> tuple[Array, Array]:
     render = jnp.asarray(render)
     target = jnp.asarray(target)
     if not jnp.issubdtype(render.dtype, jnp.floating):
-        raise TypeError(f"{name} must be a floating-point array, got dtype {render.dtype}")
+        raise InputError(f"{name} must be a floating-point array, got dtype {render.dtype}")
     if render.ndim != 3:
-        raise ValueError(
+        raise InputError(
             f"{name} must have shape (M, H, W) (views, rows, columns), got shape {render.shape}"
         )
     if target.shape != render.shape:
-        raise ValueError(
+        raise InputError(
             f"target must have the same shape as {name} {render.shape}, got {target.shape}"
         )
     if not jnp.issubdtype(target.dtype, jnp.floating):
-        raise TypeError(
+        raise InputError(
             f"target must be floating-point display values in [0, 1], got dtype {target.dtype}"
         )
     return render, target.astype(render.dtype)
@@ -98,7 +97,7 @@ def _check_images(render, target, name: str = "render") -> tuple[Array, Array]:
 def _gauss1(sigma: float) -> tuple[float, float, float]:
     """1D weights ``[e, 1, e] / (1 + 2e)``, ``e = exp(-1 / (2 sigma^2))`` (Python floats)."""
     if not (isinstance(sigma, (int, float)) and math.isfinite(sigma) and sigma > 0):
-        raise ValueError(f"sigma must be a finite positive number of pixels, got {sigma!r}")
+        raise InputError(f"sigma must be a finite positive number of pixels, got {sigma!r}")
     e = math.exp(-1.0 / (2.0 * sigma * sigma))
     return (e / (1.0 + 2.0 * e), 1.0 / (1.0 + 2.0 * e), e / (1.0 + 2.0 * e))
 
@@ -324,7 +323,7 @@ class FilterBank(eqx.Module):
 
     def __check_init__(self):
         if not (isinstance(self.n_scales, int) and self.n_scales >= 1):
-            raise ValueError(f"n_scales must be a positive int, got {self.n_scales!r}")
+            raise InputError(f"n_scales must be a positive int, got {self.n_scales!r}")
 
     @property
     def channels(self) -> int:
@@ -365,7 +364,7 @@ class FilterBank(eqx.Module):
         """
         h, w = images.shape[-2:]
         if min(h, w) < self.min_size():
-            raise ValueError(
+            raise InputError(
                 f"images of {h}x{w} px are too small for a {self.n_scales}-level filter bank "
                 f"(each side must be at least {self.min_size()} px)"
             )
@@ -436,7 +435,7 @@ class VGG19Features(eqx.Module):
         """
         h, w = images.shape[-2:]
         if min(h, w) < self.min_size():
-            raise ValueError(f"images of {h}x{w} px are too small for VGG-19 (need >= 16 px)")
+            raise InputError(f"images of {h}x{w} px are too small for VGG-19 (need >= 16 px)")
         dt = images.dtype
         mean = jnp.asarray(_IMAGENET_MEAN, dt)[:, None, None]
         std = jnp.asarray(_IMAGENET_STD, dt)[:, None, None]
@@ -477,16 +476,16 @@ def load_vgg19(path: str | os.PathLike) -> VGG19Features:
 
     **Raises:**
 
-    ``FileNotFoundError`` for a missing file, ``ValueError`` naming the key for a missing key, a
-    wrong shape or a channel mismatch, or non-finite weights.
+    ``jscratch.errors.DesignFileError`` (a ``ValueError``), one line naming the file: a missing or
+    unreadable file, a missing key, a wrong shape or a channel mismatch, or non-finite weights.
     """
     path = os.fspath(path)
     if not os.path.isfile(path):
-        raise FileNotFoundError(f"VGG-19 weights file not found: {path!r}")
+        raise DesignFileError(f"VGG-19 weights file not found: {path!r}")
     try:
         data = np.load(path, allow_pickle=False)
     except Exception as e:  # noqa: BLE001 - report any unreadable file the same way
-        raise ValueError(f"VGG-19 weights file {path!r} is not a readable .npz file ({error_line(e)})") from None
+        raise DesignFileError(f"VGG-19 weights file {path!r} is not a readable .npz file ({error_line(e)})") from None
     with data:
         keys = set(data.files)
         weights, biases = [], []
@@ -495,27 +494,27 @@ def load_vgg19(path: str | os.PathLike) -> VGG19Features:
             for suffix in ("weight", "bias"):
                 if f"{name}.{suffix}" not in keys:
                     hint = sorted(keys)[:4]
-                    raise ValueError(
+                    raise DesignFileError(
                         f"VGG-19 weights file {path!r} lacks key {name}.{suffix!s} (found keys "
                         f"{hint}...; convert torchvision weights with scripts/convert_vgg19.py)"
                     )
             wgt = np.asarray(data[f"{name}.weight"])
             b = np.asarray(data[f"{name}.bias"])
             if wgt.ndim != 4 or wgt.shape[2:] != (3, 3):
-                raise ValueError(
+                raise DesignFileError(
                     f"{name}.weight must have shape (out, in, 3, 3), got {wgt.shape} in {path!r}"
                 )
             if wgt.shape[1] != prev_out:
-                raise ValueError(
+                raise DesignFileError(
                     f"{name}.weight has {wgt.shape[1]} input channels but the previous layer "
                     f"gives {prev_out} (shape {wgt.shape}) in {path!r}"
                 )
             if b.shape != (wgt.shape[0],):
-                raise ValueError(
+                raise DesignFileError(
                     f"{name}.bias must have shape ({wgt.shape[0]},), got {b.shape} in {path!r}"
                 )
             if not (np.all(np.isfinite(wgt)) and np.all(np.isfinite(b))):
-                raise ValueError(f"{name} has non-finite weights in {path!r}")
+                raise DesignFileError(f"{name} has non-finite weights in {path!r}")
             prev_out = wgt.shape[0]
             weights.append(jnp.asarray(wgt, jnp.float32))
             biases.append(jnp.asarray(b, jnp.float32))
@@ -610,11 +609,11 @@ def calibrate_lambda_g(
     ``ratio * E_p / E_g`` as a Python float.
     """
     if not (math.isfinite(ratio) and ratio > 0):
-        raise ValueError(f"ratio must be finite and positive, got {ratio!r}")
+        raise InputError(f"ratio must be finite and positive, got {ratio!r}")
     ep = float(perceptual_loss(render, target))
     eg = float(gram_loss(render, target, features))
     if not (math.isfinite(ep) and math.isfinite(eg)) or eg <= 0:
-        raise ValueError(f"cannot calibrate: E_p = {ep}, E_g = {eg} (need finite, E_g > 0)")
+        raise InputError(f"cannot calibrate: E_p = {ep}, E_g = {eg} (need finite, E_g > 0)")
     return ratio * ep / eg
 
 
@@ -658,20 +657,20 @@ class LossConfig:
 
     def __post_init__(self):
         if self.kind not in LOSS_KINDS:
-            raise ValueError(f"kind must be one of {LOSS_KINDS}, got {self.kind!r}")
+            raise InputError(f"LossConfig.kind must be one of {LOSS_KINDS}, got {self.kind!r}")
         if self.ghost_baseline not in ("targets", "zero"):
-            raise ValueError(f"ghost_baseline must be 'targets' or 'zero', got {self.ghost_baseline!r}")
+            raise InputError(f"LossConfig.ghost_baseline must be 'targets' or 'zero', got {self.ghost_baseline!r}")
         for name in ("lambda_p", "lambda_g", "lambda_x"):
             v = getattr(self, name)
             if v is None and name == "lambda_g":
                 continue
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-                raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+                raise InputError(f"LossConfig.{name} must be a finite number >= 0, got {v!r}")
         if self.vgg_weights is not None:
             object.__setattr__(self, "vgg_weights", os.fspath(self.vgg_weights))
             if self.kind == "perceptual+gram" and self.lambda_g is None:
-                raise ValueError(
-                    "lambda_g must be given with vgg_weights: LAMBDA_G is calibrated for the "
+                raise InputError(
+                    "LossConfig.lambda_g must be given with vgg_weights: LAMBDA_G is calibrated for the "
                     "filter bank only (see jscratch.loss.calibrate_lambda_g)"
                 )
 
@@ -790,7 +789,7 @@ def make_loss(config: LossConfig | None = None) -> Loss:
     """
     config = LossConfig() if config is None else config
     if not isinstance(config, LossConfig):
-        raise TypeError(f"config must be a LossConfig, got {type(config).__name__}")
+        raise InputError(f"config must be a LossConfig, got {type(config).__name__}")
     features = None
     if config.kind == "perceptual+gram":
         features = FilterBank() if config.vgg_weights is None else load_vgg19(config.vgg_weights)

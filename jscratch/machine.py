@@ -16,7 +16,9 @@ The file is TOML, one ``[machine]`` table (or bare keys) named as the fields bel
     feed_mm_min = 900.0      # 1.5 cm/s (paper)
 
 ``python -m jscratch.machine`` prints the shipped default (the paper's setup) as such a file.
-A bad value is a one-line `ValueError` naming the key (``machine.plunge_max_mm must ...``).
+A bad value is a one-line `jscratch.errors.InputError` (a `ValueError`) naming the key
+(``machine.plunge_max_mm must ...``); a profile file that is missing, unreadable, not TOML or holds
+a bad value is a `jscratch.errors.DesignFileError` (an `InputError`) naming the file.
 
 Also here: `carving_seconds`, the carving-time estimate from the profile's feeds and an
 ordered toolpath (used by `jscratch.fabricate` and the design's ``metrics.json``).
@@ -28,6 +30,8 @@ import dataclasses
 import json
 import math
 import sys
+
+from jscratch.errors import EXIT_STATUS_HELP, DesignFileError, InputError, JscratchError, report
 
 __all__ = ["MachineProfile", "MachineConfig", "load_machine", "carving_seconds", "CUT_KEYS"]
 
@@ -94,7 +98,7 @@ class MachineProfile:
         from jscratch.grbl import gword
 
         def bad(name, what):
-            raise ValueError(f"machine.{name} must be {what}, got {getattr(self, name)!r}")
+            raise InputError(f"machine.{name} must be {what}, got {getattr(self, name)!r}")
 
         def number(v):
             return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
@@ -140,8 +144,8 @@ class MachineProfile:
                              ("spindle_rpm", "S"), ("spinup_s", "P")):
             try:
                 gword(letter, getattr(self, name))
-            except ValueError as exc:
-                raise ValueError(f"machine setting {name} = {getattr(self, name)!r} does not fit GRBL: {exc}") from None
+            except InputError as exc:
+                raise InputError(f"machine setting {name} = {getattr(self, name)!r} does not fit GRBL: {exc}") from None
 
     # ------------------------------------------------------------------------------------------
     # Files and records.
@@ -156,37 +160,51 @@ class MachineProfile:
     def from_dict(cls, data: dict, source: str = "machine profile", **overrides) -> "MachineProfile":
         """A profile from a dict (keys as the fields), then `overrides` (those not None).
 
-        **Raises:** `ValueError`, one line naming `source` and the key, for an unknown key or a bad value.
+        **Raises:** `InputError`, one line naming `source` and the key, for an unknown key or a bad value.
         """
         if not isinstance(data, dict):
-            raise ValueError(f"{source}: expected a table of machine settings, got {type(data).__name__}")
+            raise InputError(f"{source}: expected a table of machine settings, got {type(data).__name__}")
         fields = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(data) - fields)
         if unknown:
-            raise ValueError(f"{source}: unknown machine setting machine.{unknown[0]} "
+            raise InputError(f"{source}: unknown machine setting machine.{unknown[0]} "
                              f"(known: {', '.join(sorted(fields))})")
         data = dict(data)
         data.update({k: v for k, v in overrides.items() if v is not None})
         try:
             return cls(**data)
-        except ValueError as exc:
-            raise ValueError(f"{source}: {exc}") from None
+        except InputError as exc:
+            raise InputError(f"{source}: {exc}") from None
 
     @classmethod
     def from_toml(cls, path, **overrides) -> "MachineProfile":
         """Read a profile from a TOML file (a ``[machine]`` table or bare keys), then apply
-        `overrides` (those not None). Errors are one line naming the file and the key."""
+        `overrides` (those not None).
+
+        **Raises:** `DesignFileError`, one line naming the file (and the key), for a missing or
+        unreadable file, one that is not TOML, or a bad or unknown key in it; `InputError` for a bad
+        override.
+        """
         import tomllib
 
+        path = str(path)
         try:
             with open(path, "rb") as f:
                 data = tomllib.load(f)
         except FileNotFoundError:
-            raise FileNotFoundError(f"machine profile {str(path)!r} does not exist") from None
-        except tomllib.TOMLDecodeError as exc:
-            raise ValueError(f"{path}: not a valid TOML machine profile ({str(exc).splitlines()[0]})") from None
+            raise DesignFileError(f"machine profile {path!r} does not exist") from None
+        except OSError as exc:
+            raise DesignFileError(f"machine profile {path!r} cannot be read ({exc.strerror})") from None
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+            raise DesignFileError(f"{path}: not a valid TOML machine profile ({str(exc).splitlines()[0]})") from None
         data = data.get("machine", data)
-        return cls.from_dict(data, source=str(path), **overrides)
+        try:
+            prof = cls.from_dict(data, source=path)
+        except InputError as exc:
+            raise DesignFileError(str(exc)) from None
+        if not any(v is not None for v in overrides.values()):
+            return prof
+        return cls.from_dict(prof.to_dict(), source=f"{path} with the given options", **overrides)
 
     def to_toml(self) -> str:
         """The profile as a TOML ``[machine]`` table (`from_toml` reads it back)."""
@@ -252,17 +270,22 @@ def carving_seconds(profile: MachineProfile, *, n: int, cut_mm: float, travel_mm
 
 
 def main(argv=None) -> int:
-    """``python -m jscratch.machine [FILE]``: check FILE (or print the shipped default) as TOML."""
-    argv = sys.argv[1:] if argv is None else argv
+    """``python -m jscratch.machine [FILE]``: check FILE (or print the shipped default) as TOML.
+
+    Returns the exit status (0 ok, 2 a missing or bad profile; `jscratch.errors.EXIT_STATUS_HELP`)."""
+    argv = sys.argv[1:] if argv is None else list(argv)
     if argv and argv[0] in ("-h", "--help"):
         print("usage: python -m jscratch.machine [FILE]\n\nPrint the machine profile in FILE (checked), "
-              "or the shipped default (the paper's machine), as TOML.")
+              f"or the shipped default (the paper's machine), as TOML.\n\n{EXIT_STATUS_HELP}")
         return 0
+    if len(argv) > 1 or (argv and argv[0].startswith("-")):
+        print(f"usage: python -m jscratch.machine [FILE]\nerror: expected at most one FILE and no options, "
+              f"got {' '.join(argv)!r}", file=sys.stderr)
+        return 2
     try:
         prof = load_machine(argv[0] if argv else None)
-    except (ValueError, FileNotFoundError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
+    except JscratchError as exc:
+        return report(exc)
     sys.stdout.write(prof.to_toml())
     return 0
 

@@ -17,6 +17,8 @@ import numpy as np
 from skimage.filters import gaussian
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
+from jscratch.errors import InputError
+
 __all__ = ["LBP_POINTS", "LBP_RADIUS", "METRIC_SIGMA", "image_metrics", "texture_distance"]
 
 #: Gaussian sigma (pixels) applied to renders and targets before the metrics.
@@ -27,15 +29,15 @@ _SSIM_WIN = 7  # skimage's default window side; images must be at least this lar
 def _as_stack(x, name: str) -> np.ndarray:
     x = np.asarray(x)
     if x.dtype == object or not np.issubdtype(x.dtype, np.number):
-        raise TypeError(f"{name} must be a numeric array, got dtype {x.dtype}")
+        raise InputError(f"{name} must be a numeric array, got dtype {x.dtype}")
     if np.issubdtype(x.dtype, np.integer):
-        raise TypeError(f"{name} must be floating display values in [0, 1], got dtype {x.dtype}")
+        raise InputError(f"{name} must be floating display values in [0, 1], got dtype {x.dtype}")
     if x.ndim != 3:
-        raise ValueError(f"{name} must have shape (M, H, W) (views, rows, columns), got {x.shape}")
+        raise InputError(f"{name} must have shape (M, H, W) (views, rows, columns), got {x.shape}")
     bad = ~np.isfinite(x)
     if bad.any():
         j, r, c = np.argwhere(bad)[0]
-        raise ValueError(
+        raise InputError(
             f"{name} has {int(bad.sum())} non-finite values (first: view {j}, pixel ({r}, {c}) "
             f"= {x[j, r, c]})"
         )
@@ -71,20 +73,20 @@ def image_metrics(
     smaller than 7x7 or a bad ``sigma``; ``TypeError`` for non-float arrays.
     """
     if not (isinstance(sigma, (int, float)) and np.isfinite(sigma) and sigma >= 0):
-        raise ValueError(f"sigma must be a finite number >= 0 (pixels), got {sigma!r}")
+        raise InputError(f"sigma must be a finite number >= 0 (pixels), got {sigma!r}")
     imgs = _as_stack(display_images, "display_images")
     tgts = _as_stack(targets, "targets")
     if imgs.shape != tgts.shape:
-        raise ValueError(
+        raise InputError(
             f"display_images {imgs.shape} and targets {tgts.shape} must have the same shape"
         )
     if tgts.min() < 0.0 or tgts.max() > 1.0:
-        raise ValueError(
+        raise InputError(
             f"targets must be display values in [0, 1], got range [{tgts.min()}, {tgts.max()}]"
         )
     m, h, w = imgs.shape
     if min(h, w) < _SSIM_WIN:
-        raise ValueError(f"images must be at least {_SSIM_WIN}x{_SSIM_WIN} px for SSIM, got {h}x{w}")
+        raise InputError(f"images must be at least {_SSIM_WIN}x{_SSIM_WIN} px for SSIM, got {h}x{w}")
     if clip:
         imgs = np.clip(imgs, 0.0, 1.0)
 
@@ -150,7 +152,7 @@ def texture_distance(display_images, targets, clip: bool = True) -> list[float]:
     imgs = _as_stack(display_images, "display_images")
     tgts = _as_stack(targets, "targets")
     if imgs.shape != tgts.shape:
-        raise ValueError(
+        raise InputError(
             f"display_images {imgs.shape} and targets {tgts.shape} must have the same shape")
     if clip:
         imgs = np.clip(imgs, 0.0, 1.0)

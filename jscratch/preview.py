@@ -26,17 +26,19 @@ import time
 
 import numpy as np
 
+from jscratch.errors import EXIT_STATUS_HELP, DesignFileError, InputError, JscratchError, report
+
 __all__ = ["orbit_views", "render_orbit", "write_gif", "write_sheet", "main"]
 
 
 def _load(path):
-    from jscratch.designfile import DesignError, load_design
+    from jscratch.designfile import load_design
 
     if os.path.isdir(path):
         path = os.path.join(path, "design.npz")
     d = load_design(path)
     if d.camera is None:
-        raise DesignError(f"{path}: the design has no views (camera, light, intensity) to orbit")
+        raise DesignFileError(f"{path}: the design has no views (camera, light, intensity) to orbit")
     return d, path
 
 
@@ -154,6 +156,8 @@ def _parser():
         prog="python -m jscratch.preview",
         description="Orbit preview of a design: an animated GIF and a contact sheet PNG of the board as the "
                     "camera circles it at the design views' polar angle, the light fixed, design views marked.",
+        epilog="Every option and the design are checked before anything is rendered or written; a refusal "
+               "is one line 'error: ...' on stderr. " + EXIT_STATUS_HELP,
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("design", help="design .npz, or a design run's output folder (holding design.npz)")
     p.add_argument("--out", default=None,
@@ -169,28 +173,40 @@ def _parser():
     return p
 
 
-def main(argv=None) -> int:
-    """Command line entry point; returns the exit status (0 ok, 1 error)."""
-    from jscratch.designfile import DesignError
+def _check_options(args) -> None:
+    """Refuse option values before any work (`InputError`, one line)."""
+    if args.frames < 2:
+        raise InputError(f"--frames must be an int >= 2, got {args.frames}")
+    if args.size < 8:
+        raise InputError(f"--size must be an int >= 8 (pixels per side), got {args.size}")
+    if args.batch < 1:
+        raise InputError(f"--batch must be an int >= 1, got {args.batch}")
+    if not (math.isfinite(args.fps) and args.fps > 0):
+        raise InputError(f"--fps must be a finite number > 0, got {args.fps}")
+    if args.intensity is not None and not (math.isfinite(args.intensity) and args.intensity > 0):
+        raise InputError(f"--intensity must be a finite number > 0 (W/sr), got {args.intensity}")
+    if args.out is not None:
+        folder, name = os.path.split(args.out)
+        if not name or name in (".", ".."):
+            raise InputError(f"--out is a prefix of file names (e.g. DIR/orbit), got {args.out!r}")
+        if folder and os.path.exists(folder) and not os.path.isdir(folder):
+            raise InputError(f"--out {args.out!r}: {folder!r} exists and is not a folder")
 
+
+def main(argv=None) -> int:
+    """Command line entry point; returns the exit status (`jscratch.errors.EXIT_STATUS_HELP`: 0 ok,
+    1 a file could not be written, 2 refused input, 130 interrupted)."""
     args = _parser().parse_args(argv)
     try:
-        if args.frames < 2:
-            raise ValueError(f"--frames must be at least 2, got {args.frames}")
-        if args.size < 8:
-            raise ValueError(f"--size must be at least 8 px, got {args.size}")
-        if args.batch < 1:
-            raise ValueError(f"--batch must be at least 1, got {args.batch}")
-        if args.fps <= 0:
-            raise ValueError(f"--fps must be > 0, got {args.fps}")
+        _check_options(args)
         t0 = time.perf_counter()
         design, path = _load(args.design)
         prefix = args.out or os.path.splitext(path)[0]
+        frames, az, marks = render_orbit(design, frames=args.frames, size=args.size, batch=args.batch,
+                                         intensity=args.intensity, progress=not args.quiet)
         folder = os.path.dirname(prefix)
         if folder:
             os.makedirs(folder, exist_ok=True)
-        frames, az, marks = render_orbit(design, frames=args.frames, size=args.size, batch=args.batch,
-                                         intensity=args.intensity, progress=not args.quiet)
         write_gif(prefix + ".orbit.gif", frames, marks, az, fps=args.fps)
         write_sheet(prefix + ".orbit_sheet.png", frames, marks, az,
                     title=f"{os.path.basename(path)}: {design.n} scratches, light fixed, camera orbiting")
@@ -199,9 +215,8 @@ def main(argv=None) -> int:
                   f"{args.size} px, {time.perf_counter() - t0:.1f} s)")
     except KeyboardInterrupt:
         return 130
-    except (DesignError, FileNotFoundError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
+    except (JscratchError, OSError) as exc:
+        return report(exc)
     return 0
 
 

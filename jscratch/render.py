@@ -75,6 +75,7 @@ from jaxtyping import Array, Float
 
 from jscratch import ndf
 from jscratch.bvh import DEFAULT_CHUNK, bin_pairs, cull_pairs, pixels_per_shard
+from jscratch.errors import InputError
 from jscratch.scene import (
     Board,
     Scratches,
@@ -476,7 +477,7 @@ def _guard(x, checks, mesh):
     for bad, msg in checks:
         if not isinstance(bad, jax.core.Tracer):
             if bool(bad):
-                raise ValueError(msg)
+                raise InputError(msg)
         elif mesh is None:
             x = eqx.error_if(x, bad, msg)
         else:
@@ -499,14 +500,14 @@ def _pair_arrays(pairs, M: int, n: int, name: str, shards: int, P_pad: int):
 
     def segments(x):
         if x.shape[-1] % shards:
-            raise ValueError(
+            raise InputError(
                 f"render_pairs: `{name}` has length {x.shape[-1]}, not a multiple of the {shards}"
                 f" pixel shards of the mesh; build it with bin_pairs(..., shards={shards})")
         return x.reshape(x.shape[:-1] + (shards, x.shape[-1] // shards))
 
     if isinstance(pairs, (list, tuple)):
         if len(pairs) != M:
-            raise ValueError(f"render_pairs: `{name}` has {len(pairs)} pair lists for {M} views")
+            raise InputError(f"render_pairs: `{name}` has {len(pairs)} pair lists for {M} views")
         parts = [_pair_arrays(p, 1, n, name, shards, P_pad) for p in pairs]
         cat = lambda xs: jnp.concatenate([segments(x) for x in xs], 1).reshape(-1)
         return (cat([p[0] + j * P_pad for j, p in enumerate(parts)]), cat([p[1] for p in parts]),
@@ -514,15 +515,15 @@ def _pair_arrays(pairs, M: int, n: int, name: str, shards: int, P_pad: int):
                 functools.reduce(jnp.logical_or, [p[3] for p in parts]), False)
     pix, scr, valid = jnp.asarray(pairs.pixel), jnp.asarray(pairs.scratch), jnp.asarray(pairs.valid)
     if not (pix.shape == scr.shape == valid.shape) or pix.ndim not in (1, 2):
-        raise ValueError(f"render_pairs: `{name}` fields pixel, scratch, valid must share a shape"
+        raise InputError(f"render_pairs: `{name}` fields pixel, scratch, valid must share a shape"
                          f" (L,) or (M, L); got {pix.shape}, {scr.shape}, {valid.shape}")
     if not (jnp.issubdtype(pix.dtype, jnp.integer) and jnp.issubdtype(scr.dtype, jnp.integer)):
-        raise ValueError(f"render_pairs: `{name}` pixel and scratch indices must be integers")
+        raise InputError(f"render_pairs: `{name}` pixel and scratch indices must be integers")
     overflow = jnp.any(jnp.asarray(pairs.overflow))
     valid = valid.astype(bool)
     if pix.ndim == 2:
         if pix.shape[0] != M:
-            raise ValueError(f"render_pairs: `{name}` has a leading view axis of {pix.shape[0]}"
+            raise InputError(f"render_pairs: `{name}` has a leading view axis of {pix.shape[0]}"
                              f" for {M} views")
         out = pix + (jnp.arange(M, dtype=pix.dtype) * P_pad)[:, None]
         inter = lambda x: jnp.swapaxes(segments(x), 0, 1).reshape(-1)  # (shards, M, Ls) order
@@ -582,7 +583,7 @@ def render_pairs(scratches: Scratches, views: Views, board: Board, pairs,
     """
     dtype = scratches.dtype
     if not jnp.issubdtype(dtype, jnp.floating):
-        raise ValueError(f"render_pairs: scratches must be floating point; got {dtype}")
+        raise InputError(f"render_pairs: scratches must be floating point; got {dtype}")
     M, P, n = views.m, board.n_pixels, scratches.n
     axes = _mesh_axes(mesh, axis_names)
     shards = _n_shards(mesh, axes)
@@ -604,7 +605,7 @@ def render_pairs(scratches: Scratches, views: Views, board: Board, pairs,
     if coverage_pairs is not None:
         cout, cscr, cvalid, cshared = flat(coverage_pairs, 1, "coverage_pairs")
         if not cshared:
-            raise ValueError("render_pairs: `coverage_pairs` must be one shared (L,) list")
+            raise InputError("render_pairs: `coverage_pairs` must be one shared (L,) list")
     w, poisoned = _guard(scratches.width, checks, mesh)
     scratches = eqx.tree_at(lambda t: t.width, scratches, w)
     kw = dict(chunk=chunk, mesh=mesh, axes=axes)
@@ -675,7 +676,7 @@ def render(scratches: Scratches, views: Views, board: Board, *, eps: float = 0.0
     coverage_pairs)``.
     """
     if eps < 0 or not math.isfinite(eps):
-        raise ValueError(f"render: `eps` must be finite and >= 0; got {eps}")
+        raise InputError(f"render: `eps` must be finite and >= 0; got {eps}")
     check_scratches(scratches.p0, scratches.p1, scratches.width, scratches.depth, scratches.alpha,
                     board=(board.Sx, board.Sy), source="render")
     axis_names = tuple(axis_names) if isinstance(axis_names, list) else axis_names

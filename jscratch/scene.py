@@ -33,6 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from jscratch.errors import InputError
+
 __all__ = [
     "ON_BOARD_RTOL",
     "SCRATCH_RULES",
@@ -71,7 +73,7 @@ def _first_bad(mask: np.ndarray) -> int:
 
 
 def check_scratches(p0, p1, width, depth, alpha=None, *, board=None, source: str = "scratches",
-                    error: type[Exception] = ValueError) -> None:
+                    error: type[Exception] = InputError) -> None:
     """Check scratch values on the host (numpy) by the scene's rules; shapes are the caller's.
 
     **Arguments:** `p0`, `p1` ``(N, 2)`` (m); `width`, `depth`, `alpha` ``(N,)`` or scalars
@@ -116,7 +118,7 @@ def check_scratches(p0, p1, width, depth, alpha=None, *, board=None, source: str
 
 
 def check_views(camera, light, intensity, *, source: str = "views",
-                error: type[Exception] = ValueError) -> None:
+                error: type[Exception] = InputError) -> None:
     """Check view values on the host by the scene's rules (finite, cameras and lights at
     ``z > 0``, intensities ``>= 0``); shapes are the caller's.
 
@@ -174,7 +176,7 @@ def _to_shape(shape) -> tuple[int, int]:
     try:
         h, w = (int(s) for s in shape)
     except (TypeError, ValueError):
-        raise ValueError(f"Board: `shape` must be (H, W), two positive ints; got {shape!r}") from None
+        raise InputError(f"Board: `shape` must be (H, W), two positive ints; got {shape!r}") from None
     return (h, w)
 
 
@@ -202,17 +204,17 @@ class Board(eqx.Module):
     def __check_init__(self):
         h, w = self.shape
         if h < 1 or w < 1:
-            raise ValueError(f"Board: `shape` must be positive (H, W); got {self.shape}")
+            raise InputError(f"Board: `shape` must be positive (H, W); got {self.shape}")
         for name in ("Sx", "Sy"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
-                raise ValueError(f"Board: `{name}` must be a positive finite length (m); got {v}")
+                raise InputError(f"Board: `{name}` must be a positive finite length (m); got {v}")
         if not 0.0 <= self.F0 <= 1.0:
-            raise ValueError(f"Board: `F0` must lie in [0, 1]; got {self.F0}")
+            raise InputError(f"Board: `F0` must lie in [0, 1]; got {self.F0}")
         for name in ("a_G", "a_S"):
             v = getattr(self, name)
             if not 0.0 < v <= 1.0:
-                raise ValueError(f"Board: `{name}` must lie in (0, 1]; got {v}")
+                raise InputError(f"Board: `{name}` must lie in (0, 1]; got {v}")
 
     @property
     def H(self) -> int:
@@ -273,9 +275,9 @@ class Scratches(eqx.Module):
         dtype = _float_dtype(p0, p1)
         for name, p in (("p0", p0), ("p1", p1)):
             if p.ndim != 2 or p.shape[1] != 2:
-                raise ValueError(f"Scratches: `{name}` must have shape (N, 2); got {p.shape}")
+                raise InputError(f"Scratches: `{name}` must have shape (N, 2); got {p.shape}")
         if p0.shape != p1.shape:
-            raise ValueError(f"Scratches: `p0` {p0.shape} and `p1` {p1.shape} must have the same shape")
+            raise InputError(f"Scratches: `p0` {p0.shape} and `p1` {p1.shape} must have the same shape")
         n = p0.shape[0]
         self.p0 = p0.astype(dtype)
         self.p1 = p1.astype(dtype)
@@ -284,7 +286,7 @@ class Scratches(eqx.Module):
             if v.ndim == 0:
                 v = jnp.broadcast_to(v, (n,))
             if v.shape != (n,):
-                raise ValueError(f"Scratches: `{name}` must have shape (N,) = ({n},) or be a scalar;"
+                raise InputError(f"Scratches: `{name}` must have shape (N,) = ({n},) or be a scalar;"
                                  f" got {v.shape}")
             setattr(self, name, v)
 
@@ -363,16 +365,16 @@ class Views(eqx.Module):
         dtype = _float_dtype(camera, light)
         for name, p in (("camera", camera), ("light", light)):
             if p.ndim != 2 or p.shape[1] != 3:
-                raise ValueError(f"Views: `{name}` must have shape (M, 3); got {p.shape}")
+                raise InputError(f"Views: `{name}` must have shape (M, 3); got {p.shape}")
         if camera.shape != light.shape:
-            raise ValueError(f"Views: `camera` {camera.shape} and `light` {light.shape} must have"
+            raise InputError(f"Views: `camera` {camera.shape} and `light` {light.shape} must have"
                              " the same shape")
         m = camera.shape[0]
         intensity = jnp.asarray(intensity, dtype)
         if intensity.ndim == 0:
             intensity = jnp.broadcast_to(intensity, (m,))
         if intensity.shape != (m,):
-            raise ValueError(f"Views: `intensity` must have shape (M,) = ({m},) or be a scalar;"
+            raise InputError(f"Views: `intensity` must have shape (M,) = ({m},) or be a scalar;"
                              f" got {intensity.shape}")
         self.camera = camera.astype(dtype)
         self.light = light.astype(dtype)
@@ -444,17 +446,17 @@ def views_on_circle(M: int, theta: float = DEFAULT_THETA, distance: float = 1.0,
     """
     board = Board() if board is None else board
     if int(M) != M or M < 1:
-        raise ValueError(f"views_on_circle: `M` must be a positive int; got {M!r}")
+        raise InputError(f"views_on_circle: `M` must be a positive int; got {M!r}")
     M = int(M)
     camera_theta = theta if camera_theta is None else camera_theta
     for name, v in (("theta", theta), ("camera_theta", camera_theta)):
         if not (math.isfinite(v) and 0.0 <= v < math.pi / 2):
             hint = (f" (angles are in radians: did you mean {math.radians(v):.4f}?)"
                     if math.isfinite(v) and 1.6 <= v < 90 else "")
-            raise ValueError(f"views_on_circle: `{name}` must lie in [0, pi/2) rad so that it is"
+            raise InputError(f"views_on_circle: `{name}` must lie in [0, pi/2) rad so that it is"
                              f" above the board; got {v}{hint}")
     if not (math.isfinite(distance) and distance > 0):
-        raise ValueError(f"views_on_circle: `distance` must be positive (m); got {distance}")
+        raise InputError(f"views_on_circle: `distance` must be positive (m); got {distance}")
     centre = np.array([board.Sx / 2, board.Sy / 2, 0.0])
     light = centre + distance * _direction(theta, light_azimuth)
 
@@ -474,7 +476,7 @@ def views_on_circle(M: int, theta: float = DEFAULT_THETA, distance: float = 1.0,
         azimuths, cameras, spot, on = layout(float(offset))
     if on.any():
         j = int(np.argmax(on))
-        raise ValueError(
+        raise InputError(
             f"views_on_circle: camera {j} (azimuth {math.degrees(azimuths[j]) % 360:.1f} deg) sees"
             f" the light mirrored by the flat board at board point ({spot[j, 0]:.4f},"
             f" {spot[j, 1]:.4f}) m, inside the board: the board's specular peak would dominate"

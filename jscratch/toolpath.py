@@ -29,6 +29,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from jscratch.errors import InputError
+
 __all__ = ["Ordering", "order_scratches", "path_travel", "greedy_order", "improve_order",
            "best_directions", "knn_grid"]
 
@@ -472,7 +474,7 @@ def order_scratches(p0, p1, start=(0.0, 0.0), *, improve: bool = True, k: int = 
     p0 = np.asarray(p0, np.float64)
     p1 = np.asarray(p1, np.float64)
     if p0.ndim != 2 or p0.shape[1] != 2 or p1.shape != p0.shape:
-        raise ValueError(f"p0 and p1 must both have shape (N, 2), got {p0.shape} and {p1.shape}")
+        raise InputError(f"p0 and p1 must both have shape (N, 2), got {p0.shape} and {p1.shape}")
     n = p0.shape[0]
     ident = np.arange(n)
     t_in = path_travel(p0, p1, ident, np.zeros(n, bool), start)

@@ -5,7 +5,7 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 
-from jscratch.designfile import DesignError, demo_design, groove_half_width, load_design, save_design, write_svg
+from jscratch.designfile import DesignError, DesignFileError, demo_design, groove_half_width, load_design, save_design, write_svg
 
 
 def _arrays(n=5, seed=0, dtype=np.float64):
@@ -52,7 +52,7 @@ def test_bad_values_name_the_scratch(tmp_path, field, index, value, match):
     # A file written by someone else (np.savez directly) is caught on load ...
     path = tmp_path / "bad.npz"
     np.savez(path, **a)
-    with pytest.raises(DesignError, match=match):
+    with pytest.raises(DesignFileError, match=match):
         load_design(path)
     # ... and save_design refuses to write it.
     with pytest.raises(DesignError, match=match):
@@ -68,12 +68,12 @@ def test_bad_shapes_and_files(tmp_path):
     a = _arrays()
     del a["alpha"]
     np.savez(tmp_path / "m.npz", **a)
-    with pytest.raises(DesignError, match=r"missing array\(s\) \['alpha'\]"):
+    with pytest.raises(DesignFileError, match=r"missing array\(s\) \['alpha'\]"):
         load_design(tmp_path / "m.npz")
-    with pytest.raises(FileNotFoundError, match="does not exist"):
+    with pytest.raises(DesignFileError, match="does not exist"):
         load_design(tmp_path / "nope.npz")
     (tmp_path / "junk.npz").write_bytes(b"not a zip")
-    with pytest.raises(DesignError, match="not a readable .npz"):
+    with pytest.raises(DesignFileError, match="not a readable .npz"):
         load_design(tmp_path / "junk.npz")
     with pytest.raises(DesignError, match="camera, light and intensity go together"):
         save_design(tmp_path / "v.npz", **_arrays(), camera=np.ones((2, 3)))
@@ -104,5 +104,5 @@ def test_groove_half_width_and_demo():
     d = demo_design(300, seed=1)
     assert d.n == 300 and np.all(d.p0 >= 0) and np.all(d.p1 <= 0.3)
     assert np.all((d.length >= 0.005 - 1e-12) & (d.length <= 0.025 + 1e-12))
-    with pytest.raises(ValueError, match="n must be >= 1"):
+    with pytest.raises(ValueError, match=r"n \(the number of scratches\) must be >= 1"):
         demo_design(0)

@@ -194,7 +194,7 @@ def test_zero_length_and_bad_design_give_clear_errors(tmp_path, capsys):
     p1 = d.p1.copy()
     p1[6] = d.p0[6]
     save_design(tmp_path / "z.npz", d.p0, p1, d.width, d.depth, d.alpha, d.board)
-    assert main([str(tmp_path / "z.npz"), "--dry-run", "--quiet", "--plunge", "0.1"]) == 1
+    assert main([str(tmp_path / "z.npz"), "--dry-run", "--quiet", "--plunge", "0.1"]) == 2
     assert "scratch 6 has length 0 mm" in capsys.readouterr().err
     assert not (tmp_path / "z.gcode").exists()
     # --drop-short skips it.
@@ -204,11 +204,11 @@ def test_zero_length_and_bad_design_give_clear_errors(tmp_path, capsys):
     arr["p0"] = arr["p0"].copy()
     arr["p0"][3, 1] = np.nan
     np.savez(tmp_path / "nan.npz", **arr)
-    assert main([str(tmp_path / "nan.npz"), "--dry-run", "--quiet"]) == 1
+    assert main([str(tmp_path / "nan.npz"), "--dry-run", "--quiet"]) == 2
     assert "scratch 3: p0" in capsys.readouterr().err
     arr["p0"][3, 1] = 0.5
     np.savez(tmp_path / "off.npz", **arr)
-    assert main([str(tmp_path / "off.npz"), "--dry-run", "--quiet"]) == 1
+    assert main([str(tmp_path / "off.npz"), "--dry-run", "--quiet"]) == 2
     assert "off the board" in capsys.readouterr().err
 
 
@@ -521,12 +521,12 @@ def test_plain_rerun_keeps_the_program_of_an_unfinished_job(tmp_path, capsys):
     wp = Workpiece()
     sim = GrblSim(wp, error_at=(2 + 5 * 4 + 3, 33))
     base = [design, "--plunge", "0.1", "--order-time", "1", "--quiet", "--banner-timeout", "1"]
-    assert main(base + ["--port", sim.port]) == 1
+    assert main(base + ["--port", sim.port]) == 4
     before = gcode.read_bytes()
     capsys.readouterr()
     # A plain re-run (here with another feed) or a dry run must not replace the job's program.
     for extra in (["--feed", "600", "--port", sim.port], ["--feed", "600", "--dry-run"]):
-        assert main(base + extra) == 1
+        assert main(base + extra) == 2
         err = capsys.readouterr().err
         assert re.fullmatch(r"error: .*unfinished job .*4 of 24 scratches carved.*--resume.*\n", err), err
         assert gcode.read_bytes() == before
@@ -534,7 +534,7 @@ def test_plain_rerun_keeps_the_program_of_an_unfinished_job(tmp_path, capsys):
     assert main(base + ["--port", sim.port, "--resume"]) == 0
     sim.close()
     _verify(read_program(gcode), wp, in_progress={4})
-    assert main(base + ["--dry-run"]) == 1
+    assert main(base + ["--dry-run"]) == 2
     assert "finished job" in capsys.readouterr().err and gcode.read_bytes() == before
 
 
@@ -599,7 +599,7 @@ def test_emergency_retract_goes_to_the_programs_safe_z(tmp_path, small):
     sim = GrblSim(error_at=(2 + 5 * 3 + 3, 33))  # mid-cut of position 3
     try:
         # Streamed with the CLI, whose --safe-z default (1 mm) is below the program's 3 mm.
-        assert main(["--gcode", str(path), "--port", sim.port, "--quiet", "--banner-timeout", "1"]) == 1
+        assert main(["--gcode", str(path), "--port", sim.port, "--quiet", "--banner-timeout", "1"]) == 4
         assert sim.pos[2] == 3.0
         # An explicit lower safe_z_mm never retracts below the program's travel height.
         sim.error_at = (sim.gcode_lines + 2 + 3, 33)

@@ -15,6 +15,7 @@ import scipy.ndimage
 import scipy.signal
 
 from jscratch import loss as loss_mod
+from jscratch.errors import DesignFileError, InputError
 
 SHAPE = (2, 32, 32)  # one image shape for (almost) everything: few compilations
 R = math.sqrt(0.5)
@@ -265,9 +266,9 @@ def test_bad_inputs():
         loss_mod.perceptual_loss(jnp.zeros((32, 32)), jnp.zeros((32, 32)))
     with pytest.raises(ValueError, match="target must have the same shape"):
         loss_mod.l2_loss(t, jnp.zeros((3, 32, 32)))
-    with pytest.raises(TypeError, match="render must be a floating"):
+    with pytest.raises(InputError, match="render must be a floating"):
         loss_mod.gram_loss(jnp.zeros(SHAPE, jnp.int32), t)
-    with pytest.raises(TypeError, match="target must be floating"):
+    with pytest.raises(InputError, match="target must be floating"):
         loss_mod.perceptual_loss(t, np.zeros(SHAPE, np.uint8))
     with pytest.raises(ValueError, match="kind must be one of"):
         loss_mod.LossConfig(kind="vgg")
@@ -275,9 +276,9 @@ def test_bad_inputs():
         loss_mod.LossConfig(lambda_p=float("nan"))
     with pytest.raises(ValueError, match="lambda_g must be given with vgg_weights"):
         loss_mod.LossConfig(vgg_weights="x.npz")
-    with pytest.raises(TypeError, match="LossConfig"):
+    with pytest.raises(InputError, match="LossConfig"):
         loss_mod.make_loss({"kind": "l2"})
-    with pytest.raises(FileNotFoundError, match="not found"):
+    with pytest.raises(DesignFileError, match="not found"):
         loss_mod.make_loss(loss_mod.LossConfig(vgg_weights="/nonexistent/vgg.npz", lambda_g=1.0))
 
 

@@ -70,9 +70,10 @@ def test_profile_round_trip_file_design_npz_fabricate(tmp_path, capsys):
     other = _toml(tmp_path / "other.toml", cutter_radius_mm=0.125)
     capsys.readouterr()
     assert fabricate.main([str(out / "design.npz"), "--dry-run", "--out", str(tmp_path / "x" / "j"),
-                           "--machine", other]) == 1
+                           "--machine", other]) == 2
     err = capsys.readouterr().err
     assert "machine mismatch" in err and "cutter_radius_mm" in err and err.count("\n") == 1
+    assert not (tmp_path / "x").exists()  # refused before anything is written
     assert fabricate.main([str(out / "design.npz"), "--dry-run", "--out", str(tmp_path / "y" / "j"),
                            "--feed", "700", "--order-time", "1"]) == 0
     assert "differ from the design's recorded profile" in capsys.readouterr().err
@@ -93,9 +94,10 @@ def test_bad_profile_values_one_line_naming_the_key(tmp_path, key, value, capsys
     msg = str(e.value)
     assert f"machine.{key}" in msg and str(path) in msg and "\n" not in msg
     capsys.readouterr()
-    assert fabricate.main(["--dry-run", "--machine", str(path), "--out", str(tmp_path / "o" / "j")]) == 1
+    assert fabricate.main(["--dry-run", "--machine", str(path), "--out", str(tmp_path / "o" / "j")]) == 2
     err = capsys.readouterr().err
     assert f"machine.{key}" in err and err.count("\n") == 1
+    assert not (tmp_path / "o").exists()
     assert design_main(["--machine", str(path), "--out", str(tmp_path / "d"), "--quiet"]) == 2
 
 
@@ -279,4 +281,4 @@ def test_orbit_preview_on_a_tiny_design(tmp_path):
     gif = Image.open(tmp_path / "o" / "tiny.orbit.gif")
     assert gif.n_frames == 5 and gif.size == (16, 16)
     assert (tmp_path / "o" / "tiny.orbit_sheet.png").stat().st_size > 0
-    assert main([str(tmp_path / "missing.npz"), "--quiet"]) == 1
+    assert main([str(tmp_path / "missing.npz"), "--quiet"]) == 2

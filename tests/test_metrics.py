@@ -105,7 +105,7 @@ def test_single_view_and_clipping():
         (np.zeros((16, 16)), np.zeros((16, 16)), {}, ValueError, r"display_images must have shape \(M, H, W\)"),
         (np.zeros((1, 16, 16)), np.full((1, 16, 16), 1.5), {}, ValueError, r"targets must be display values in \[0, 1\]"),
         (np.full((1, 16, 16), np.nan), np.zeros((1, 16, 16)), {}, ValueError, "display_images has 256 non-finite"),
-        (np.zeros((1, 16, 16)), np.zeros((1, 16, 16), np.uint8), {}, TypeError, "targets must be floating"),
+        (np.zeros((1, 16, 16)), np.zeros((1, 16, 16), np.uint8), {}, ValueError, "targets must be floating"),
         (np.zeros((1, 5, 16)), np.zeros((1, 5, 16)), {}, ValueError, "at least 7x7"),
         (np.zeros((1, 16, 16)), np.zeros((1, 16, 16)), {"sigma": -1.0}, ValueError, "sigma"),
     ],

@@ -12,6 +12,7 @@ import jax
 
 from jscratch.bench import kernel, rendering
 from jscratch.bench.timing import machine_info
+from jscratch.errors import EXIT_STATUS_HELP, InputError, JscratchError, report
 
 DESCRIPTION = ("`python -m jscratch.bench`: run time against error, numerical stress, and the"
                " recorded results.")
@@ -21,13 +22,14 @@ SECTIONS = ("kernel", "stability", "render", "brute", "design")
 def run_bench(sections=SECTIONS, quick: bool = False, out: str | Path = "bench_out") -> dict:
     """Run the chosen sections; write `bench.json`, `bench.md` and plots to `out`; return the
     results dict (`machine`, one entry per section, each with a `markdown` table)."""
-    # float64 rows and references need x64; float32 paths build float32 arrays explicitly.
-    jax.config.update("jax_enable_x64", True)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     unknown = set(sections) - set(SECTIONS)
     if unknown:
-        raise ValueError(f"unknown bench sections {sorted(unknown)}; choose from {SECTIONS}")
+        raise InputError(f"unknown bench sections {sorted(unknown)}; choose from {SECTIONS}")
+    out = Path(out)
+    _check_out(out)
+    # float64 rows and references need x64; float32 paths build float32 arrays explicitly.
+    jax.config.update("jax_enable_x64", True)
+    out.mkdir(parents=True, exist_ok=True)
     runners = {"kernel": kernel.bench_kernel, "stability": kernel.bench_stability,
                **rendering.RUNNERS}
     res = {"machine": machine_info(), "quick": quick, "command": " ".join(sys.argv)}
@@ -50,17 +52,35 @@ def run_bench(sections=SECTIONS, quick: bool = False, out: str | Path = "bench_o
     return res
 
 
-def main(argv=None):
-    p = argparse.ArgumentParser(prog="python -m jscratch.bench", description=DESCRIPTION)
+def _check_out(out: Path) -> None:
+    """Refuse an output folder that cannot be one (`InputError`), before any work."""
+    for p in (out, *out.parents):
+        if p.exists():
+            if not p.is_dir():
+                raise InputError(f"--out {str(out)!r}: {str(p)!r} exists and is not a folder")
+            break
+
+
+def main(argv=None) -> int:
+    """Command line entry point; returns the exit status (`jscratch.errors.EXIT_STATUS_HELP`: 0 ok,
+    1 a file could not be written, 2 refused input, 130 interrupted)."""
+    p = argparse.ArgumentParser(prog="python -m jscratch.bench", description=DESCRIPTION,
+                                epilog="The options are checked before any section runs; a refusal is one "
+                                       "line 'error: ...' on stderr. " + EXIT_STATUS_HELP)
     p.add_argument("--quick", action="store_true", help="small sizes (about 50 s on 2 CPU cores)")
     p.add_argument("--out", default="bench_out", help="output folder (default: bench_out)")
     p.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=SECTIONS,
                    help="sections to run (default: all)")
     a = p.parse_args(argv)
-    res = run_bench(a.sections, a.quick, a.out)
+    try:
+        run_bench(a.sections, a.quick, a.out)
+    except KeyboardInterrupt:
+        return 130
+    except (JscratchError, OSError) as exc:
+        return report(exc)
     print((Path(a.out) / "bench.md").read_text())
-    return res
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -31,6 +31,8 @@ import math
 import mpmath
 import numpy as np
 
+from jscratch.errors import InputError
+
 DPS = 30
 
 mp = mpmath.mp
@@ -299,7 +301,7 @@ def reference_pair(h, footprint, p0, p1, width, depth, alpha, *, method="scipy")
         elif method == "scipy":
             D = _integrate_scipy(S)
         else:
-            raise ValueError(f"method must be 'scipy' or 'mpmath', got {method!r}")
+            raise InputError(f"method must be 'scipy' or 'mpmath', got {method!r}")
         return D, float(S["A"])
 
 

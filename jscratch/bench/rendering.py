@@ -32,6 +32,7 @@ import numpy as np
 
 from jscratch import brute, design
 from jscratch.bench.timing import md_table, median_time, plot
+from jscratch.errors import InputError
 from jscratch.render import (
     DEFAULT_CHUNK,
     bin_pairs,
@@ -123,7 +124,7 @@ def culling_rows(case: _Case, eps_list, repeats: int = 3) -> list[dict]:
     error, max over pixels and views, over the peak radiance. `eps_list[0]` must be 0 (the
     reference: `case`'s own forward, already timed)."""
     if not eps_list or eps_list[0] != 0:
-        raise ValueError(
+        raise InputError(
             f"culling_rows: eps_list must start with 0 (the reference); got {eps_list}")
     s, v, board, full = case.scratches, case.views, case.board, case.pairs
     views = v.m

@@ -44,10 +44,11 @@ views of its share of the view's scratch radiance relative to the mean scratch's
 as many as bisection finds while the loss stays within ``(1 + discard_tol)`` of the loss with all
 scratches (default ``discard_tol = 0.01``: at most 1 % higher).
 
-**Failures** raise `DesignError` (a `ValueError`) for bad input (targets, views) and
-`NonFiniteError` (a `RuntimeError`) when the loss, a gradient or an updated parameter becomes NaN or
+**Failures** raise `DesignError` (a `jscratch.InputError`, also a `ValueError`) for bad input
+(targets, views, config), `jscratch.DesignFileError` for an unreadable checkpoint, and
+`NonFiniteError` (also a `RuntimeError`) when the loss, a gradient or an updated parameter becomes NaN or
 infinite: the message names the iteration, the parameter group and the first bad scratch or view,
-and the last good state stays in the checkpoint.
+and the last good state stays in the checkpoint. All are `jscratch.JscratchError`s.
 
 **Modules** (one way: config <- params <- solver <- discard <- run <- cli):
 

@@ -45,6 +45,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jscratch.errors import InputError
+
 __all__ = ["GrooveMap", "groove_map", "ball_slope_fit", "GROOVE_MODES"]
 
 #: ``DesignConfig.groove``: ``"carvable"`` (plunge in the profile's range) or ``"free"`` (w, d free).
@@ -175,7 +177,7 @@ def groove_map(radius: float, p_min: float, p_max: float, criterion: str = "heig
     """Fit the plunge -> ``(w, d)`` map for a ball of `radius` over ``[p_min, p_max]`` (m), once
     (cached). **Raises** `ValueError` unless ``0 < p_min < p_max < radius``."""
     if not (0 < p_min < p_max < radius):
-        raise ValueError(f"groove map needs 0 < p_min < p_max < radius, got {p_min}, {p_max}, {radius}")
+        raise InputError(f"groove map needs 0 < p_min < p_max < radius, got {p_min}, {p_max}, {radius}")
     grid = np.linspace(p_min, p_max, _GRID) / radius
     t, rms = ball_slope_fit(grid, criterion)
     return GrooveMap(float(radius), float(p_min), float(p_max), tuple(float(v) for v in t),

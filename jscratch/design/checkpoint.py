@@ -14,6 +14,7 @@ import numpy as np
 
 from jscratch import bvh
 from jscratch.designfile import DesignError
+from jscratch.errors import DesignFileError, error_line
 from jscratch.design.config import DesignConfig
 from jscratch.design.params import DesignParams
 
@@ -75,10 +76,16 @@ def save_checkpoint(path: str, state: State, config: DesignConfig, thash: str) -
 
 def load_checkpoint(path: str, like: State, config: DesignConfig, thash: str) -> State:
     if not os.path.isfile(path):
-        raise DesignError(f"--resume: no checkpoint at {path!r}")
-    with np.load(path, allow_pickle=False) as z:
-        data = {k: z[k] for k in z.files}
-    meta = json.loads(bytes(data["meta"]).decode())
+        raise DesignFileError(f"--resume: no checkpoint at {path!r}")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+        meta = json.loads(bytes(data["meta"]).decode())
+        absent = [k for k in ("targets_hash", "config", "spec", "caps") if k not in meta]
+        if absent:
+            raise KeyError(f"meta lacks {absent}")
+    except Exception as exc:  # not an .npz, no or a broken "meta" record
+        raise DesignFileError(f"checkpoint {path!r} is not a readable jscratch checkpoint ({error_line(exc)})") from None
     if meta["targets_hash"] != thash:
         raise DesignError(f"checkpoint {path!r} was made for different target images")
     saved = DesignConfig.from_dict(meta["config"])
@@ -104,8 +111,8 @@ def load_checkpoint(path: str, like: State, config: DesignConfig, thash: str) ->
     missing = [f for f in _fields(bvh.Pairs) if f"pairs/{f}" not in data]
     missing += [f for f in _fields(bvh.GridSpec) if f not in meta["spec"]]
     if missing:
-        raise DesignError(f"checkpoint {path!r} lacks {', '.join(missing)}: it was written by"
-                          " another version of jscratch")
+        raise DesignFileError(f"checkpoint {path!r} lacks {', '.join(missing)}: it was written by"
+                              " another version of jscratch")
     pairs = bvh.Pairs(**{f: jnp.asarray(data[f"pairs/{f}"]) for f in _fields(bvh.Pairs)})
     # (JSON turns tuples into lists; the spec is static and hashed by jit, so tuples again)
     spec = bvh.GridSpec(**{f: tuple(v) if isinstance(v, list) else v

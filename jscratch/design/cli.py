@@ -10,8 +10,8 @@ So ``python -m jscratch.design --config OUT/config.json`` repeats a run bit for 
 options gives.
 
 Everything is checked before any work starts; a refusal prints one line ``error: ...`` and exits
-with 2 (bad input), 3 (non-finite optimisation) or 1 (another jscratch error), with nothing
-written.
+with `jscratch.errors.exit_status` (2 bad input, with nothing written; 3 non-finite optimisation,
+the last good state kept; 1 a file that could not be written).
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from collections.abc import Sequence
 import jax
 
 from jscratch import native
-from jscratch.errors import DesignFileError, InputError, JscratchError, NonFiniteError
+from jscratch.errors import EXIT_STATUS_HELP, DesignFileError, InputError, JscratchError, report
 from jscratch.options import add_arguments, given, option, overlay
 from jscratch.designfile import DesignError
 from jscratch.design.config import DEFAULT_IMAGES, DesignConfig, SceneConfig
@@ -78,9 +78,8 @@ def parser() -> argparse.ArgumentParser:
         description="Optimise a scratch design so that a board shows one target image per view "
                     "(Shen et al. 2023). With no TARGET it uses images bundled with scikit-image "
                     f"({', '.join(DEFAULT_IMAGES)}).",
-        epilog="Exit status: 0 done, 2 bad input (one line on stderr, nothing written), 3 the "
-               "optimisation became non-finite (the last good state is in OUT/checkpoint.npz), "
-               "1 another refusal.")
+        epilog=EXIT_STATUS_HELP + " A non-finite optimisation keeps its last good state in "
+               "OUT/checkpoint.npz.")
     add_arguments(p, RunOptions, title="run")
     add_arguments(p, SceneConfig, title="scene (targets, views, board)")
     add_arguments(p, DesignConfig, title="design")
@@ -174,16 +173,13 @@ def _summary(result, out) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Command-line entry point; returns the exit status (0 done, 2 bad input, 3 non-finite,
-    1 another jscratch refusal), printing a refusal as one line."""
+    """Command-line entry point; returns the exit status (`jscratch.errors.exit_status`),
+    printing a refusal as one line (`jscratch.errors.report`)."""
     try:
         return _run(argv)
-    except NonFiniteError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 3
-    except InputError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    except JscratchError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 1
+    except (JscratchError, OSError) as e:
+        return report(e)
+    except KeyboardInterrupt:
+        print("error: interrupted (the checkpoint holds the last saved state: --resume)",
+              file=sys.stderr)
+        return 130
