@@ -4,40 +4,74 @@
 hand-written partial derivatives either with jnp (`ndf._view`, `lobe`, `ndf._lit_sum`: XLA's CPU
 backend evaluates the many gradient outputs in separate fusions that each recompute the shared
 arithmetic) or, where this module is available, with `native_lit.cc`: the same formulas, line
-by line, one SIMD lane per pair-view, on all cores, in a values-only and a values + partials
-variant. Same results up to rounding (`tests/test_native.py` compares the two in float64 and
-float32).
+by line, one SIMD lane per pair-view, on XLA's intra-op thread pool, in a values-only and a
+values + partials variant. Same results up to rounding (`tests/test_native.py` compares the two
+in float64 and float32).
 
 - `prepare()`: start the build on a background thread (the design does, before its setup).
 - `available(dtype) -> bool`: whether `lit_partials` can run for arrays of `dtype` here: the
-  default backend is the CPU, the kernel compiled (once per source, with the system's C++
-  compiler, cached in ``$JSCRATCH_CACHE`` or ``~/.cache/jscratch``) and ``JSCRATCH_NATIVE`` is
-  not ``0``. Otherwise jscratch uses the jnp reverse pass.
+  native kernel is enabled (`enabled`), the default backend is the CPU and the kernel was built
+  and loaded. Otherwise jscratch uses the jnp reverse pass.
 - `lit(n_gl, ua, ub, Ya, Yb, X, h, b, t, alpha)`: the lit integral, differentiable (reverse
   mode: its partials from the kernel; `ndf` calls this).
 - `lit_partials(n_gl, ua, ub, Ya, Yb, X, h, b, t, alpha)`: the lit integral and its partials
   (`native_lit.cc` says which); `lit_values(...)`: the integral alone.
+- `status()`: what runs and why, a JSON-friendly dict (the design writes it to metrics.json);
+  ``python -m jscratch.native [--json]`` prints it (and builds the kernel if needed).
 
-Nothing is downloaded; a machine without a C++ compiler runs the jnp path (`status()` says why).
+Build. The kernel is compiled on first use with the system's C++ compiler (``$CXX``, else
+``g++``, ``c++`` or ``clang++`` on ``PATH``; 5-8 s) into ``native_lit-<key>.so`` in
+``$JSCRATCH_CACHE`` (else ``$XDG_CACHE_HOME/jscratch`` or ``~/.cache/jscratch``). The key (`_key`)
+covers everything the binary depends on: the source text, the compiler's path and its
+``--version`` output, the flags (``-march=native``), the CPU's model and features, the jaxlib
+version and a hash of the XLA FFI headers under ``jax.ffi.include_dir()``. After a build the
+cache's other ``native_lit-*.so`` (stale keys) are deleted. Nothing is downloaded.
+
+Settings, read from the environment ONCE, when this module is imported (changing them later in
+the process changes nothing):
+
+- ``JSCRATCH_NATIVE``: ``1`` (default) use the native kernel where it can be built; ``0`` always
+  use the jnp path.
+- ``JSCRATCH_NATIVE_THREADS``: the most threads one kernel call uses (the calling thread and XLA's
+  intra-op pool, whose size also caps it); default: the CPUs this process may run on. The
+  results are the same bits for any value.
+
+`enabled()` and `threads()` give the decisions; `override(enabled=..., threads=...)` changes them
+for what is traced inside it (tests and benchmarks that compare the two paths in one process).
+
+Fallback. Where the native kernel is enabled and the backend is the CPU but the kernel cannot be
+built or loaded (no compiler, a failed build, an FFI this jaxlib lacks), jscratch runs the jnp
+path, about 1.7x slower per design step, and warns once per process (`NativeKernelWarning`).
+Disabled, or another backend: the jnp path without a warning; `status()` says why in each case.
 """
 
 from __future__ import annotations
 
+import argparse
+import contextlib
 import ctypes
 import functools
 import hashlib
+import json
 import os
 import platform
 import shutil
 import subprocess
+import sys
 import tempfile
 import threading
+import time
+import warnings
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+import jaxlib
 
-__all__ = ["available", "lit_partials", "lit_values", "prepare", "status"]
+from jscratch.errors import InputError, error_line
+
+__all__ = ["NativeKernelWarning", "available", "enabled", "lit", "lit_partials", "lit_values",
+           "main", "override", "prepare", "status", "threads"]
 
 _SOURCE = Path(__file__).with_name("native_lit.cc")
 #: (dtype, with partials) -> (FFI target name, symbol in the library).
@@ -45,7 +79,66 @@ _TARGETS = {(jnp.dtype(dt), partials): (f"jscratch_lit{'' if partials else '_val
                                         f"JscratchLit{'' if partials else 'Values'}{name.upper()}")
             for dt, name in ((jnp.float32, "f32"), (jnp.float64, "f64"))
             for partials in (True, False)}
-_status = {"loaded": False, "why": "not tried"}
+_FLAGS = ("-O3", "-march=native", "-fno-math-errno", "-ffp-contract=off", "-std=c++17", "-shared",
+          "-fPIC", "-pthread", "-w")
+#: What the jnp path costs, in the fallback warning (`benchmarks/RESULTS.md`).
+_COST = "the jnp path runs instead, about 1.7x slower per design step"
+
+# The settings, read once (module docstring); validated on first use by `_settings`.
+_ENV = {k: os.environ.get(k) for k in ("JSCRATCH_NATIVE", "JSCRATCH_NATIVE_THREADS")}
+_overrides: dict = {}
+
+
+class NativeKernelWarning(RuntimeWarning):
+    """The native kernel was wanted (enabled, CPU backend) but cannot be built or loaded: jscratch
+    runs the slower jnp path. Issued once per process."""
+
+
+@functools.cache
+def _settings() -> tuple[bool, int]:
+    """``(enabled, threads)`` from the environment as it was at import."""
+    raw = (_ENV["JSCRATCH_NATIVE"] or "1").strip()
+    if raw not in ("0", "1"):
+        raise InputError(f"JSCRATCH_NATIVE={raw!r}: expected 0 (the jnp path) or 1 (the native "
+                         "kernel where it can be built, the default)")
+    n = (_ENV["JSCRATCH_NATIVE_THREADS"] or "").strip()
+    if n:
+        if not n.isdigit() or int(n) < 1:
+            raise InputError(f"JSCRATCH_NATIVE_THREADS={n!r}: expected a whole number >= 1")
+        count = int(n)
+    else:
+        count = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (
+            os.cpu_count() or 1)
+    return raw == "1", max(1, count)
+
+
+def enabled() -> bool:
+    """Whether the native kernel is wanted: ``JSCRATCH_NATIVE`` (read at import) unless
+    `override` says otherwise. Wanted is not available: see `available`."""
+    return _overrides.get("enabled", _settings()[0])
+
+
+def threads() -> int:
+    """The most threads one kernel call uses: ``JSCRATCH_NATIVE_THREADS`` (read at import), else
+    the CPUs this process may run on, unless `override` says otherwise."""
+    return _overrides.get("threads", _settings()[1])
+
+
+@contextlib.contextmanager
+def override(enabled: bool | None = None, threads: int | None = None):
+    """Within the ``with`` block, `enabled` / `threads` return these values (None: unchanged).
+    Functions traced inside it keep the choice; those traced before keep theirs. For tests and
+    benchmarks that compare the native and jnp paths, or thread counts, in one process."""
+    saved = dict(_overrides)
+    if enabled is not None:
+        _overrides["enabled"] = bool(enabled)
+    if threads is not None:
+        _overrides["threads"] = max(1, int(threads))
+    try:
+        yield
+    finally:
+        _overrides.clear()
+        _overrides.update(saved)
 
 
 def _cache_dir() -> Path:
@@ -54,52 +147,135 @@ def _cache_dir() -> Path:
     return Path(root)
 
 
-def _cpu_flags() -> str:
-    """This CPU's model and feature flags (Linux), else the processor's name."""
+def _sha(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()[:16]
+
+
+def _cpu() -> tuple[str, str]:
+    """``(model, features)`` of this CPU (Linux ``/proc/cpuinfo``), else the processor's name."""
     try:
         with open("/proc/cpuinfo") as f:
-            lines = [ln for ln in f if ln.startswith(("model name", "flags", "Features"))]
-        return "".join(sorted(set(lines)))
+            lines = sorted({ln.strip() for ln in f
+                            if ln.startswith(("model name", "flags", "Features", "CPU part"))})
     except OSError:
-        return platform.processor()
+        return platform.processor() or "unknown", ""
+    model = next((ln.split(":", 1)[1].strip() for ln in lines if ln.startswith("model name")),
+                 platform.processor() or "unknown")
+    return model, "\n".join(lines)
 
 
-def _compile() -> Path:
-    """The kernel's shared library, compiled once per source text and compiler flags."""
-    cxx = os.environ.get("CXX") or shutil.which("g++") or shutil.which("c++") or shutil.which(
-        "clang++")
-    if cxx is None:
-        raise RuntimeError("no C++ compiler (g++, c++ or clang++) on PATH")
-    flags = ["-O3", "-march=native", "-fno-math-errno", "-ffp-contract=off", "-std=c++17",
-             "-shared", "-fPIC", "-pthread", "-w", f"-I{jax.ffi.include_dir()}"]
-    src = _SOURCE.read_bytes()
-    # -march=native: the library is for this CPU (a cache shared between machines keys on it).
-    key = hashlib.sha256(src + " ".join([cxx, *flags, platform.machine(), _cpu_flags()])
-                         .encode()).hexdigest()[:16]
+def _compiler() -> str:
+    """The C++ compiler's path: ``$CXX``, else the first of g++, c++, clang++ on ``PATH``."""
+    cxx = os.environ.get("CXX")
+    if cxx:
+        found = shutil.which(cxx)
+        if found is None:
+            raise RuntimeError(f"no C++ compiler: CXX={cxx} is not an executable")
+        return found
+    for name in ("g++", "c++", "clang++"):
+        if found := shutil.which(name):
+            return found
+    raise RuntimeError("no C++ compiler (CXX unset; no g++, c++ or clang++ on PATH)")
+
+
+def _compiler_version(cxx: str) -> str:
+    """The compiler's ``--version`` output (all of it: the key's input; its first line names it)."""
+    try:
+        proc = subprocess.run([cxx, "--version"], capture_output=True, text=True, timeout=60)
+    except (OSError, subprocess.SubprocessError) as e:
+        raise RuntimeError(f"C++ compiler {cxx} cannot be run: {error_line(e)}") from None
+    if proc.returncode != 0:
+        raise RuntimeError(f"C++ compiler {cxx} --version exited with {proc.returncode}")
+    return proc.stdout.strip()
+
+
+def _ffi_headers() -> str:
+    """Hash of every file under ``jax.ffi.include_dir()`` (paths and contents)."""
+    root = Path(jax.ffi.include_dir())
+    h = hashlib.sha256()
+    for p in sorted(root.rglob("*")):
+        if p.is_file():
+            h.update(str(p.relative_to(root)).encode() + b"\0" + p.read_bytes() + b"\0")
+    return h.hexdigest()[:16]
+
+
+def _key_parts(cxx: str) -> dict:
+    """What the library depends on, as strings: the cache key's inputs (`_key`)."""
+    model, features = _cpu()
+    return {"source": _sha(_SOURCE.read_bytes()), "compiler": cxx,
+            "compiler_version": _compiler_version(cxx), "flags": " ".join(_FLAGS),
+            "cpu": f"{platform.machine()} {model}", "cpu_features": _sha(features.encode()),
+            "jaxlib": jaxlib.__version__, "ffi_headers": _ffi_headers()}
+
+
+def _key(parts: dict) -> str:
+    """The cache key (16 hex digits) of `_key_parts`' dict."""
+    return _sha(json.dumps(parts, sort_keys=True).encode())
+
+
+def _prune(keep: Path) -> list[Path]:
+    """Delete the other ``native_lit-*.so`` next to `keep` (stale keys; a process that loaded one
+    keeps its mapping). Returns what was deleted; errors are ignored."""
+    gone = []
+    for p in keep.parent.glob("native_lit-*.so"):
+        if p.name != keep.name:
+            with contextlib.suppress(OSError):
+                p.unlink()
+                gone.append(p)
+    return gone
+
+
+def _compile() -> dict:
+    """The kernel's shared library, compiled unless the cache has one for this key:
+    ``{"library", "key", "covers", "compiler", "built", "seconds"}``."""
+    cxx = _compiler()
+    parts = _key_parts(cxx)
+    key = _key(parts)
     lib = _cache_dir() / f"native_lit-{key}.so"
+    info = {"library": lib, "key": key, "covers": parts, "built": False, "seconds": 0.0,
+            "compiler": f"{cxx} ({parts['compiler_version'].splitlines()[0]})"}
     if lib.exists():
-        return lib
+        return info
+    t0 = time.perf_counter()
     lib.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=lib.parent) as tmp:
         out = Path(tmp) / lib.name
-        proc = subprocess.run([cxx, *flags, str(_SOURCE), "-o", str(out)], capture_output=True,
-                              text=True)
+        proc = subprocess.run([cxx, *_FLAGS, f"-I{jax.ffi.include_dir()}", str(_SOURCE), "-o",
+                               str(out)], capture_output=True, text=True)
         if proc.returncode != 0:
             last = (proc.stderr.strip().splitlines() or ["?"])[-1]
             raise RuntimeError(f"{Path(cxx).name} failed on native_lit.cc: {last}")
         os.replace(out, lib)  # atomic: concurrent processes see a whole library or none
-    return lib
+    _prune(lib)
+    return info | {"built": True, "seconds": round(time.perf_counter() - t0, 1)}
 
 
-_build: dict = {}  # the background build (`prepare`): {"thread": ..., "lib" or "error": ...}
+def _build_and_open() -> dict:
+    """`_compile`, then the library opened (``"handle"``). A library deleted between the two (by
+    another process's prune) is built again, once."""
+    for attempt in (0, 1):
+        info = _compile()
+        try:
+            return info | {"handle": ctypes.cdll.LoadLibrary(str(info["library"]))}
+        except OSError:
+            if attempt or info["library"].exists():
+                raise
+    raise AssertionError("unreachable")
+
+
+_build: dict = {}  # the background build (`prepare`): {"thread": ..., "info" or "error": ...}
 _build_lock = threading.Lock()
+
+
+def _on_cpu() -> bool:
+    return jax.default_backend() == "cpu"
 
 
 def prepare() -> None:
     """Start building the kernel on a background thread (the compiler runs as a subprocess, so
     the caller's setup goes on meanwhile); `available` waits for it. A no-op when already
-    started, built, disabled (``JSCRATCH_NATIVE=0``) or off the CPU."""
-    if os.environ.get("JSCRATCH_NATIVE", "1") == "0" or jax.default_backend() != "cpu":
+    started, built, disabled (`enabled`) or off the CPU."""
+    if not enabled() or not _on_cpu():
         return
     with _build_lock:
         if _build:
@@ -107,15 +283,16 @@ def prepare() -> None:
 
         def work():
             try:
-                _build["lib"] = _compile()
-            except Exception as e:  # reported by `available` (through `status`)
-                _build["error"] = e
+                _build["info"] = _build_and_open()
+            except Exception as e:  # reported by `available` (its warning) and `status`
+                _build["error"] = str(e) if type(e) is RuntimeError else error_line(e, 300)
 
         _build["thread"] = threading.Thread(target=work, name="jscratch-native-build",
                                             daemon=True)
         _build["thread"].start()
 
 
+_loaded: dict = {}  # {"ok": bool, "why": str}, set once by `_load_once`
 _load_lock = threading.Lock()
 
 
@@ -124,44 +301,67 @@ def _load() -> bool:
         return _load_once()
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _load_once() -> bool:
+    prepare()
+    _build["thread"].join()
     try:
-        prepare()
-        _build["thread"].join()
         if "error" in _build:
-            raise _build["error"]
-        lib = ctypes.cdll.LoadLibrary(str(_build["lib"]))
+            raise RuntimeError(_build["error"])
+        handle = _build["info"]["handle"]
         for target, symbol in _TARGETS.values():
-            jax.ffi.register_ffi_target(target, jax.ffi.pycapsule(getattr(lib, symbol)),
+            jax.ffi.register_ffi_target(target, jax.ffi.pycapsule(getattr(handle, symbol)),
                                         platform="cpu")
     except Exception as e:  # no compiler, a failed build, an FFI this jaxlib lacks: jnp path
-        _status.update(why=f"{type(e).__name__}: {e}")
+        why = str(e) if type(e) is RuntimeError else error_line(e, 300)
+        _loaded.update(ok=False, why=why)
+        warnings.warn(f"jscratch's native kernel is off: {why}; {_COST} (JSCRATCH_NATIVE=0 "
+                      "chooses the jnp path without this warning)", NativeKernelWarning,
+                      stacklevel=4)
         return False
-    _status.update(loaded=True, why="compiled and registered")
+    info = _build["info"]
+    how = (f"compiled ({info['seconds']} s)" if info["built"] else "found in the cache")
+    _loaded.update(ok=True, why=f"{how} and registered as an XLA FFI target")
     return True
 
 
-def status() -> dict:
-    """``{"loaded": bool, "why": str}``: whether the native kernel is in use, and why not."""
-    return dict(_status)
-
-
 def available(dtype) -> bool:
-    """Whether `lit_partials` runs for `dtype` arrays (float32 or float64, CPU backend)."""
-    if (jnp.dtype(dtype), True) not in _TARGETS or jax.default_backend() != "cpu":
-        return False
-    if os.environ.get("JSCRATCH_NATIVE", "1") == "0":  # read when a function is traced
+    """Whether `lit_partials` runs for `dtype` arrays (float32 or float64) here: `enabled`, CPU
+    backend, and the kernel built and loaded (building it the first time; warns once if that
+    fails)."""
+    if (jnp.dtype(dtype), True) not in _TARGETS or not enabled() or not _on_cpu():
         return False
     return _load()
 
 
-def _threads() -> int:
-    n = os.environ.get("JSCRATCH_NATIVE_THREADS")
-    if n:
-        return max(1, int(n))
-    return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
-               else os.cpu_count() or 1)
+def status() -> dict:
+    """What runs the per-view stage and why, JSON-friendly::
+
+        {"kernel": "native" | "jnp", "why": str, "enabled": bool, "backend": str,
+         "library": path or None, "key": str or None, "covers": {str: str} or None,
+         "compiler": str or None, "jaxlib": str, "threads": int}
+
+    ``covers``: the key's inputs (`_key_parts`). Starts nothing; waits for a build in progress.
+    ``"jnp"`` also where nothing in this process has asked for the kernel yet."""
+    on, backend = enabled(), jax.default_backend()
+    st = {"kernel": "jnp", "why": "", "enabled": on, "backend": backend, "library": None,
+          "key": None, "covers": None, "compiler": None, "jaxlib": jaxlib.__version__,
+          "threads": threads()}
+    if not on:
+        return st | {"why": "disabled (JSCRATCH_NATIVE=0)"}
+    if backend != "cpu":
+        return st | {"why": f"the default backend is {backend}; the native kernel is CPU-only"}
+    if not _build:
+        return st | {"why": "not asked for in this process yet (python -m jscratch.native "
+                            "builds it)"}
+    _build["thread"].join()
+    if "info" in _build:
+        info = _build["info"]
+        st.update(library=str(info["library"]), key=info["key"], covers=dict(info["covers"]),
+                  compiler=info["compiler"])
+    if _loaded:
+        return st | {"kernel": "native" if _loaded["ok"] else "jnp", "why": _loaded["why"]}
+    return st | {"why": _build.get("error") or "built, not used in this process yet"}
 
 
 def lit_values(n_gl: int, ua, ub, Ya, Yb, X, h, b, t, alpha):
@@ -169,7 +369,7 @@ def lit_values(n_gl: int, ua, ub, Ya, Yb, X, h, b, t, alpha):
     dt = jnp.dtype(ua.dtype)
     call = jax.ffi.ffi_call(_TARGETS[dt, False][0], jax.ShapeDtypeStruct(X.shape, dt),
                             vmap_method="broadcast_all")
-    return call(ua, ub, Ya, Yb, X, h, b, t, alpha, n_gl=int(n_gl), threads=_threads())
+    return call(ua, ub, Ya, Yb, X, h, b, t, alpha, n_gl=int(n_gl), threads=threads())
 
 
 def lit_partials(n_gl: int, ua, ub, Ya, Yb, X, h, b, t, alpha):
@@ -183,7 +383,7 @@ def lit_partials(n_gl: int, ua, ub, Ya, Yb, X, h, b, t, alpha):
     out = (jax.ShapeDtypeStruct(X.shape, dt),) + tuple(jax.ShapeDtypeStruct(a.shape, dt)
                                                        for a in args)
     call = jax.ffi.ffi_call(_TARGETS[dt, True][0], out, vmap_method="broadcast_all")
-    res = call(*args, n_gl=int(n_gl), threads=_threads())
+    res = call(*args, n_gl=int(n_gl), threads=threads())
     return res[0], tuple(res[1:])
 
 
@@ -216,3 +416,52 @@ def _lit_bwd(n_gl, partials, ct):
 
 
 lit.defvjp(_lit_fwd, _lit_bwd)
+
+#: How the CLI names the key's inputs.
+_COVERS = {"source": "native_lit.cc sha256", "compiler": "compiler",
+           "compiler_version": "its --version", "flags": "flags", "cpu": "CPU",
+           "cpu_features": "CPU features sha256", "jaxlib": "jaxlib",
+           "ffi_headers": "XLA FFI headers sha256"}
+
+
+def main(argv=None) -> int:
+    """``python -m jscratch.native [--json]``: build the kernel if needed and say what runs the
+    per-view stage. Exit 0, or 1 (one line on stderr) where it was wanted and is unavailable."""
+    ap = argparse.ArgumentParser(prog="python -m jscratch.native",
+                                 description="Build (if needed) and describe jscratch's native "
+                                             "CPU kernel.")
+    ap.add_argument("--json", action="store_true", help="print status() as JSON")
+    a = ap.parse_args(argv)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", NativeKernelWarning)  # said below, in one line
+            available(jnp.float32)
+        st = status()
+    except InputError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    if a.json:
+        print(json.dumps(st, indent=2))
+    else:
+        what = ("native_lit.cc as an XLA FFI custom call (CPU, float32/float64, "
+                f"up to {st['threads']} threads)" if st["kernel"] == "native"
+                else "the jnp path (jscratch.ndf)")
+        print(f"jscratch native kernel: {st['kernel']}: {what}")
+        print(f"library: {st['library']}")
+        covers = ", ".join(f"{_COVERS.get(k, k)} {v}" for k, v in (st["covers"] or {}).items()
+                           if k != "compiler_version")
+        print(f"key: {st['key']}" + (f" (covers {covers}, compiler version)" if covers else ""))
+        print(f"compiler: {st['compiler']}")
+        print(f"in use: {'yes' if st['kernel'] == 'native' else 'no'}: {st['why']}")
+        print(f"jaxlib: {st['jaxlib']}; backend: {st['backend']}")
+    if st["kernel"] != "native" and st["enabled"] and st["backend"] == "cpu":
+        print(f"error: the native kernel is unavailable: {st['why']} ({_COST})", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    # `python -m` runs a second copy of this file; the kernel's state lives in the imported one.
+    from jscratch import native as _native
+
+    sys.exit(_native.main())

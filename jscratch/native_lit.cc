@@ -10,17 +10,27 @@
 // of k): ua, ub, Ya, Yb (n, k) the boundary pieces cut to the groove (`ndf.PairGeometry`), X (n)
 // the groove half-width in widths, h (n, 3) the board-frame half vector (normalised here), b, t
 // (n, 2) the scratch's across and along unit vectors, alpha (n). Attributes: n_gl Gauss-Legendre
-// nodes per piece, threads.
+// nodes per piece, threads (the most workers one call uses, the calling thread included).
+//
+// Threads: the pair-views are cut into chunks of `kChunk` (whole vectors; the cut depends on n
+// alone) that the calling thread and up to threads - 1 tasks on XLA's intra-op thread pool (the
+// FFI execution context's `ThreadPool`, alive as long as the client) claim one at a time. The
+// lanes are independent, so the results are the same bits for any thread count; a task that
+// starts after the last chunk was claimed returns at once, and the caller never waits for a task
+// that has not started (no deadlock when the pool is busy or runs tasks inline).
 // Outputs: lit (n) = sum over pieces of the integral of Y (F1 + F2) du over the piece cut to the
 // lit slab, and its partial derivatives with respect to every input (`JscratchLit*`), or the
 // value alone (`JscratchLitValues*`).
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <cstdlib>
-#include <thread>
-#include <vector>
+#include <condition_variable>
+#include <functional>
+#include <memory>
+#include <mutex>
 
 #include "xla/ffi/api/ffi.h"
 
@@ -500,10 +510,39 @@ void lit_range(int n_gl, const double* xs, const double* ws, size_t k, size_t i0
   }
 }
 
-// Pair-views [0, n) over `threads` threads (whole vectors each).
+// Pair-views per chunk of work (a multiple of every vector width).
+constexpr size_t kChunk = 2048;
+
+// One call's chunks, shared by the caller and its pool tasks (kept alive by the tasks that hold
+// it; `body` is only called for a claimed chunk, i.e. while the caller waits).
+struct Job {
+  std::atomic<size_t> next{0};
+  size_t chunks = 0;
+  std::function<void(size_t)> body;
+  std::mutex mu;
+  std::condition_variable cv;
+  size_t done = 0;
+
+  // Claim and run chunks until none is left.
+  void drain() {
+    size_t mine = 0;
+    for (size_t c; (c = next.fetch_add(1, std::memory_order_relaxed)) < chunks; ++mine) body(c);
+    if (mine == 0) return;
+    std::lock_guard<std::mutex> lock(mu);
+    done += mine;
+    if (done == chunks) cv.notify_all();
+  }
+  // Until every claimed chunk has run (called after `drain`, so all chunks are claimed).
+  void wait() {
+    std::unique_lock<std::mutex> lock(mu);
+    cv.wait(lock, [this] { return done == chunks; });
+  }
+};
+
+// Pair-views [0, n) on the caller and up to `threads` - 1 tasks of `pool` (chunks of `kChunk`).
 template <typename T, bool kPartials>
-ffi::Error run(const size_t* counts, int64_t n_gl, int64_t threads, const T* const* in,
-               T* const* res) {
+ffi::Error run(ffi::ThreadPool& pool, const size_t* counts, int64_t n_gl, int64_t threads,
+               const T* const* in, T* const* res) {
   // counts: element counts of ua, ub, Ya, Yb, X, h, b, t, alpha.
   const size_t n = counts[4];
   if (n == 0) return ffi::Error::Success();
@@ -520,26 +559,27 @@ ffi::Error run(const size_t* counts, int64_t n_gl, int64_t threads, const T* con
   auto work = [&](size_t i0, size_t i1) {
     lit_range<T, kPartials>(static_cast<int>(n_gl), xs, ws, k, i0, i1, in, res);
   };
-  constexpr size_t L = Vec<T>::L;
-  size_t nt = static_cast<size_t>(std::max<int64_t>(1, threads));
-  nt = std::min(nt, std::max<size_t>(1, n / 2048));
-  if (nt <= 1) {
+  const size_t chunks = (n + kChunk - 1) / kChunk;
+  size_t workers = std::min<size_t>(chunks, static_cast<size_t>(std::max<int64_t>(1, threads)));
+  if (workers > 1) workers = std::min<size_t>(workers, std::max<int64_t>(1, pool.num_threads()));
+  if (workers <= 1) {
     work(0, n);
-  } else {
-    std::vector<std::thread> pool;
-    size_t step = ((n + nt - 1) / nt + L - 1) / L * L;  // whole vectors per thread
-    for (size_t t = 1; t < nt; ++t)
-      pool.emplace_back(work, std::min(n, t * step), std::min(n, (t + 1) * step));
-    work(0, std::min(n, step));
-    for (auto& th : pool) th.join();
+    return ffi::Error::Success();
   }
+  auto job = std::make_shared<Job>();
+  job->chunks = chunks;
+  job->body = [&](size_t c) { work(c * kChunk, std::min(n, (c + 1) * kChunk)); };
+  for (size_t w = 1; w < workers; ++w) pool.Schedule([job] { job->drain(); });
+  job->drain();
+  job->wait();
   return ffi::Error::Success();
 }
 
 template <ffi::DataType DT>
-ffi::Error LitImpl(ffi::Buffer<DT> ua, ffi::Buffer<DT> ub, ffi::Buffer<DT> Ya, ffi::Buffer<DT> Yb,
-                   ffi::Buffer<DT> X, ffi::Buffer<DT> h, ffi::Buffer<DT> b, ffi::Buffer<DT> t,
-                   ffi::Buffer<DT> alpha, int64_t n_gl, int64_t threads, ffi::ResultBuffer<DT> out,
+ffi::Error LitImpl(ffi::ThreadPool pool, ffi::Buffer<DT> ua, ffi::Buffer<DT> ub,
+                   ffi::Buffer<DT> Ya, ffi::Buffer<DT> Yb, ffi::Buffer<DT> X, ffi::Buffer<DT> h,
+                   ffi::Buffer<DT> b, ffi::Buffer<DT> t, ffi::Buffer<DT> alpha, int64_t n_gl,
+                   int64_t threads, ffi::ResultBuffer<DT> out,
                    ffi::ResultBuffer<DT> g_ua, ffi::ResultBuffer<DT> g_ub,
                    ffi::ResultBuffer<DT> g_Ya, ffi::ResultBuffer<DT> g_Yb,
                    ffi::ResultBuffer<DT> g_X, ffi::ResultBuffer<DT> g_h,
@@ -555,13 +595,14 @@ ffi::Error LitImpl(ffi::Buffer<DT> ua, ffi::Buffer<DT> ub, ffi::Buffer<DT> Ya, f
   const size_t counts[9] = {ua.element_count(), ub.element_count(), Ya.element_count(),
                             Yb.element_count(), X.element_count(),  h.element_count(),
                             b.element_count(),  t.element_count(),  alpha.element_count()};
-  return run<T, true>(counts, n_gl, threads, in, res);
+  return run<T, true>(pool, counts, n_gl, threads, in, res);
 }
 
 template <ffi::DataType DT>
-ffi::Error LitValuesImpl(ffi::Buffer<DT> ua, ffi::Buffer<DT> ub, ffi::Buffer<DT> Ya,
-                         ffi::Buffer<DT> Yb, ffi::Buffer<DT> X, ffi::Buffer<DT> h,
-                         ffi::Buffer<DT> b, ffi::Buffer<DT> t, ffi::Buffer<DT> alpha,
+ffi::Error LitValuesImpl(ffi::ThreadPool pool, ffi::Buffer<DT> ua, ffi::Buffer<DT> ub,
+                         ffi::Buffer<DT> Ya, ffi::Buffer<DT> Yb, ffi::Buffer<DT> X,
+                         ffi::Buffer<DT> h, ffi::Buffer<DT> b, ffi::Buffer<DT> t,
+                         ffi::Buffer<DT> alpha,
                          int64_t n_gl, int64_t threads, ffi::ResultBuffer<DT> out) {
   using T = ffi::NativeType<DT>;
   const T* in[9] = {ua.typed_data(), ub.typed_data(), Ya.typed_data(), Yb.typed_data(),
@@ -571,13 +612,14 @@ ffi::Error LitValuesImpl(ffi::Buffer<DT> ua, ffi::Buffer<DT> ub, ffi::Buffer<DT>
   const size_t counts[9] = {ua.element_count(), ub.element_count(), Ya.element_count(),
                             Yb.element_count(), X.element_count(),  h.element_count(),
                             b.element_count(),  t.element_count(),  alpha.element_count()};
-  return run<T, false>(counts, n_gl, threads, in, res);
+  return run<T, false>(pool, counts, n_gl, threads, in, res);
 }
 
 }  // namespace
 
 #define JSCRATCH_LIT_ARGS(DT)                                                              \
   ffi::Ffi::Bind()                                                                         \
+      .Ctx<ffi::ThreadPool>()                                                              \
       .Arg<ffi::Buffer<DT>>().Arg<ffi::Buffer<DT>>().Arg<ffi::Buffer<DT>>()                \
       .Arg<ffi::Buffer<DT>>().Arg<ffi::Buffer<DT>>().Arg<ffi::Buffer<DT>>()                \
       .Arg<ffi::Buffer<DT>>().Arg<ffi::Buffer<DT>>().Arg<ffi::Buffer<DT>>()                \

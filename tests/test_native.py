@@ -1,24 +1,31 @@
 """The native reverse pass of the per-view pair kernel (`jscratch.native`, `native_lit.cc`)
 against the jnp reverse pass it replaces (`ndf._lit_sum`, hand-written) and against float64
 autodiff: equal to rounding in float64, as accurate in float32, for every piece budget, any
-thread count; and jscratch falls back to jnp where the kernel cannot be built."""
+thread count. And the kernel as a library: its cache key covers what the binary depends on,
+stale builds are pruned, the settings are read once, jscratch falls back to jnp with one warning
+where the kernel cannot be built (none where it is disabled), and ``python -m jscratch.native``
+describes it."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
+import warnings
 
 import jax
 import jax.numpy as jnp
+import jaxlib
 import numpy as np
 import pytest
 
 from jscratch import native, ndf
 from jscratch.bench import ndf_cases
+from jscratch.errors import InputError
 
-pytestmark = pytest.mark.skipif(not native.available(jnp.float32),
-                                reason=f"native kernel unavailable: {native.status()['why']}")
+needs_native = pytest.mark.skipif(not native.available(jnp.float32),
+                                  reason=f"native kernel unavailable: {native.status()['why']}")
 
 
 def _population():
@@ -26,38 +33,45 @@ def _population():
     return ndf_cases.concat(fams.values())
 
 
-def _grads(pieces, monkeypatch, use_native: bool, threads: int | None = None, jit: bool = True):
+def _grads(pieces, use_native: bool, threads: int | None = None, jit: bool = True):
     """``(D_hat, gradients)`` of `lit_integral(pair_geometry(...), pieces=...)`, traced with the
     native kernel on or off (a new function each call: jit traces it afresh). ``jit=False``
     evaluates op by op: the reference for the jnp path, whose XLA-fused reverse pass gives a
     different half-vector gradient on some grazing pairs than op by op (jax 0.10.1, CPU:
-    -2.1e-7 against -2.7e-12; the native kernel gives the op-by-op value; RESULTS.md, session
-    8, also for grazing pairs where no derivative path matches central differences)."""
-    monkeypatch.setenv("JSCRATCH_NATIVE", "1" if use_native else "0")
-    if threads is not None:
-        monkeypatch.setenv("JSCRATCH_NATIVE_THREADS", str(threads))
+    -2.1e-7 against -2.7e-12; the native kernel gives the op-by-op value; see
+    benchmarks/RESULTS.md, also for grazing pairs where no derivative path matches central
+    differences). The choice holds while the function runs (`native.override`), so it is
+    traced with it."""
 
     def D(h, fp, p0, p1, w, d, a):
         return ndf.lit_integral(ndf.pair_geometry(fp, p0, p1, w, d), h, a, pieces=pieces)
 
     f = jax.vmap(lambda *a: (D(*a), jax.grad(D, argnums=tuple(range(7)))(*a)))
-    return jax.jit(f) if jit else f
+    f = jax.jit(f) if jit else f
+
+    def run(*args):
+        with native.override(enabled=use_native, threads=threads):
+            return f(*args)
+
+    return run
 
 
 def _flat(g, n):
     return [np.asarray(x, np.float64).reshape(n, -1) for x in g]
 
 
+@needs_native
+@pytest.mark.float64
 @pytest.mark.parametrize("pieces", [2, ndf.N_COMPACT, ndf.N_PIECES])
-def test_native_equals_jnp_reverse_pass_float64(pieces, monkeypatch):
+def test_native_equals_jnp_reverse_pass_float64(pieces):
     """Every gradient of every adversarial pair, native against the jnp hand-written reverse
     pass (op by op), float64: equal to 1e-9 of each gradient's scale (they differ only in
     rounding)."""
     jax.config.update("jax_enable_x64", True)
     C = _population().astype(np.float64)
     n = C.len()
-    D1, g1 = _grads(pieces, monkeypatch, True)(*C.args())
-    D0, g0 = _grads(pieces, monkeypatch, False, jit=False)(*C.args())
+    D1, g1 = _grads(pieces, True)(*C.args())
+    D0, g0 = _grads(pieces, False, jit=False)(*C.args())
     np.testing.assert_allclose(np.asarray(D1), np.asarray(D0), rtol=1e-12,
                                atol=1e-14 * np.max(np.abs(np.asarray(D0))))
     for k, (a, b) in enumerate(zip(_flat(g1, n), _flat(g0, n))):
@@ -68,20 +82,22 @@ def test_native_equals_jnp_reverse_pass_float64(pieces, monkeypatch):
         assert np.any(np.abs(b) > 0), k  # the test sees gradients
 
 
-def test_native_float32_as_accurate_as_jnp(monkeypatch):
+@needs_native
+@pytest.mark.float64
+def test_native_float32_as_accurate_as_jnp():
     """Float32 gradients against float64 at the same rounded inputs: the native kernel's error
     is that of the jnp reverse pass (median within 2x, 99th percentile within 2x + 1e-4)."""
     jax.config.update("jax_enable_x64", True)
     C = _population()
     C32, n = C.astype(np.float32), C.len()
-    _, ref = _grads(ndf.N_PIECES, monkeypatch, False)(*C32.astype(np.float64).args())
+    _, ref = _grads(ndf.N_PIECES, False)(*C32.astype(np.float64).args())
     ref = _flat(ref, n)
-    _, g1 = _grads(ndf.N_PIECES, monkeypatch, True)(*C32.args())
-    _, g0 = _grads(ndf.N_PIECES, monkeypatch, False)(*C32.args())
+    _, g1 = _grads(ndf.N_PIECES, True)(*C32.args())
+    _, g0 = _grads(ndf.N_PIECES, False)(*C32.args())
     # Values: the native kernel's against float64 as close as the jnp code's.
-    Dr = np.asarray(_grads(ndf.N_PIECES, monkeypatch, False)(*C32.astype(np.float64).args())[0])
-    Dn = np.asarray(_grads(ndf.N_PIECES, monkeypatch, True)(*C32.args())[0], np.float64)
-    Dj = np.asarray(_grads(ndf.N_PIECES, monkeypatch, False)(*C32.args())[0], np.float64)
+    Dr = np.asarray(_grads(ndf.N_PIECES, False)(*C32.astype(np.float64).args())[0])
+    Dn = np.asarray(_grads(ndf.N_PIECES, True)(*C32.args())[0], np.float64)
+    Dj = np.asarray(_grads(ndf.N_PIECES, False)(*C32.args())[0], np.float64)
     top = np.max(np.abs(Dr))
     den = np.abs(Dr) + 1e-6 * top
     e_nat, e_jnp = np.abs(Dn - Dr) / den, np.abs(Dj - Dr) / den
@@ -97,36 +113,187 @@ def test_native_float32_as_accurate_as_jnp(monkeypatch):
         assert np.percentile(e_nat, 99) <= 2 * np.percentile(e_jnp, 99) + 1e-4, k
 
 
-def test_native_threads_give_identical_results(monkeypatch):
-    """Pair-views are independent: one thread or four give the same bits."""
+@needs_native
+def test_native_threads_give_identical_results():
+    """Pair-views are independent: one thread or four (chunks claimed in any order on XLA's
+    pool) give the same bits."""
     C = ndf_cases.random_cases(6000).astype(np.float32)
-    one = _grads(2, monkeypatch, True, threads=1)(*C.args())
-    four = _grads(2, monkeypatch, True, threads=4)(*C.args())
+    one = _grads(2, True, threads=1)(*C.args())
+    four = _grads(2, True, threads=4)(*C.args())
     for a, b in zip(jax.tree_util.tree_leaves(one), jax.tree_util.tree_leaves(four)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
-def test_without_a_compiler_jscratch_falls_back_to_jnp(tmp_path):
-    """No C++ compiler (and nothing cached): `available` is False, `status` says why, and the
-    kernel's gradients come from the jnp reverse pass."""
-    code = (
-        "import jax, jax.numpy as jnp, numpy as np\n"
-        "from jscratch import native, ndf\n"
-        "ok = native.available(jnp.float32)\n"
-        "g = jax.grad(lambda w: ndf.pair_integral(jnp.array([0.1, 0.0, 1.0]),"
-        " jnp.array([[0., 0.], [1e-3, 0.], [1e-3, 1e-3], [0., 1e-3]]), jnp.array([5e-4, -1e-3]),"
-        " jnp.array([5e-4, 2e-3]), w, 1e-4, 0.04)[0])(2.5e-4)\n"
-        "print(ok, bool(np.isfinite(g)) and float(g) != 0.0, native.status()['why'])\n")
-    env = dict(os.environ, CXX=str(tmp_path / "no-such-compiler"), JSCRATCH_CACHE=str(tmp_path),
-               JSCRATCH_NATIVE="1")
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
-                         timeout=300)
+def _python(code: str, **env) -> dict:
+    """Run `code` in a fresh Python (environment: this one's plus `env`); the JSON it prints."""
+    out = subprocess.run([sys.executable, "-c", code], env=dict(os.environ, **env),
+                         capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
-    ok, finite, why = out.stdout.strip().split(" ", 2)
-    assert ok == "False" and finite == "True" and "no-such-compiler" in why, out.stdout
+    return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+#: In a fresh process: `available` twice and a gradient through `ndf` with every warning recorded,
+#: the fallback warnings, `status()`, whether changing the environment later changes anything,
+#: and what ``python -m jscratch.native --json`` (`native.main`) returns.
+_FALLBACK = """
+import contextlib, io, json, os, warnings
+import jax, jax.numpy as jnp, numpy as np
+with warnings.catch_warnings(record=True) as seen:
+    warnings.simplefilter("always")
+    from jscratch import native, ndf
+    ok = [native.available(jnp.float32), native.available(jnp.float64)]
+    g = jax.grad(lambda w: ndf.pair_integral(jnp.array([0.1, 0.0, 1.0]),
+        jnp.array([[0., 0.], [1e-3, 0.], [1e-3, 1e-3], [0., 1e-3]]), jnp.array([5e-4, -1e-3]),
+        jnp.array([5e-4, 2e-3]), w, 1e-4, 0.04)[0])(2.5e-4)
+os.environ["JSCRATCH_NATIVE"] = "0" if native.enabled() else "1"
+with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+    rc = native.main(["--json"])
+print(json.dumps({"ok": ok, "g": float(g), "status": native.status(), "enabled": native.enabled(),
+    "rc": rc, "warnings": [str(w.message) for w in seen
+                           if issubclass(w.category, native.NativeKernelWarning)]}))
+"""
 
+
+def test_without_a_compiler_jscratch_falls_back_to_jnp_and_warns_once(tmp_path):
+    """No C++ compiler (and nothing cached): `available` is False, one `NativeKernelWarning`
+    says why and what it costs, `status` says "jnp" and why, the kernel's gradients come from
+    the jnp reverse pass, and ``python -m jscratch.native`` exits 1."""
+    r = _python(_FALLBACK, CXX=str(tmp_path / "no-such-compiler"), JSCRATCH_CACHE=str(tmp_path),
+                JSCRATCH_NATIVE="1")
+    assert r["ok"] == [False, False] and np.isfinite(r["g"]) and r["g"] != 0.0, r
+    assert len(r["warnings"]) == 1, r["warnings"]
+    assert "native kernel is off" in r["warnings"][0] and "no-such-compiler" in r["warnings"][0]
+    assert "1.7x slower" in r["warnings"][0]
+    st = r["status"]
+    assert st["kernel"] == "jnp" and "no-such-compiler" in st["why"], st
+    assert st["enabled"] is True and st["library"] is None and st["jaxlib"] == jaxlib.__version__
+    assert r["enabled"] is True and r["rc"] == 1  # the switch was read once, at import
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_disabled_kernel_runs_jnp_without_a_warning(tmp_path):
+    """``JSCRATCH_NATIVE=0``: the jnp path, no warning (even without a compiler), `status` says
+    disabled, ``python -m jscratch.native`` exits 0; setting the variable later changes nothing."""
+    r = _python(_FALLBACK, CXX=str(tmp_path / "no-such-compiler"), JSCRATCH_CACHE=str(tmp_path),
+                JSCRATCH_NATIVE="0")
+    assert r["ok"] == [False, False] and np.isfinite(r["g"]) and r["g"] != 0.0, r
+    assert r["warnings"] == [] and r["rc"] == 0 and r["enabled"] is False
+    st = r["status"]
+    assert st["kernel"] == "jnp" and "disabled" in st["why"] and st["enabled"] is False, st
+
+
+def test_compiler_lookup_without_compilers(monkeypatch, tmp_path):
+    """``CXX`` unset and no g++, c++ or clang++ on ``PATH``: a one-line reason; ``CXX`` naming
+    nothing executable: the reason names it."""
+    monkeypatch.delenv("CXX", raising=False)
+    monkeypatch.setenv("PATH", str(tmp_path))
+    with pytest.raises(RuntimeError, match="no C.. compiler .CXX unset; no g.., c.. or clang"):
+        native._compiler()
+    monkeypatch.setenv("CXX", "no-such-cxx")
+    with pytest.raises(RuntimeError, match="CXX=no-such-cxx is not an executable"):
+        native._compiler()
+
+
+def test_cache_key_covers_source_compiler_jaxlib_and_ffi_headers(monkeypatch, tmp_path):
+    """The key changes with the source text, the compiler's path and version, the jaxlib
+    version and the FFI headers, and is the same for the same inputs."""
+    monkeypatch.setattr(native, "_compiler_version", lambda cxx: "g++ (X) 12.2.0")
+    key = lambda: native._key(native._key_parts("/usr/bin/g++"))
+    k0 = key()
+    assert key() == k0 and len(k0) == 16
+    keys = {k0}
+    monkeypatch.setattr(jaxlib, "__version__", "0.0.1")
+    keys.add(key())
+    monkeypatch.setattr(native, "_compiler_version", lambda cxx: "g++ (X) 13.1.0")
+    keys.add(key())
+    keys.add(native._key(native._key_parts("/opt/bin/g++")))
+    src = tmp_path / "native_lit.cc"
+    src.write_text(native._SOURCE.read_text() + "\n// one more line\n")
+    monkeypatch.setattr(native, "_SOURCE", src)
+    keys.add(key())
+    (tmp_path / "include" / "xla").mkdir(parents=True)
+    (tmp_path / "include" / "xla" / "ffi.h").write_text("// other headers\n")
+    monkeypatch.setattr(jax.ffi, "include_dir", lambda: str(tmp_path / "include"))
+    keys.add(key())
+    assert len(keys) == 6, keys
+    parts = native._key_parts("/usr/bin/g++")
+    assert {"source", "compiler", "compiler_version", "flags", "cpu", "cpu_features", "jaxlib",
+            "ffi_headers"} <= set(parts), parts
+    assert parts["jaxlib"] == "0.0.1" and "-march=native" in parts["flags"]
+
+
+def test_build_prunes_stale_libraries(monkeypatch, tmp_path):
+    """A build deletes the cache's other ``native_lit-*.so`` (and nothing else); a second
+    call finds the library in the cache and builds nothing. A stand-in compiler (a shell script
+    that writes its ``-o`` file) keeps this fast."""
+    cxx = tmp_path / "fake-cxx"
+    cxx.write_text('#!/bin/sh\n'
+                   'if [ "$1" = --version ]; then echo "fake-cxx 1.0"; exit 0; fi\n'
+                   'while [ $# -gt 1 ]; do\n'
+                   '  if [ "$1" = -o ]; then echo lib > "$2"; fi; shift\n'
+                   'done\n')
+    cxx.chmod(0o755)
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    stale = [cache / "native_lit-0123456789abcdef.so", cache / "native_lit-old.so"]
+    for p in stale:
+        p.write_text("stale")
+    (cache / "notes.txt").write_text("kept")
+    monkeypatch.setenv("CXX", str(cxx))
+    monkeypatch.setenv("JSCRATCH_CACHE", str(cache))
+    info = native._compile()
+    assert info["built"] and info["library"].read_text() == "lib\n"
+    assert info["compiler"] == f"{cxx} (fake-cxx 1.0)"
+    assert info["library"].name == f"native_lit-{info['key']}.so"
+    assert sorted(p.name for p in cache.iterdir()) == sorted([info["library"].name, "notes.txt"])
+    again = native._compile()
+    assert not again["built"] and again["library"] == info["library"]
+
+
+def test_settings_are_read_once_and_checked(monkeypatch):
+    """Changing ``JSCRATCH_NATIVE`` in the environment after import changes nothing;
+    `override` does, within its block; a malformed value is refused naming the variable."""
+    before = native.enabled(), native.threads()
+    monkeypatch.setenv("JSCRATCH_NATIVE", "0" if before[0] else "1")
+    monkeypatch.setenv("JSCRATCH_NATIVE_THREADS", str(before[1] + 3))
+    assert (native.enabled(), native.threads()) == before
+    with native.override(enabled=not before[0], threads=7):
+        assert (native.enabled(), native.threads()) == (not before[0], 7)
+    assert (native.enabled(), native.threads()) == before
+    try:
+        for var, value in (("JSCRATCH_NATIVE", "yes"), ("JSCRATCH_NATIVE_THREADS", "0")):
+            with monkeypatch.context() as m:
+                m.setitem(native._ENV, var, value)
+                native._settings.cache_clear()
+                with pytest.raises(InputError, match=f"{var}='{value}': expected"):
+                    native.enabled()
+    finally:
+        native._settings.cache_clear()
+    assert (native.enabled(), native.threads()) == before
+
+
+@needs_native
+def test_status_and_cli_describe_the_kernel(capsys):
+    """`status` names the loaded library, its key and what the key covers;
+    ``python -m jscratch.native --json`` prints the same in a fresh process and exits 0."""
+    st = native.status()
+    assert st["kernel"] == "native" and st["enabled"] and st["backend"] == "cpu", st
+    assert st["library"].endswith(f"native_lit-{st['key']}.so") and os.path.exists(st["library"])
+    assert st["covers"]["jaxlib"] == jaxlib.__version__ and st["compiler"]
+    assert isinstance(st["threads"], int) and st["threads"] >= 1
+    assert json.loads(json.dumps(st)) == st
+    assert native.main([]) == 0
+    text = capsys.readouterr().out
+    assert text.startswith("jscratch native kernel: native") and st["key"] in text
+    out = subprocess.run([sys.executable, "-m", "jscratch.native", "--json"], capture_output=True,
+                         text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    fresh = json.loads(out.stdout)
+    assert fresh["kernel"] == "native" and fresh["key"] == st["key"], fresh
+    assert fresh["library"] == st["library"]
+
+
+@needs_native
 def test_design_with_and_without_the_native_kernel_agree(tmp_path):
     """A small design (64 px, 800 scratches, 5 iterations) run with the native kernel and with
     the jnp fallback (``JSCRATCH_NATIVE=0``) ends at the same loss and SSIM (rounding apart)."""
