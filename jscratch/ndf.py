@@ -95,7 +95,7 @@ forward by plain autodiff; the tests compare the two on every test pair.
 
 **Native per-view stage.** On the CPU the per-view stage (the view's slab and lobe, `_cut`, the
 piece integrals and their partials, `_cut_transpose`, and the view algebra's Jacobian) runs as
-one native kernel, `jscratch/native_lit.cc` (an XLA FFI custom call, `jscratch.native`; one SIMD
+one native kernel, `jscratch/native/native_lit.cc` (an XLA FFI custom call, `jscratch.native`; one SIMD
 lane per pair-view; a values-only variant for forward passes), where XLA's fusions recomputed
 the shared arithmetic for each partial: the same formulas (float64: equal to the jnp code to
 1e-9, `tests/test_native.py`), ~4x less time. Other backends, a machine without a C++

@@ -321,7 +321,7 @@ def _autodiff_grads_f64(dtype_name):
     """Plain reverse-mode autodiff through the same forward, float64, at the population's inputs
     rounded to `dtype_name`: the reference for the hand-written derivative. Evaluated op by op:
     XLA's fused, jitted autodiff gives a different half-vector gradient on some grazing pairs
-    (jax 0.10.1 CPU; `tests/test_native.py`, `benchmarks/RESULTS.md` session 8)."""
+    (jax 0.10.1 CPU; `tests/test_native.py`, `benchmarks/RESULTS.md`)."""
     C = _population()[0].astype(np.dtype(dtype_name)).astype(np.float64)
     return [np.asarray(g).reshape(C.len(), -1) for g in _grads_by(False, jit=False)(*C.args())]
 

@@ -458,10 +458,3 @@ def main(argv=None) -> int:
         print(f"error: the native kernel is unavailable: {st['why']} ({_COST})", file=sys.stderr)
         return 1
     return 0
-
-
-if __name__ == "__main__":
-    # `python -m` runs a second copy of this file; the kernel's state lives in the imported one.
-    from jscratch import native as _native
-
-    sys.exit(_native.main())
