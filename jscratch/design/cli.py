@@ -160,7 +160,7 @@ def _summary(result, out) -> None:
     print(f"wrote {out}: {mt['kept']} scratches ({mt['discarded']} discarded), loss "
           f"{mt['loss']:.5g}, SSIM {[round(x, 3) for x in mt['ssim']]}, PSNR "
           f"{[round(x, 2) for x in mt['psnr']]} dB, {mt['time_total']:.1f} s "
-          f"({mt['kernel'].get('kernel', '?')} kernel)")
+          f"({mt['kernel']['kernel']} kernel)")
     if "target" in mt:
         tg = mt["target"]
         print(f"target mean SSIM {tg['ssim']:.3f}: " + (
