@@ -53,6 +53,9 @@ from jscratch.loss import LossConfig as LossConfig, make_loss as make_loss
 from jscratch.design import (
     DesignConfig as DesignConfig,
     DesignResult as DesignResult,
+    SceneConfig as SceneConfig,
+    load_result as load_result,
+    save_result as save_result,
 )
 
 __version__ = "0.1.0"
