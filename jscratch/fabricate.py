@@ -54,6 +54,7 @@ from typing import NamedTuple
 import numpy as np
 
 from jscratch.designfile import Design, DesignError, demo_design, groove_half_width, load_design
+from jscratch.options import check_out_prefix
 from jscratch.errors import EXIT_STATUS_HELP, InputError, JscratchError, report
 from jscratch.grbl import clip, gword
 from jscratch.carve import CarveError, carve
@@ -558,11 +559,7 @@ def _check_options(args) -> None:
         if not (math.isfinite(v) and v > 0):
             raise InputError(f"{opt} must be a finite number of seconds > 0, got {v}")
     if args.out is not None:
-        folder, name = os.path.split(args.out)
-        if not name or name in (".", ".."):
-            raise InputError(f"--out is a prefix of file names (e.g. DIR/job), got {args.out!r}")
-        if folder and os.path.exists(folder) and not os.path.isdir(folder):
-            raise InputError(f"--out {args.out!r}: {folder!r} exists and is not a folder")
+        check_out_prefix("--out", args.out, "DIR/job")
 
 
 def main(argv=None) -> int:

@@ -40,10 +40,11 @@ class Program(NamedTuple):
     info: dict
 
 
-def check_program_lines(lines, lo, hi) -> dict:
+def check_program_lines(lines, lo=None, hi=None) -> dict:
     """The dry run's checker: line length, strict words (`jscratch.grbl.check_words`), bounds.
 
-    **Arguments:** `lines` G-code text lines; `lo`, `hi` the allowed `(x, y, z)` limits in mm.
+    **Arguments:** `lines` G-code text lines; `lo`, `hi` the allowed `(x, y, z)` limits in mm
+    (None: no bounds check).
 
     **Returns:** the program's extents `{"x": [min, max], "y": .., "z": ..}` in mm (None for an axis
     never written). **Raises:** `InputError` naming the line.
@@ -62,7 +63,7 @@ def check_program_lines(lines, lo, hi) -> dict:
             axis = "XYZ".find(word[0])
             if axis >= 0:
                 v = float(word[1:])
-                if not (lo[axis] - 5e-4 <= v <= hi[axis] + 5e-4):
+                if lo is not None and not (lo[axis] - 5e-4 <= v <= hi[axis] + 5e-4):
                     raise InputError(f"G-code line {ln} {text!r}: {word[0]} = {v} outside [{lo[axis]:.3f}, {hi[axis]:.3f}] mm")
                 e = ext["xyz"[axis]]
                 ext["xyz"[axis]] = [v, v] if e is None else [min(e[0], v), max(e[1], v)]
@@ -112,13 +113,10 @@ def read_program(gcode_path) -> Program:
     rows = list(csv.reader(texts[1].splitlines()))[1:]
     if lines and lines[-1] == "":
         lines.pop()
-    for ln, text in enumerate(lines, start=1):
-        if len(text) > MAX_LINE:
-            raise DesignFileError(f"G-code file {gcode_path!r}: line {ln} is {len(text)} characters (> {MAX_LINE})")
-        try:
-            check_words(text)
-        except InputError as exc:
-            raise DesignFileError(f"G-code file {gcode_path!r}: line {ln} {clip(text, 40)!r}: {exc}") from None
+    try:
+        check_program_lines(lines)
+    except InputError as exc:
+        raise DesignFileError(f"G-code file {gcode_path!r}: {exc}") from None
     if len(rows) != len(lines):
         raise DesignFileError(f"line map {map_path!r} has {len(rows)} rows for {len(lines)} G-code lines")
     ks, ss, roles = [], [], []

@@ -13,19 +13,22 @@ Types come from the annotations: ``int``, ``float``, ``str``, ``bool`` (``--x`` 
 a ``parse`` function (text -> value) for the flag. Argparse never fills defaults in: the defaults
 live in the dataclass alone, so ``--help`` shows each default once, taken from the dataclass.
 
-Imports: nothing from jscratch.
+Imports: `jscratch.errors` only.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import types
 import typing
 from collections.abc import Callable
 from typing import Any
 
-__all__ = ["option", "add_arguments", "given", "flags", "overlay", "field_help"]
+from jscratch.errors import InputError
+
+__all__ = ["option", "add_arguments", "given", "flags", "overlay", "field_help", "check_out_prefix"]
 
 _NESTED = "nested"
 
@@ -184,3 +187,14 @@ def overlay(base: Any, changes: dict[str, Any]) -> Any:
             v = overlay(cur, v)
         kw[name] = v
     return dataclasses.replace(base, **kw)
+
+
+def check_out_prefix(flag: str, value: str, example: str) -> None:
+    """Refuse an output prefix (``DIR/name``, the start of several file names) that names no file
+    or whose folder part is an existing non-folder; `example` shows a good one. Raises
+    `InputError` with one line naming `flag`."""
+    folder, name = os.path.split(value)
+    if not name or name in (".", ".."):
+        raise InputError(f"{flag} is a prefix of file names (e.g. {example}), got {value!r}")
+    if folder and os.path.exists(folder) and not os.path.isdir(folder):
+        raise InputError(f"{flag} {value!r}: {folder!r} exists and is not a folder")

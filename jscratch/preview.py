@@ -26,6 +26,7 @@ import time
 
 import numpy as np
 
+from jscratch.options import check_out_prefix
 from jscratch.errors import EXIT_STATUS_HELP, DesignFileError, InputError, JscratchError, report
 
 __all__ = ["orbit_views", "render_orbit", "write_gif", "write_sheet", "main"]
@@ -186,11 +187,7 @@ def _check_options(args) -> None:
     if args.intensity is not None and not (math.isfinite(args.intensity) and args.intensity > 0):
         raise InputError(f"--intensity must be a finite number > 0 (W/sr), got {args.intensity}")
     if args.out is not None:
-        folder, name = os.path.split(args.out)
-        if not name or name in (".", ".."):
-            raise InputError(f"--out is a prefix of file names (e.g. DIR/orbit), got {args.out!r}")
-        if folder and os.path.exists(folder) and not os.path.isdir(folder):
-            raise InputError(f"--out {args.out!r}: {folder!r} exists and is not a folder")
+        check_out_prefix("--out", args.out, "DIR/orbit")
 
 
 def main(argv=None) -> int:
