@@ -3,9 +3,8 @@ polar angle and distance, and the CLI writes the GIF and the contact sheet."""
 
 import math
 
-import pytest
-
 import numpy as np
+import pytest
 
 from jscratch import designfile, render
 
