@@ -6,7 +6,6 @@ differences; the Gauss-Legendre rule's exactness."""
 
 import math
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
