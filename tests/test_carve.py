@@ -386,7 +386,7 @@ def test_failed_connection_leaves_no_journal_and_the_next_run_starts(job, tmp_pa
             sim.close()
         assert not os.path.exists(path + ".journal")
         assert "no motion was sent" in str(e.value)
-    # A header-only journal (left by an earlier version that journalled before connecting) does not block.
+    # A header-only journal (a session that never connected) does not block.
     with open(path + ".journal", "w") as f:
         f.write(json.dumps({"type": "header", "gcode_sha256": "0" * 64, "n_scratches": 24}) + "\n")
     sim = GrblSim()

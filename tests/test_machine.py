@@ -34,13 +34,13 @@ def test_bad_profile_values_one_line_naming_the_key(tmp_path, key, value, capsys
 
 
 
-def test_profile_toml_round_trip_and_old_config_name(tmp_path):
+def test_profile_toml_round_trip_and_the_config_option(tmp_path):
     p = MachineProfile(name="x", cutter_radius_mm=0.3, plunge_max_mm=0.2, board_offset_mm=(1.0, 2.0), spindle_rpm=1e4)
     path = tmp_path / "p.toml"
     path.write_text(p.to_toml())
     assert MachineProfile.from_toml(path) == p
     assert fabricate.MachineConfig is MachineProfile
-    # `--config` still reads the same file.
+    # `--config` reads the same file (MachineConfig is the same class).
     assert fabricate.main(["--dry-run", "--config", str(path), "--demo-n", "5", "--out", str(tmp_path / "o" / "j"),
                            "--quiet", "--order-time", "0.1"]) == 0
     assert "S10000" in (tmp_path / "o" / "j.gcode").read_text()

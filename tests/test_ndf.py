@@ -337,7 +337,7 @@ def _autodiff_grads_f64(dtype_name):
     """Plain reverse-mode autodiff through the same forward, float64, at the population's inputs
     rounded to `dtype_name`: the reference for the hand-written derivative. Evaluated op by op:
     XLA's fused, jitted autodiff gives a different half-vector gradient on some grazing pairs
-    (jax 0.10.1 CPU; `tests/test_native.py`, `benchmarks/RESULTS.md` session 8)."""
+    (jax 0.10.1 CPU; see `tests/test_native.py`)."""
     C = _population()[0].astype(np.dtype(dtype_name)).astype(np.float64)
     return [np.asarray(g).reshape(C.len(), -1) for g in _grads_by(False, jit=False)(*C.args())]
 
@@ -448,7 +448,7 @@ _one32 = jax.jit(lambda *a: (ndf.pair_integral(*a), _grad_all(*a)))
     theta=st.sampled_from([0.0, np.pi / 2, np.pi / 4, 1.234]),
     length=st.sampled_from([0.0, 1e-4, 0.01, 0.4]),
 )
-# Found by this test (NaN in float32): an empty boundary piece left outside the lit range.
+# An adversarial float32 case: an empty boundary piece outside the lit range.
 @hypothesis.example(alpha=1e-4, hz=1.0, phi=0.0, wexp=-5.90625, dw=1.0, cx=0.0, cy=1.0,
                     theta=1.234, length=1e-4)
 def test_values_and_gradients_finite_over_extreme_ranges(alpha, hz, phi, wexp, dw, cx, cy, theta, length):
