@@ -1,4 +1,4 @@
-"""Tests for `jscratch.render` (multi-view renderer) and `jscratch.brute` (supersampled reference).
+"""Tests of `jscratch.render` (the multi-view renderer), against independent references.
 
 Independent references: the float64 all-pairs dense sum (`render_reference`, no binning, no custom
 VJP), the brute-force supersampler (real groove geometry, no analytic integral), float64 central
@@ -391,7 +391,7 @@ def test_gradient_memory_does_not_grow_with_pairs(monkeypatch):
 
 
 # --------------------------------------------------------------------------------------------
-# Scene objects, display, errors
+# Errors
 
 
 @pytest.mark.float64
