@@ -1,8 +1,15 @@
-"""Test configuration: float64 available for references, 4 forced CPU devices for sharding tests.
+"""Test configuration: float32 by default, float64 per test, 4 forced CPU devices for sharding tests.
 
-Library code follows the dtype of its inputs; float32 tests build float32 arrays explicitly.
+Tests run in JAX's default float32 (what users run). A test that needs float64 (a float64
+reference, ``jnp.float64`` arrays) is marked ``@pytest.mark.float64`` (or its module sets
+``pytestmark = pytest.mark.float64``); its setup, call and teardown then run inside
+``jax.enable_x64(True)``. Library code follows the dtype of its inputs; tests build their arrays
+with an explicit dtype. Requesting float64 from JAX outside a marked test is an error (the
+``filterwarnings`` entry in pyproject.toml), so a missing mark fails instead of silently testing
+float32.
 """
 
+import contextlib
 import os
 
 os.environ.setdefault("XLA_FLAGS", "")
@@ -11,11 +18,41 @@ if "xla_force_host_platform_device_count" not in os.environ["XLA_FLAGS"]:
 
 import jax  # noqa: E402
 
-jax.config.update("jax_enable_x64", True)
+jax.config.update("jax_enable_x64", False)
 jax.config.update("jax_platforms", "cpu")
 
 
 import pytest  # noqa: E402
+
+
+def _x64(item):
+    """The x64 context of one test phase: on for tests marked ``float64``, none otherwise."""
+    if item.get_closest_marker("float64") is not None:
+        return jax.enable_x64(True)
+    return contextlib.nullcontext()
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_setup(item):
+    # Fixtures are built in setup: a marked test's fixtures (any scope) get x64 too.
+    with _x64(item):
+        return (yield)
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_call(item):
+    with _x64(item):
+        return (yield)
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_teardown(item, nextitem):
+    try:
+        with _x64(item):
+            return (yield)
+    finally:
+        # A test that switched x64 on globally (jax.config.update) does not leak it to the next.
+        jax.config.update("jax_enable_x64", False)
 
 
 @pytest.fixture(scope="session")

@@ -99,6 +99,7 @@ def test_cli_end_to_end_resume_and_nan(tmp_path, capsys):
     assert all(np.all(np.isfinite(v)) for k, v in data.items() if k.startswith("params/"))
 
 
+@pytest.mark.float64
 def test_params_round_trip_and_maps():
     board = render.Board(shape=(16, 16))
     s = render.Scratches.random(jax.random.PRNGKey(3), 50, board, dtype=jnp.float64)

@@ -1,5 +1,7 @@
 """Design file (docs/model.md §9): round trip, validation messages naming the bad scratch, SVG export."""
 
+import os
+import stat
 import xml.etree.ElementTree as ET
 
 import numpy as np
@@ -106,3 +108,16 @@ def test_groove_half_width_and_demo():
     assert np.all((d.length >= 0.005 - 1e-12) & (d.length <= 0.025 + 1e-12))
     with pytest.raises(ValueError, match=r"n \(the number of scratches\) must be >= 1"):
         demo_design(0)
+
+
+def test_save_design_respects_the_umask(tmp_path):
+    d = demo_design(5, seed=0)
+    old = os.umask(0o022)
+    try:
+        for mask, mode in ((0o022, 0o644), (0o077, 0o600), (0o002, 0o664)):
+            os.umask(mask)
+            f = tmp_path / f"d{mask:o}.npz"
+            save_design(f, d.p0, d.p1, d.width, d.depth, d.alpha, d.board)
+            assert stat.S_IMODE(os.stat(f).st_mode) == mode, (oct(mask), oct(os.stat(f).st_mode))
+    finally:
+        os.umask(old)

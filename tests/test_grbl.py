@@ -92,3 +92,14 @@ def test_watchdog_allows_dwells_and_stops_a_lost_ok():
             assert sim.wp.received[-1] == "G0 X3.000"  # nothing after the line owed its ok
     finally:
         sim.close()
+
+
+def test_reply_grammar():
+    assert classify("ok").kind == "ok"
+    assert classify("error:20") == ("error", 20, "error:20")
+    assert classify("ALARM:1").code == 1
+    assert classify("<Hold:0|MPos:1.000,2.000,3.000|FS:0,0>").kind == "status"
+    assert classify("[MSG:Reset to continue]").kind == "msg"
+    assert classify("Grbl 1.1h ['$' for help]").kind == "banner"
+    for junk in ("okay", "error:", "\ufffd#garbage%", "<Idle", "Marlin 2.1"):
+        assert classify(junk).kind == "unknown"

@@ -13,6 +13,8 @@ import numpy as np
 import pytest
 import scipy.ndimage
 import scipy.signal
+from skimage.filters import gaussian
+from skimage.metrics import structural_similarity
 
 from jscratch import loss as loss_mod
 from jscratch.errors import DesignFileError, InputError
@@ -37,6 +39,7 @@ def _smooth(seed, shape=SHAPE):
 # E_p, blur, L2
 
 
+@pytest.mark.float64
 def test_gaussian_kernel3_values():
     g = np.asarray(loss_mod.gaussian_kernel3(), dtype=np.float64)
     np.testing.assert_allclose(g, np.outer(K1, K1), rtol=1e-15)
@@ -46,13 +49,14 @@ def test_gaussian_kernel3_values():
         loss_mod.gaussian_kernel3(0.0)
 
 
+@pytest.mark.float64
 def test_blur3_matches_scipy_nearest():
     x = _rand(0)
     ref = np.stack([scipy.ndimage.convolve(v, np.outer(K1, K1), mode="nearest") for v in x])
     np.testing.assert_allclose(np.asarray(loss_mod.blur3(jnp.asarray(x))), ref, rtol=1e-13, atol=1e-15)
 
 
-@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("dtype", [np.float32, pytest.param(np.float64, marks=pytest.mark.float64)])
 def test_perceptual_constant_offset(dtype):
     # Edge-replicate boundary: a constant stays constant, so E_p = M c^2 exactly.
     t = _rand(1, dtype=dtype)
@@ -64,6 +68,7 @@ def test_perceptual_constant_offset(dtype):
     assert float(ep) == pytest.approx(SHAPE[0] * 0.09, rel=tol)
 
 
+@pytest.mark.float64
 def test_perceptual_delta_interior_and_corner():
     h = w = 8
     a = 0.7
@@ -98,6 +103,7 @@ def test_gram_hand():
     np.testing.assert_allclose(np.asarray(g2[1]), 4 * expected, rtol=1e-15)
 
 
+@pytest.mark.float64
 def test_filter_bank_constant_images():
     fb = loss_mod.FilterBank()
     x = np.full(SHAPE, 0.6)
@@ -113,6 +119,7 @@ def test_filter_bank_constant_images():
     assert eg == pytest.approx(2 * (0.36 - 0.04) ** 2 / 289, rel=1e-12)
 
 
+@pytest.mark.float64
 def test_filter_bank_step_edges():
     fb = loss_mod.FilterBank()
     x = np.zeros(SHAPE)
@@ -145,6 +152,7 @@ def _rot_perm():
     )
 
 
+@pytest.mark.float64
 def test_filter_bank_rotation_permutes_channels():
     fb = loss_mod.FilterBank()
     x = _rand(2)
@@ -199,6 +207,7 @@ def _fd_check(vg, x, *args, seeds=(0, 1), eps=1e-6, rtol=1e-6):
         assert float(np.sum(g * v)) == pytest.approx(fd, rel=rtol, abs=1e-12 * abs(float(val)))
 
 
+@pytest.mark.float64
 def test_gradients_match_finite_differences():
     t = jnp.asarray(_smooth(4))
     i = jnp.asarray(_smooth(5) * 0.8 + 0.1 * _rand(6))
@@ -206,6 +215,7 @@ def test_gradients_match_finite_differences():
         _fd_check(_VG, i, t, jnp.asarray(w))
 
 
+@pytest.mark.float64
 def test_float32_follows_input_and_agrees_with_float64():
     t64, i64 = _smooth(7), _smooth(8)
     w = jnp.asarray([1.0, loss_mod.LAMBDA_G])
@@ -225,6 +235,7 @@ def test_float32_follows_input_and_agrees_with_float64():
 # Config, make_loss, bind, calibration
 
 
+@pytest.mark.float64
 def test_make_loss_kinds_and_bind():
     t, i = jnp.asarray(_smooth(9)), jnp.asarray(_smooth(10))
     ep, eg, l2 = loss_mod.perceptual_loss(i, t), loss_mod.gram_loss(i, t), loss_mod.l2_loss(i, t)
@@ -345,6 +356,7 @@ def _np_gram(f):
     return np.einsum("man,mbn->mab", f, f) / (c * h * w)
 
 
+@pytest.mark.float64
 def test_vgg_features_loss_and_gradient_match_scipy(tiny_vgg_file):
     # One compilation: value_and_grad of the configured loss, with the features and terms as aux.
     loss = loss_mod.make_loss(loss_mod.LossConfig(vgg_weights=str(tiny_vgg_file), lambda_g=0.5))
@@ -441,3 +453,65 @@ def test_converter_maps_torchvision_keys(tmp_path):
     del state["features.10.bias"]
     with pytest.raises(ValueError, match=r"lacks features\.10\.bias \(for conv3_1\)"):
         conv.convert_state_dict(state)
+
+
+# ----------------------------------------------------------------------------------------------
+# The ghosting term E_x
+
+
+def _ghost_images(m=3, h=24, w=20, seed=0):
+    """Smooth random images in [0, 1], ``(m, h, w)`` float64 numpy."""
+    r = np.random.default_rng(seed)
+    base = gaussian(r.uniform(size=(m, h, w)), sigma=(0, 1.5, 1.5))
+    return (base - base.min()) / (base.max() - base.min())
+
+
+@pytest.mark.float64
+def test_ghost_loss_zero_at_target_positive_for_ghost_and_descends():
+    t = jnp.asarray(_ghost_images())
+    assert float(loss_mod.ghost_loss(t, t)) == pytest.approx(0.0, abs=1e-12)
+    # view 0 shows a mix of its target and view 1's: a ghost
+    ghost = t.at[0].set(0.5 * t[0] + 0.5 * t[1])
+    e = float(loss_mod.ghost_loss(ghost, t))
+    s = np.asarray(loss_mod.cross_ssim(ghost, t))
+    b = np.asarray(loss_mod.cross_ssim(t, t))
+    assert e > 0.05 and e == pytest.approx(np.sum(np.maximum(s - b, 0) * (1 - np.eye(3))), rel=1e-9)
+    # a small step against the gradient lowers the ghost's resemblance to target 1
+    g = jax.grad(loss_mod.ghost_loss)(ghost, t)
+    assert np.all(np.asarray(g[1:]) == 0) or float(jnp.abs(g[1:]).max()) < float(jnp.abs(g[0]).max())
+    step = ghost - 0.5 * g / float(jnp.abs(g).max())
+    assert float(loss_mod.cross_ssim(step, t)[0, 1]) < s[0, 1]
+    assert float(loss_mod.ghost_loss(step, t)) < e
+
+
+
+@pytest.mark.float64
+def test_lambda_x_in_loss_terms():
+    t = jnp.asarray(_ghost_images())
+    r = t.at[0].set(t[1])
+    plain = loss_mod.make_loss(loss_mod.LossConfig(kind="perceptual")).terms(r, t)
+    with_x = loss_mod.make_loss(loss_mod.LossConfig(kind="perceptual", lambda_x=0.1)).bind(t).terms(r)
+    assert "E_x" not in plain and float(with_x["E_x"]) > 0
+    assert float(with_x["total"]) == pytest.approx(float(plain["total"]) + 0.1 * float(with_x["E_x"]),
+                                                   rel=1e-6)
+    with pytest.raises(ValueError, match="lambda_x"):
+        loss_mod.LossConfig(lambda_x=-1.0)
+
+
+
+@pytest.mark.float64
+def test_ghost_baseline_zero_penalises_raw_cross_ssim():
+    t = jnp.asarray(_ghost_images())
+    cfg = loss_mod.LossConfig(kind="perceptual", lambda_x=0.1, ghost_baseline="zero")
+    got = loss_mod.make_loss(cfg).bind(t).terms(t)
+    # independent: scikit-image SSIM of every (render j, target k != j) pair of the blurred images
+    b = np.asarray(loss_mod.blur3(t), np.float64)
+    ref = sum(max(0.0, structural_similarity(b[j], b[k], data_range=1.0))
+              for j in range(3) for k in range(3) if k != j)
+    assert ref > 0.05  # the targets resemble each other: a perfect render is penalised too
+    assert float(got["E_x"]) == pytest.approx(ref, rel=1e-4)
+    assert float(got["total"]) == pytest.approx(0.1 * ref, rel=1e-4)  # E_p = 0 here
+    default = loss_mod.make_loss(loss_mod.LossConfig(kind="perceptual", lambda_x=0.1))
+    assert float(default.bind(t).terms(t)["E_x"]) == pytest.approx(0.0, abs=1e-12)
+    with pytest.raises(ValueError, match="ghost_baseline"):
+        loss_mod.LossConfig(ghost_baseline="none")

@@ -7,8 +7,9 @@ import math
 import numpy as np
 import pytest
 import scipy.ndimage
+from skimage.filters import gaussian
 
-from jscratch.metrics import image_metrics
+from jscratch.metrics import image_metrics, texture_distance
 
 
 def _rng_images(seed, shape=(3, 24, 28)):
@@ -113,3 +114,25 @@ def test_single_view_and_clipping():
 def test_errors(images, targets, kw, err, match):
     with pytest.raises(err, match=match):
         image_metrics(images, targets, **kw)
+
+
+def _texture_images(m=3, h=24, w=20, seed=0):
+    """Smooth random images in [0, 1], ``(m, h, w)`` float64 numpy."""
+    r = np.random.default_rng(seed)
+    base = gaussian(r.uniform(size=(m, h, w)), sigma=(0, 1.5, 1.5))
+    return (base - base.min()) / (base.max() - base.min())
+
+
+def test_texture_distance():
+    t = _texture_images(2, 64, 64)
+    assert texture_distance(t, t) == [0.0, 0.0]
+    flat = np.full_like(t, 0.5)
+    noisy = np.clip(t + np.random.default_rng(3).normal(scale=0.2, size=t.shape), 0, 1)
+    d_flat, d_noisy = texture_distance(flat, t), texture_distance(noisy, t)
+    smooth = np.stack([gaussian(x, 0.5) for x in t])
+    d_smooth = texture_distance(smooth, t)
+    assert all(0 < a <= 1 for a in d_flat + d_noisy)
+    # a slightly smoothed image keeps the texture far better than a flat or a noisy one
+    assert max(d_smooth) < min(min(d_flat), min(d_noisy))
+    with pytest.raises(ValueError, match="same shape"):
+        texture_distance(t[:1], t)

@@ -1,4 +1,4 @@
-"""Tests of `jscratch.ndf` against an independent reference (tests/ndf_reference.py: exact
+"""Tests of `jscratch.ndf` against an independent reference (`jscratch.bench.ndf_reference`: exact
 clipping in mpmath, adaptive QUADPACK/tanh-sinh of the chord-length form, split at the GGX peak
 and the chi+ roots), finite differences, invariances and hypothesis property tests."""
 
@@ -75,7 +75,7 @@ def test_population_is_large_and_covers_every_family():
     assert C.h[:, 2].min() <= 0.02 + 1e-12
 
 
-@pytest.mark.parametrize("dtype, rel, floor", [("float64", 1e-8, 1e-12), ("float32", 1e-3, 1e-5)])
+@pytest.mark.parametrize("dtype, rel, floor", [pytest.param("float64", 1e-8, 1e-12, marks=pytest.mark.float64), ("float32", 1e-3, 1e-5)])
 def test_closed_form_matches_reference(dtype, rel, floor):
     C, names = _population()
     Dr, Ar = _reference(dtype)
@@ -92,6 +92,7 @@ def test_closed_form_matches_reference(dtype, rel, floor):
     assert np.all(errA <= 1.0), _report(errA, names, "A")
 
 
+@pytest.mark.float64
 def test_quadrature_converges_to_reference_on_smooth_pairs():
     """Gauss-Legendre is a different method: it must converge where the integrand is smooth
     (moderate alpha) and agree with the reference there."""
@@ -147,42 +148,50 @@ def _check(fp, D_exp, A_exp):
     np.testing.assert_allclose(float(A32), A_exp, rtol=2e-3)
 
 
+@pytest.mark.float64
 def test_type1_groove_crosses_footprint():
     # Footprint wider than the groove, scratch passes through: clipped region = full groove width.
     fp = _rect(0.1 - 5e-4, 0.104, 0.1 + 5e-4, 0.105)
     _check(fp, 1e-3 * _strip(-_XM, _XM), 1e-3 * 2 * _XM)
 
 
+@pytest.mark.float64
 def test_type2_scratch_ends_inside_footprint():
     fp = _rect(0.1 - 5e-4, 0.1095, 0.1 + 5e-4, 0.1105)  # the end y = 0.11 is inside
     _check(fp, 5e-4 * _strip(-_XM, _XM), 5e-4 * 2 * _XM)
 
 
+@pytest.mark.float64
 def test_type3_scratch_entirely_inside_footprint():
     fp = _rect(0.095, 0.099, 0.105, 0.111)
     _check(fp, 0.01 * _strip(-_XM, _XM), 0.01 * 2 * _XM)
 
 
+@pytest.mark.float64
 def test_type4_footprint_inside_groove():
     fp = _rect(0.1 - 3e-5, 0.105, 0.1 + 5e-5, 0.10501)
     _check(fp, 1e-5 * _strip(-3e-5, 5e-5), 1e-5 * 8e-5)
 
 
+@pytest.mark.float64
 def test_type5_footprint_straddles_one_groove_wall():
     fp = _rect(0.1 + 5e-5, 0.105, 0.1 + 5e-4, 0.1051)
     _check(fp, 1e-4 * _strip(5e-5, _XM), 1e-4 * (_XM - 5e-5))
 
 
+@pytest.mark.float64
 def test_type6_footprint_covers_a_groove_corner():
     fp = _rect(0.1 + 2e-5, 0.1099, 0.1 + 5e-4, 0.1101)  # the end and the right wall inside
     _check(fp, 1e-4 * _strip(2e-5, _XM), 1e-4 * (_XM - 2e-5))
 
 
+@pytest.mark.float64
 def test_type7_narrow_footprint_across_the_groove_end():
     fp = _rect(0.1 - 4e-5, 0.0999, 0.1 + 1e-5, 0.1002)  # inside the width, straddles y = 0
     _check(fp, 2e-4 * _strip(-4e-5, 1e-5), 2e-4 * 5e-5)
 
 
+@pytest.mark.float64
 def test_type8_rotated_footprint_corner_in_the_groove():
     """A diamond whose bottom corner lies on the scratch axis: the clipped region is a triangle
     |x| <= y - y0 (for y - y0 <= x_max) topped by the full width: chord(x) = Y - |x| - ... Here the
@@ -208,6 +217,7 @@ def _generic(n=24):
     return C.take(np.where(Dr > 0)[0][:n])
 
 
+@pytest.mark.float64
 def test_swapping_endpoints_changes_nothing():
     C = _generic()
     D, A = _run(C, np.float64)
@@ -217,6 +227,7 @@ def test_swapping_endpoints_changes_nothing():
     np.testing.assert_allclose(A2, A, rtol=1e-10)
 
 
+@pytest.mark.float64
 def test_rigid_motion_changes_nothing():
     C = _generic()
     D, A = _run(C, np.float64)
@@ -236,6 +247,7 @@ def test_rigid_motion_changes_nothing():
     np.testing.assert_allclose(A2, A, rtol=1e-9)
 
 
+@pytest.mark.float64
 def test_splitting_the_footprint_sums_to_the_whole():
     C = _generic()
     D, A = _run(C, np.float64)
@@ -253,6 +265,7 @@ def test_splitting_the_footprint_sums_to_the_whole():
     np.testing.assert_allclose(A1 + A2, A, rtol=1e-9)
 
 
+@pytest.mark.float64
 def test_splitting_the_scratch_sums_to_the_whole():
     C = _generic()
     D, A = _run(C, np.float64)
@@ -263,6 +276,7 @@ def test_splitting_the_scratch_sums_to_the_whole():
     np.testing.assert_allclose(A1 + A2, A, rtol=1e-9)
 
 
+@pytest.mark.float64
 def test_clockwise_footprint_gives_the_same_values():
     C = _generic()
     D, A = _run(C, np.float64)
@@ -271,6 +285,7 @@ def test_clockwise_footprint_gives_the_same_values():
     np.testing.assert_allclose(A2, A, rtol=1e-10)
 
 
+@pytest.mark.float64
 def test_area_equals_exact_polygon_clip():
     C, _ = _population()
     Cs = C.take(np.arange(0, C.len(), 7))
@@ -283,6 +298,7 @@ def test_area_equals_exact_polygon_clip():
 # Gradients.
 
 
+@pytest.mark.float64
 def test_gradients_match_central_differences():
     """Every input, float64, generic pairs: grad vs a 4th-order central difference."""
     C = _generic(12)
@@ -321,11 +337,12 @@ def _autodiff_grads_f64(dtype_name):
     """Plain reverse-mode autodiff through the same forward, float64, at the population's inputs
     rounded to `dtype_name`: the reference for the hand-written derivative. Evaluated op by op:
     XLA's fused, jitted autodiff gives a different half-vector gradient on some grazing pairs
-    (jax 0.10.1 CPU; `tests/test_native.py`, `benchmarks/RESULTS.md`)."""
+    (jax 0.10.1 CPU; see `tests/test_native.py`)."""
     C = _population()[0].astype(np.dtype(dtype_name)).astype(np.float64)
     return [np.asarray(g).reshape(C.len(), -1) for g in _grads_by(False, jit=False)(*C.args())]
 
 
+@pytest.mark.float64
 def test_hand_written_vjp_matches_autodiff_float64():
     """The analytic reverse pass of the piece integrals (Leibniz ends, integration by parts for the
     peak, linearity in the lobe coefficients) against autodiff of the same forward, on every
@@ -340,6 +357,7 @@ def test_hand_written_vjp_matches_autodiff_float64():
         assert err.max() <= 1, (k, err.max(), names[np.argmax(err)])
 
 
+@pytest.mark.float64
 def test_hand_written_vjp_float32_accuracy():
     """Float32 gradients against float64 autodiff at the same (rounded) inputs: as accurate as
     float32 autodiff of the same forward. Kinks (a vertex exactly on a groove edge) and
@@ -359,7 +377,7 @@ def test_hand_written_vjp_float32_accuracy():
         assert np.percentile(e_hand, 99) <= 2 * np.percentile(e_auto, 99) + 1e-3, k
 
 
-@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("dtype", [np.float32, pytest.param(np.float64, marks=pytest.mark.float64)])
 def test_gradients_finite_on_every_adversarial_case(dtype):
     C, names = _population()
     grads = _grads(*C.astype(dtype).args())
@@ -368,7 +386,7 @@ def test_gradients_finite_on_every_adversarial_case(dtype):
         assert not bad.any(), (k, np.unique(names[bad]))
 
 
-@pytest.mark.parametrize("dtype", ["float32", "float64"])
+@pytest.mark.parametrize("dtype", ["float32", pytest.param("float64", marks=pytest.mark.float64)])
 def test_zero_length_and_miss_give_exact_zeros(dtype):
     _, names = _population()
     D, A = _population_run(dtype)
@@ -382,6 +400,7 @@ def test_zero_length_and_miss_give_exact_zeros(dtype):
 # Building blocks.
 
 
+@pytest.mark.float64
 def test_building_blocks():
     w, d = 2.5e-4, 1.28e-4
     xm = float(ndf.groove_half_width(w, d))
@@ -429,7 +448,7 @@ _one32 = jax.jit(lambda *a: (ndf.pair_integral(*a), _grad_all(*a)))
     theta=st.sampled_from([0.0, np.pi / 2, np.pi / 4, 1.234]),
     length=st.sampled_from([0.0, 1e-4, 0.01, 0.4]),
 )
-# Found by this test (NaN in float32): an empty boundary piece left outside the lit range.
+# An adversarial float32 case: an empty boundary piece outside the lit range.
 @hypothesis.example(alpha=1e-4, hz=1.0, phi=0.0, wexp=-5.90625, dw=1.0, cx=0.0, cy=1.0,
                     theta=1.234, length=1e-4)
 def test_values_and_gradients_finite_over_extreme_ranges(alpha, hz, phi, wexp, dw, cx, cy, theta, length):
@@ -449,7 +468,7 @@ def test_values_and_gradients_finite_over_extreme_ranges(alpha, hz, phi, wexp, d
         assert np.all(np.isfinite(np.asarray(g)))
 
 
-@pytest.mark.parametrize("dtype, rtol", [(np.float64, 1e-12), (np.float32, 1e-5)])
+@pytest.mark.parametrize("dtype, rtol", [pytest.param(np.float64, 1e-12, marks=pytest.mark.float64), (np.float32, 1e-5)])
 def test_fewer_pieces_equal_the_full_kernel_where_the_count_allows(dtype, rtol):
     """`lit_integral(pair_geometry(...), ..., pieces=k)` gives `pair_integral`'s `D_hat`, values
     and gradients, wherever the geometry's `count <= k`, and differs where it is larger (a wrong
@@ -504,7 +523,7 @@ def test_fewer_pieces_equal_the_full_kernel_where_the_count_allows(dtype, rtol):
     assert np.all(D[miss] == 0) and np.all(np.asarray(geometry.area)[miss] == 0)
 
 
-@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("dtype", [np.float32, pytest.param(np.float64, marks=pytest.mark.float64)])
 def test_piece_count_estimate_is_the_count_but_for_ties(dtype):
     """`piece_count_estimate` (what the renderer sorts pairs by) equals `pair_geometry`'s count
     on every random pair, and on all but a few of the adversarial ones (pieces that only touch

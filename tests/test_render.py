@@ -1,4 +1,4 @@
-"""Tests for `jscratch.render` (multi-view renderer) and `jscratch.brute` (supersampled reference).
+"""Tests of `jscratch.render` (the multi-view renderer), against independent references.
 
 Independent references: the float64 all-pairs dense sum (`render_reference`, no binning, no custom
 VJP), the brute-force supersampler (real groove geometry, no analytic integral), float64 central
@@ -91,6 +91,7 @@ def _rel(out, ref):
 # Forward model
 
 
+@pytest.mark.float64
 def test_matches_all_pairs_reference_f64_and_f32():
     ref = _reference()
     assert ref.shape == (3, 10, 10) and np.all(ref > 0)
@@ -108,6 +109,7 @@ def test_matches_all_pairs_reference_f64_and_f32():
     assert _rel(bare, ref) > 0.5
 
 
+@pytest.mark.float64
 def test_culled_per_view_lists_within_cull_bound():
     s, v = _scene()
     eps = 0.05
@@ -136,6 +138,7 @@ def test_culled_per_view_lists_within_cull_bound():
     assert np.max(diff) > 0
 
 
+@pytest.mark.float64
 def test_brute_force_agrees_to_sampling_error():
     s, v = _scene()
     ana = np.asarray(_fwd(s, v, _pairs(s))).reshape(3, -1)
@@ -157,16 +160,6 @@ def test_brute_force_agrees_to_sampling_error():
     assert np.allclose(mean[~sampled], ana[~sampled], rtol=1e-3)
     # And the sampling error itself is small, so the agreement means something.
     assert float(np.median((se / ana)[sampled])) < 0.05
-
-
-def test_shade_matches_independent_brute_shade():
-    s, v = _scene()
-    key = jax.random.PRNGKey(1)
-    D = jax.random.uniform(key, (3, BOARD.n_pixels), jnp.float64, 0, 50)
-    c = jax.random.uniform(jax.random.fold_in(key, 1), (BOARD.n_pixels,), jnp.float64, 0, 1.3)
-    a = render.shade(D, c[None], v, BOARD)
-    b = brute.brute_shade(D, c[None], v, BOARD)
-    np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12)
 
 
 # --------------------------------------------------------------------------------------------
@@ -221,6 +214,7 @@ def _check_stress(dtype):
     assert float(jnp.abs(gs.p0[0]).sum()) > 0 and float(jnp.abs(gs.alpha[1])) > 0
 
 
+@pytest.mark.float64
 def test_gradients_f64_match_finite_differences():
     """float64: gradients of a scalar loss (through the custom VJP) against central finite
     differences of the forward renderer."""
@@ -255,7 +249,7 @@ def test_gradients_f64_match_finite_differences():
         assert abs(ad - fd) <= 1e-5 * abs(fd), (name, ad, fd)
 
 
-
+@pytest.mark.float64
 def test_sharded_equals_single_device_and_f64_stress_gradients_finite():
     """The pixel axis sharded over 4 (forced CPU) devices: same radiance and gradients as on one
     (the pair list laid out for 4 pixel blocks by `bin_pairs`); and float64 gradients are finite
@@ -275,6 +269,7 @@ def test_sharded_equals_single_device_and_f64_stress_gradients_finite():
                                    atol=1e-12 * float(jnp.max(jnp.abs(b))))
 
 
+@pytest.mark.float64
 def test_sharded_per_view_lists_and_layout_check():
     """Culled per-view lists (M, L) with the unculled coverage list, over 2 x 2 devices (10 rows:
     3 per shard, the pixel axis padded) and over 2 devices: equal to the unsharded render, and
@@ -310,6 +305,7 @@ def test_sharded_per_view_lists_and_layout_check():
                                               full1.valid[:-1], full1.overflow), mesh=mesh)
 
 
+@pytest.mark.float64
 def test_gradient_tests_run_chunks_with_several_piece_budgets():
     """The reference and gradient tests above evaluate chunks with different piece budgets
     (`render.PIECE_BUDGETS`): the scene's pairs, sorted by class (`render._sort_pairs`), fill
@@ -395,39 +391,10 @@ def test_gradient_memory_does_not_grow_with_pairs(monkeypatch):
 
 
 # --------------------------------------------------------------------------------------------
-# Scene objects, display, errors
+# Errors
 
 
-def test_display_is_c1_gamma_with_finite_slope():
-    k, g = render.DISPLAY_KNEE, 1 / render.DISPLAY_GAMMA
-    x = jnp.asarray([2e-4, 0.01, 0.5, 1.0, 7.0])
-    np.testing.assert_allclose(np.asarray(render.display(x)), np.asarray(x) ** g, rtol=1e-12)
-    d = jax.vmap(jax.grad(render.display))
-    lo, hi = jnp.asarray([k * (1 - 1e-9)]), jnp.asarray([k * (1 + 1e-9)])
-    np.testing.assert_allclose(np.asarray(render.display(lo)), np.asarray(render.display(hi)), rtol=1e-7)
-    np.testing.assert_allclose(np.asarray(d(lo)), np.asarray(d(hi)), rtol=1e-6)
-    s0 = float(d(jnp.zeros(1))[0])
-    assert math.isfinite(s0) and abs(s0 - (2 - g) * k ** (g - 1)) < 1e-9 * s0
-    xs = jnp.linspace(0, 3 * k, 301)
-    assert bool(jnp.all(jnp.diff(render.display(xs)) > 0))
-
-
-def test_views_on_circle_layout():
-    v = render.views_on_circle(5, math.radians(40), 1.0)
-    c = np.asarray(v.camera) - [0.15, 0.15, 0]
-    np.testing.assert_allclose(np.linalg.norm(c, axis=-1), 1.0, rtol=1e-12)
-    np.testing.assert_allclose(np.arccos(c[:, 2]), math.radians(40), rtol=1e-12)
-    az = np.sort(np.mod(np.arctan2(c[:, 1], c[:, 0]), 2 * np.pi))
-    np.testing.assert_allclose(np.diff(az), 2 * np.pi / 5, rtol=1e-9)
-    # Light at azimuth 0: no camera within pi/5 of the mirror azimuth pi (flat highlight refused).
-    assert np.min(np.abs(az - np.pi)) > np.pi / 5 - 1e-9
-    assert np.all(np.asarray(v.light) == np.asarray(v.light)[0]) and v.intensity.shape == (5,)
-    with pytest.raises(ValueError, match="sees the light mirrored"):
-        render.views_on_circle(4, math.radians(40), offset=math.pi)
-    with pytest.raises(ValueError, match="radians: did you mean"):
-        render.views_on_circle(4, 40.0)
-
-
+@pytest.mark.float64
 def test_errors_name_the_argument():
     with pytest.raises(ValueError, match="`p1` must have shape"):
         render.Scratches(jnp.zeros((3, 2)), jnp.zeros((3, 3)))

@@ -4,7 +4,7 @@ public renderer on the kept scratches alone, SSIM from scikit-image), a higher t
 fewer scratches, dropping a few more in the same order falls below the target, an unreachable
 target keeps everything, and the design's result stays consistent.
 
-One tiny configuration (2 views, 32x32 px, 300 scratches), as in test_prune.
+One tiny configuration (2 views, 32x32 px, 300 scratches), as in test_design_prune.
 """
 
 

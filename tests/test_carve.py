@@ -1,0 +1,463 @@
+"""Tests of jscratch.carve: streaming a program to a simulated GRBL 1.1 controller (tests/grbl_sim.py)
+on a real pty, with fault injection (errors, alarms, a vanishing device, Ctrl-C, garbage, a slow
+device, a lost ok), the journal and resume, work offsets, the safe-Z retract and the spindle's
+dwell. Every job is checked against the simulated workpiece: every scratch carved completely
+exactly once (but the one in progress at a fault), in program order, within the board."""
+
+import json
+import os
+import re
+import sys
+import threading
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, os.path.dirname(__file__))
+
+from grbl_sim import GrblSim, Workpiece  # noqa: E402
+
+from jscratch.designfile import demo_design, save_design  # noqa: E402
+from jscratch.fabricate import (  # noqa: E402
+    CarveError, MachineConfig, carve, main, make_program, read_program, write_program,
+)
+from jscratch.grbl import Grbl  # noqa: E402
+from jscratch.journal import Journal, JournalError, sha256_file  # noqa: E402
+
+FAST = dict(quiet=True, banner_timeout=1.0, poll_interval=0.05, stall_timeout=5.0)
+
+
+@pytest.fixture(scope="module")
+def small():
+    d = demo_design(24, seed=2)
+    prog = make_program(d, MachineConfig(plunge_mm=0.1, safe_z_mm=1.0), time_limit=5)
+    return d, prog
+
+
+def _program_cuts(prog):
+    """Per k: entry (x, y), exit (x, y), plunge depth, from the G-code text."""
+    out = {}
+    for text, k, role in zip(prog.lines, prog.k.tolist(), prog.role):
+        if k < 0:
+            continue
+        w = {t[0]: float(t[1:]) for t in text.split()[1:]}
+        if role == "travel":
+            out[k] = [(w["X"], w["Y"]), None, None]
+        elif role == "plunge":
+            out[k][2] = w["Z"]
+        elif role == "cut":
+            out[k][1] = (w["X"], w["Y"])
+    return out
+
+
+
+def _verify(prog, wp, in_progress=(), origin=(0.0, 0.0, 0.0)):
+    """Every scratch carved completely exactly once, except the ones in progress at a fault (at most
+    twice); plunges and cuts in program order; everything in bounds of the board whose corner is at
+    machine `origin`; the host never overflowed RX nor cut with the spindle not up to speed."""
+    assert wp.faults == []
+    cuts = _program_cuts(prog)
+    by_entry = {tuple(np.round(v[0], 3)): k for k, v in cuts.items()}
+    n = len(cuts)
+    o = np.asarray(origin, float)
+    moves = [(kind, tuple(np.round(np.subtract(s, o), 9)), tuple(np.round(np.subtract(e, o), 9)), f)
+             for kind, s, e, f in wp.moves]
+    xs = np.array([m[2] for m in moves] + [m[1] for m in moves])
+    zmin = min(v[2] for v in cuts.values())
+    assert np.all(xs[:, 0] >= -1e-9) and np.all(xs[:, 0] <= 300 + 1e-9)
+    assert np.all(xs[:, 1] >= -1e-9) and np.all(xs[:, 1] <= 300 + 1e-9)
+    assert np.all(xs[:, 2] >= zmin - 1e-9) and np.all(xs[:, 2] <= 5 + 1e-9)
+    complete, touched = [], []
+    for kind, s, e, f in moves:
+        if s[2] < 0 and e[2] >= s[2] and s[:2] == e[:2]:
+            continue  # a vertical retract, from wherever the tool stopped
+        if e[2] < 0 or s[2] < 0:  # any other move with the tool below the surface
+            k = by_entry.get(tuple(np.round(s[:2], 3)))
+            assert k is not None, ("material removed away from any scratch entry", s, e)
+            if s[:2] == e[:2]:
+                touched.append(k)  # plunge
+            else:
+                assert kind == "G1"
+                if f == 1.0:
+                    assert np.allclose(e[:2], cuts[k][1], atol=1e-6) and np.isclose(e[2], cuts[k][2])
+                    complete.append(k)
+                touched.append(k)
+    counts = np.bincount(complete, minlength=n)
+    again = set(np.flatnonzero(counts != 1).tolist())
+    assert np.all(counts >= 1), f"never carved: {np.flatnonzero(counts == 0)}"
+    assert again <= set(in_progress) and np.all(counts <= 2), (again, in_progress)
+    # Order: the sequence of scratches touched never goes back, except to re-cut one in progress.
+    seq = [k for i, k in enumerate(touched) if i == 0 or k != touched[i - 1]]
+    backs = [(a, b) for a, b in zip(seq, seq[1:]) if b < a]
+    assert all(b in in_progress for _, b in backs), backs
+    assert len(backs) <= len(in_progress)
+
+
+
+@pytest.fixture
+def job(tmp_path, small):
+    d, prog = small
+    path = tmp_path / "job.gcode"
+    write_program(prog, path)
+    return str(path), prog
+
+
+
+@pytest.mark.parametrize("counting", [False, True])
+def test_clean_job_and_check_mode(job, counting):
+    path, prog = job
+    sim = GrblSim()
+    try:
+        r = carve(path, sim.port, counting=counting, check=True, **FAST)
+    finally:
+        sim.close()
+    assert r["done"] == r["total"] == 24
+    _verify(prog, sim.wp)
+    # check mode ran every line once before the real pass, and moved nothing
+    code = [t for t in prog.lines if not t.startswith("(")]
+    assert sim.wp.received == code + code
+    header, done = Journal.read(path + ".journal")
+    assert done == 24 and header["gcode_sha256"] == sha256_file(path)
+
+
+
+def _resume(path, sim, **kw):
+    return carve(path, sim.port, resume=True, **FAST, **kw)
+
+
+
+def test_error_mid_job_then_resume(job):
+    path, prog = job
+    wp = Workpiece()
+    # line 2 + 5*9 + 3 is the cut of scratch position 9
+    sim = GrblSim(wp, error_at=(2 + 5 * 9 + 3, 33))
+    with pytest.raises(CarveError, match=r"error:33 .* G-code line \d+ 'G1 X.*scratch position 9 .*retracted"):
+        carve(path, sim.port, **FAST)
+    assert Journal.read(path + ".journal")[1] == 9
+    assert sim.pos[2] == 1.0  # retracted to safe Z
+    sim.error_at = None
+    r = _resume(path, sim)
+    sim.close()
+    assert r["done"] == 24
+    _verify(prog, wp, in_progress={9})
+
+
+
+def test_alarm_mid_job_needs_home_then_resume(job):
+    path, prog = job
+    wp = Workpiece()
+    sim = GrblSim(wp, alarm_at=(1 + 4 * 12 + 3, 1))  # during the cut of position 12
+    with pytest.raises(CarveError, match=r"ALARM:1 .*--resume"):
+        carve(path, sim.port, counting=True, **FAST)
+    assert Journal.read(path + ".journal")[1] == 12
+    sim.alarm_at = None
+    n_recv = len(wp.received)
+    with pytest.raises(CarveError, match="Alarm state .* --home"):
+        _resume(path, sim)
+    assert len(wp.received) == n_recv  # refused: nothing sent
+    r = _resume(path, sim, home=True, counting=True)
+    sim.close()
+    assert r["done"] == 24
+    _verify(prog, wp, in_progress={12})
+
+
+
+def test_device_vanishes_then_resume_after_power_cycle(job):
+    path, prog = job
+    wp = Workpiece()
+    sim = GrblSim(wp, vanish_at=1 + 4 * 5 + 2)  # during the plunge of position 5
+    with pytest.raises(CarveError, match=r"lost.*position is lost: re-home it \(--home\) or re-zero the board") as e:
+        carve(path, sim.port, **FAST)
+    assert "\n" not in str(e.value)
+    assert Journal.read(path + ".journal")[1] == 5
+    sim.close()
+    sim2 = GrblSim(wp, start_alarm=True)  # powered up again: homing required
+    r = _resume(path, sim2, home=True)
+    sim2.close()
+    assert r["done"] == 24
+    _verify(prog, wp, in_progress={5})
+
+
+
+def test_ctrl_c_holds_retracts_and_resumes(job):
+    path, prog = job
+    wp = Workpiece()
+    sim = GrblSim(wp)
+
+    def stop(k, s):
+        if k == 6:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        carve(path, sim.port, on_scratch=stop, **FAST)
+    assert Journal.read(path + ".journal")[1] == 7 and sim.pos[2] == 1.0 and sim.state == "Idle"
+    r = _resume(path, sim, counting=True)
+    sim.close()
+    assert r["done"] == 24
+    _verify(prog, wp)
+
+
+
+def test_garbage_and_slow_device(job):
+    path, prog = job
+    sim = GrblSim(garbage_every=3, reply_delay=0.002, block_time=0.003)
+    try:
+        r = carve(path, sim.port, counting=True, **FAST)
+    finally:
+        sim.close()
+    assert r["done"] == 24
+    _verify(prog, sim.wp)
+
+
+
+def test_bad_port_non_grbl_device_and_journal_rules(job, tmp_path):
+    path, prog = job
+    with pytest.raises(CarveError, match="does not exist"):
+        carve(path, str(tmp_path / "ttyNOPE"), **FAST)
+    assert not os.path.exists(path + ".journal")  # no journal before motion is about to be sent
+    sim = GrblSim(not_grbl=True)
+    try:
+        with pytest.raises(CarveError, match=r"did not answer like GRBL.*no motion was sent"):
+            carve(path, sim.port, **FAST)
+    finally:
+        sim.close()
+    assert sim.wp.received == [] and sim.wp.moves == []
+    assert not os.path.exists(path + ".journal")
+    with pytest.raises(JournalError, match="does not exist; nothing to resume"):
+        carve(path, str(tmp_path / "ttyNOPE"), resume=True, **FAST)
+    # A journal from another G-code is refused; an existing (started) journal needs --resume.
+    j = Journal(path + ".journal", sha256_file(path), 24, resume=False)
+    j.event("start", k=0)
+    j.close()
+    other = tmp_path / "other.gcode"
+    other.write_text("G0 X1\n")
+    with pytest.raises(JournalError, match="belongs to G-code"):
+        Journal(path + ".journal", sha256_file(other), 24, resume=True)
+    with pytest.raises(JournalError, match="already exists"):
+        Journal(path + ".journal", sha256_file(path), 24, resume=False)
+    # A torn final record (power lost mid-write) is ignored.
+    j = Journal(path + ".journal", sha256_file(path), 24, resume=True)
+    j.confirm(0, int(prog.scratch[prog.k == 0][0]))
+    j.close()
+    with open(path + ".journal", "a") as f:
+        f.write('{"type": "done", "k": 1, "scr')
+    assert Journal.read(path + ".journal")[1] == 1
+
+
+
+def test_character_counting_respects_rx_buffer_and_overflow_is_caught():
+    from jscratch.grbl import Grbl
+
+    lines = [f"G1 X{i % 50 + 0.5:.3f} Y{(7 * i) % 50 + 0.25:.3f} F900" for i in range(60)]
+    for rx_size, overflow in ((None, False), (400, True)):
+        sim = GrblSim(block_time=0.004)
+        try:
+            with Grbl(sim.port, banner_timeout=1.0, poll_interval=0.05, stall_timeout=5.0) as grbl:
+                grbl.connect()
+                assert grbl.rx_size == 128 and grbl.version.startswith("1.1h")
+                if rx_size:
+                    grbl.rx_size = rx_size  # a host that believes in a bigger buffer
+                grbl.stream(lines, counting=True)
+                assert grbl.command("G4 P0").kind == "ok"
+        finally:
+            sim.close()
+        assert bool(sim.wp.faults) == overflow, sim.wp.faults[:1]
+        assert sim.wp.received == lines + ["G4 P0"] or overflow
+
+
+
+def _operator(sim, *lines):
+    """What an operator does at the machine before a job: `lines` sent on a session of their own."""
+    with Grbl(sim.port, banner_timeout=1.0, poll_interval=0.05, stall_timeout=5.0) as g:
+        g.connect()
+        for line in lines:
+            assert g.command(line).kind == "ok", line
+
+
+
+def test_work_zero_g92_refused_g54_kept_across_reset_and_resume(job):
+    path, prog = job
+    wp = Workpiece()
+    sim = GrblSim(wp)
+    corner = (5.0, 4.0, 2.0)  # machine position of the board corner, on its surface
+    _operator(sim, "G0 X5.000 Y4.000 Z2.000", "G92 X0 Y0 Z0", "G4 P0.000")
+    wp.moves.clear()
+    n_recv = len(wp.received)
+    # A G92 zero would be cleared by any reset (connect, fault, check mode): refused, untouched.
+    with pytest.raises(CarveError, match=r"G92 offset \(X5\.000 Y4\.000 Z2\.000\).*G10 L20 P1.*no motion was sent"):
+        carve(path, sim.port, **FAST)
+    assert wp.moves == [] and len(wp.received) == n_recv and sim.g92 == list(corner)
+    assert not os.path.exists(path + ".journal")
+    # The documented way: G10 L20 P1 (G54, kept in EEPROM). A fault resets the controller; the
+    # retract and the resume still land on the board.
+    _operator(sim, "G92.1", "G10 L20 P1 X0 Y0 Z0")
+    assert wp.wcs[54] == list(corner)
+    sim.error_at = (sim.gcode_lines + 2 + 5 * 9 + 3, 33)  # the cut of position 9
+    with pytest.raises(CarveError, match="error:33"):
+        carve(path, sim.port, **FAST)
+    assert sim.pos[2] == pytest.approx(3.0)  # work Z1 in G54 (machine 2 + 1) after the reset
+    sim.error_at = None
+    # Resume re-checks the work zero: a changed G54 is refused, naming how to restore it.
+    wp.wcs[54][0] += 1.0
+    n_moves = len(wp.moves)
+    with pytest.raises(CarveError, match=r"G54 work zero is X6\.000 .* was X5\.000 Y4\.000 Z2\.000.*"
+                                         r"G10 L2 P1 X5\.000 Y4\.000 Z2\.000.*--rezeroed"):
+        _resume(path, sim)
+    assert len(wp.moves) == n_moves
+    wp.wcs[54][0] -= 1.0
+    assert _resume(path, sim)["done"] == 24
+    sim.close()
+    _verify(prog, wp, in_progress={9}, origin=corner)
+
+
+
+def _design_file(tmp_path, n=24, seed=2):
+    d = demo_design(n, seed=seed)
+    f = tmp_path / "d.npz"
+    save_design(f, d.p0, d.p1, d.width, d.depth, d.alpha, d.board)
+    return str(f)
+
+
+
+def test_plain_rerun_keeps_the_program_of_an_unfinished_job(tmp_path, capsys):
+    design = _design_file(tmp_path)
+    gcode = tmp_path / "d.gcode"
+    wp = Workpiece()
+    sim = GrblSim(wp, error_at=(2 + 5 * 4 + 3, 33))
+    base = [design, "--plunge", "0.1", "--order-time", "1", "--quiet", "--banner-timeout", "1"]
+    assert main(base + ["--port", sim.port]) == 4
+    before = gcode.read_bytes()
+    capsys.readouterr()
+    # A plain re-run (here with another feed) or a dry run must not replace the job's program.
+    for extra in (["--feed", "600", "--port", sim.port], ["--feed", "600", "--dry-run"]):
+        assert main(base + extra) == 2
+        err = capsys.readouterr().err
+        assert re.fullmatch(r"error: .*unfinished job .*4 of 24 scratches carved.*--resume.*\n", err), err
+        assert gcode.read_bytes() == before
+    sim.error_at = None
+    assert main(base + ["--port", sim.port, "--resume"]) == 0
+    sim.close()
+    _verify(read_program(gcode), wp, in_progress={4})
+    assert main(base + ["--dry-run"]) == 2
+    assert "finished job" in capsys.readouterr().err and gcode.read_bytes() == before
+
+
+
+def test_lost_ok_while_idle_stops_with_resume_advice(job):
+    path, prog = job
+    wp = Workpiece()
+    sim = GrblSim(wp, drop_ok_at=2 + 5 * 4 + 2)  # the plunge of position 4: executed, never answered
+    out = {}
+
+    def run():
+        try:
+            carve(path, sim.port, idle_timeout=0.5, **FAST)
+        except BaseException as exc:  # noqa: BLE001 (reported below)
+            out["exc"] = exc
+
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    t.join(20.0)
+    hung = t.is_alive()
+    if hung:
+        sim.vanish()
+        t.join(5.0)
+    assert not hung, "the streamer still waits for the lost ok after 20 s"
+    msg = str(out.get("exc"))
+    assert isinstance(out.get("exc"), CarveError), msg
+    assert re.fullmatch(r"controller on \S+ reports Idle but has not answered 'G1 Z-0\.100 F300\.0' for 0\.5 s "
+                        r"\(a lost 'ok'\) at G-code line 26 .*scratch position 4 .*retracted to Z1\.000\. "
+                        r"4 of 24 scratches are journalled; .*--resume", msg), msg
+    assert sim.pos[2] == 1.0 and Journal.read(path + ".journal")[1] == 4
+    sim.drop_ok_at = None
+    assert _resume(path, sim)["done"] == 24
+    sim.close()
+    _verify(prog, wp, in_progress={4})
+
+
+
+def test_failed_connection_leaves_no_journal_and_the_next_run_starts(job, tmp_path):
+    path, prog = job
+    for port in (str(tmp_path / "ttyNOPE"), None):
+        sim = None if port else GrblSim(start_alarm=True)  # Alarm and no --home: refused
+        with pytest.raises(CarveError) as e:
+            carve(path, port or sim.port, **FAST)
+        if sim:
+            sim.close()
+        assert not os.path.exists(path + ".journal")
+        assert "no motion was sent" in str(e.value)
+    # A header-only journal (a session that never connected) does not block.
+    with open(path + ".journal", "w") as f:
+        f.write(json.dumps({"type": "header", "gcode_sha256": "0" * 64, "n_scratches": 24}) + "\n")
+    sim = GrblSim()
+    try:
+        assert carve(path, sim.port, **FAST)["done"] == 24
+    finally:
+        sim.close()
+    _verify(prog, sim.wp)
+
+
+
+def test_emergency_retract_goes_to_the_programs_safe_z(tmp_path, small):
+    d, _ = small
+    prog = make_program(d, MachineConfig(plunge_mm=0.1, safe_z_mm=3.0), time_limit=2)
+    path = tmp_path / "z3.gcode"
+    write_program(prog, path)
+    sim = GrblSim(error_at=(2 + 5 * 3 + 3, 33))  # mid-cut of position 3
+    try:
+        # Streamed with the CLI, whose --safe-z default (1 mm) is below the program's 3 mm.
+        assert main(["--gcode", str(path), "--port", sim.port, "--quiet", "--banner-timeout", "1"]) == 4
+        assert sim.pos[2] == 3.0
+        # An explicit lower safe_z_mm never retracts below the program's travel height.
+        sim.error_at = (sim.gcode_lines + 2 + 3, 33)
+        with pytest.raises(CarveError, match=r"retracted to Z3\.000"):
+            carve(path, sim.port, resume=True, safe_z_mm=0.5, **FAST)
+    finally:
+        sim.close()
+
+
+
+def test_failure_after_homing_does_not_say_no_motion_was_sent(job):
+    path, _ = job
+    for alarm in (True, False):
+        sim = GrblSim(start_alarm=alarm, error_at=(2 + 5 * 2 + 3, 20))  # found by check mode
+        try:
+            with pytest.raises(CarveError, match=r"check mode \(\$C\): error:20") as e:
+                carve(path, sim.port, home=True, check=True, **FAST)
+        finally:
+            sim.close()
+        msg = str(e.value)
+        assert ("no motion was sent" in msg) != alarm, msg
+        assert ("homing cycle $H ran" in msg) == alarm, msg
+        assert sim.wp.moves == []
+
+
+
+def test_not_grbl_error_is_one_short_line(job):
+    path, _ = job
+    sim = GrblSim(not_grbl=(bytes(range(128, 256)) * 4 + b"\r\n") * 3 + b"x" * 2000 + b"\r\n")
+    try:
+        with pytest.raises(CarveError, match="did not answer like GRBL") as e:
+            carve(path, sim.port, **FAST)
+    finally:
+        sim.close()
+    msg = str(e.value)
+    assert len(msg) <= 400 and msg.isprintable() and msg.isascii(), (len(msg), msg[:200])
+
+
+
+def test_spinup_dwell_after_m3_also_on_resume(tmp_path, small):
+    d, _ = small
+    prog = make_program(d, MachineConfig(plunge_mm=0.1, spindle_rpm=12000, spinup_s=0.6), time_limit=2)
+    i = prog.lines.index("M3 S12000")
+    assert prog.lines[i + 1] == "G4 P0.600" and prog.role[i + 1] == "pre"
+    path = tmp_path / "spin.gcode"
+    write_program(prog, path)
+    wp = Workpiece()
+    sim = GrblSim(wp, spinup_s=0.5, error_at=(4 + 5 * 6 + 3, 33))  # the cut of position 6
+    with pytest.raises(CarveError, match="error:33"):
+        carve(str(path), sim.port, **FAST)  # the retract's reset stops the spindle
+    sim.error_at = None
+    assert _resume(str(path), sim)["done"] == 24
+    sim.close()
+    _verify(prog, wp, in_progress={6})  # no cut with the spindle off or still spinning up

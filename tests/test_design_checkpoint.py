@@ -1,0 +1,75 @@
+"""Tests of jscratch.design.checkpoint: a `State` saved and loaded back bitwise (parameters, Adam
+state, the shared pair list, its spec and capacities, history), and a checkpoint refused when it
+is missing, made for other targets, another config or another design's shapes."""
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jscratch import bvh
+from jscratch.design.checkpoint import State, load_checkpoint, save_checkpoint
+from jscratch.design.config import DesignConfig
+from jscratch.design.params import DesignParams
+from jscratch.design.solver import make_adam
+from jscratch.designfile import DesignError
+from jscratch.scene import Board, Scratches, views_on_circle
+from jscratch.shading import half_vectors
+
+
+def _state(n):
+    board = Board(shape=(16, 16))
+    s = Scratches.random(jax.random.PRNGKey(n), n, board, width=2.5e-4, depth=1.28e-4,
+                         dtype=jnp.float32)
+    views = views_on_circle(2, math.radians(50), board=board)
+    params = DesignParams.from_physical(s, np.array([1.0, 2.0]), board)
+    adam = make_adam(0.9, 0.999, 1e-12)
+    opt = adam.init(params)
+    # one Adam update, so that the moments are not all zero
+    grads = jax.tree_util.tree_map(lambda a: jnp.full_like(a, 0.5), params)
+    _, opt = adam.update(grads, opt, params)
+    lists = bvh.allocate_lists(s, board, half_vectors(views, board, jnp.float32))
+    return State(7, params, opt, lists, {"total": [1.0, 0.5], "terms": {"E_p": [1.0, 0.5]}}, 2)
+
+
+def _leaves(tree):
+    return [np.asarray(x) for x in jax.tree_util.tree_leaves(tree)]
+
+
+def test_round_trip_is_bitwise(tmp_path):
+    state = _state(30)
+    cfg = DesignConfig(n_scratches=30)
+    path = str(tmp_path / "sub" / "ckpt.npz")
+    save_checkpoint(path, state, cfg, "abc")
+    like = dataclasses.replace(state, params=jax.tree_util.tree_map(jnp.zeros_like, state.params),
+                               opt_state=jax.tree_util.tree_map(jnp.zeros_like, state.opt_state),
+                               lists=None, history={}, iteration=0, rebins=0)
+    back = load_checkpoint(path, like, cfg, "abc")
+    assert (back.iteration, back.rebins, back.history) == (7, 2, state.history)
+    for a, b in zip(_leaves(back.params) + _leaves(back.opt_state),
+                    _leaves(state.params) + _leaves(state.opt_state)):
+        assert a.dtype == b.dtype and np.array_equal(a, b)
+    for f in ("pixel", "scratch", "valid"):
+        assert np.array_equal(np.asarray(getattr(back.lists.shared, f)),
+                              np.asarray(getattr(state.lists.shared, f)))
+    assert back.lists.spec == state.lists.spec and back.lists.caps == state.lists.caps
+    assert not list(tmp_path.joinpath("sub").glob(".ckpt-*"))  # no temporary file left
+
+
+def test_refusals(tmp_path):
+    state = _state(30)
+    cfg = DesignConfig(n_scratches=30)
+    path = str(tmp_path / "ckpt.npz")
+    with pytest.raises(DesignError, match="no checkpoint at"):
+        load_checkpoint(path, state, cfg, "abc")
+    save_checkpoint(path, state, cfg, "abc")
+    with pytest.raises(DesignError, match="different target images"):
+        load_checkpoint(path, state, cfg, "xyz")
+    with pytest.raises(DesignError, match="made with seed = 0, not 3"):
+        load_checkpoint(path, state, dataclasses.replace(cfg, seed=3), "abc")
+    other = _state(20)
+    with pytest.raises(DesignError, match="does not match this design"):
+        load_checkpoint(path, other, cfg, "abc")

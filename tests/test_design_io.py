@@ -1,0 +1,115 @@
+"""Tests of jscratch.design.io: the target checks and their one-line refusals, the view check
+(a camera at the light's mirror direction), image files read as display values (8-bit gray, RGB
+by the Rec. 709 luma, RGBA, 16-bit) against hand-made pixels, the aspect refusal, the default
+targets, the PNG writer's rounding, the targets' hash, and `write_outputs` for a hand-built
+result (its design file read back)."""
+
+import json
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from skimage import io as skio
+
+from jscratch import designfile
+from jscratch.design import io
+from jscratch.design.config import DesignConfig
+from jscratch.design.result import DesignResult
+from jscratch.designfile import DesignError
+from jscratch.scene import Board, Scratches, Views
+
+
+@pytest.mark.parametrize(
+    "targets, m, match",
+    [
+        (np.zeros((2, 16, 16), np.uint8), 2, "must be floating display values"),
+        (np.zeros((16, 16)), None, r"must have shape \(M, H, W\)"),
+        (np.zeros((3, 16, 16)), 2, "got 3 target images for 2 views"),
+        (np.full((2, 16, 16), np.nan), 2, "target 0 has non-finite values"),
+        (np.concatenate([np.zeros((1, 16, 16)), np.full((1, 16, 16), 1.5)]), 2,
+         r"target 1 has values outside \[0, 1\]"),
+        (np.zeros((2, 8, 16)), 2, "at least 16x16 px"),
+        (np.array([[["a"]]], object), None, "must be a numeric"),
+    ],
+)
+def test_check_targets_refusals(targets, m, match):
+    with pytest.raises(DesignError, match=match):
+        io.check_targets(targets, m)
+
+
+def test_check_targets_hash_and_views():
+    t = np.random.default_rng(0).random((2, 16, 20))
+    assert io.check_targets(t, 2) is not None
+    assert io.targets_hash(t) == io.targets_hash(t.copy()) != io.targets_hash(t[::-1])
+    assert len(io.targets_hash(t)) == 16
+    board = Board(shape=(16, 20))
+    light = [0.15 - 0.5, 0.15, 0.8]
+    ok = Views(jnp.asarray([[0.15, 0.15 + 0.6, 0.8]]), jnp.asarray([light]))
+    io.check_design_views(ok, board)
+    mirror = Views(jnp.asarray([[0.15 + 0.5, 0.15, 0.8]]), jnp.asarray([light]))
+    with pytest.raises(DesignError, match="view 0: the camera is at the light's mirror direction"):
+        io.check_design_views(mirror, board)
+
+
+def test_load_target_files(tmp_path):
+    gray = np.tile(np.arange(32, dtype=np.uint8) * 8, (32, 1))
+    skio.imsave(tmp_path / "g.png", gray, check_contrast=False)
+    got = io.load_target(tmp_path / "g.png", (32, 32))
+    np.testing.assert_allclose(got, gray / 255.0, atol=1e-6)
+    # RGB: Rec. 709 luma of the 8-bit values scaled to [0, 1]
+    rgb = np.zeros((32, 32, 3), np.uint8)
+    rgb[..., 0], rgb[..., 1], rgb[..., 2] = 200, 100, 50
+    skio.imsave(tmp_path / "c.png", rgb, check_contrast=False)
+    want = (0.2125 * 200 + 0.7154 * 100 + 0.0721 * 50) / 255
+    np.testing.assert_allclose(io.load_target(tmp_path / "c.png", (16, 16)), want, atol=1e-6)
+    rgba = np.concatenate([rgb, np.full((32, 32, 1), 7, np.uint8)], -1)
+    skio.imsave(tmp_path / "a.png", rgba, check_contrast=False)
+    np.testing.assert_allclose(io.load_target(tmp_path / "a.png", (16, 16)), want, atol=1e-6)
+    skio.imsave(tmp_path / "w.png", np.full((32, 32), 65535, np.uint16), check_contrast=False)
+    np.testing.assert_allclose(io.load_target(tmp_path / "w.png", (16, 16)), 1.0)
+    with pytest.raises(DesignError, match="does not exist"):
+        io.load_target(tmp_path / "missing.png", (16, 16))
+    (tmp_path / "bad.png").write_bytes(b"not a png")
+    with pytest.raises(DesignError, match="is not a readable image"):
+        io.load_target(tmp_path / "bad.png", (16, 16))
+    with pytest.raises(DesignError, match=r"is 32x32 px \(aspect 1.000\).*crop it first"):
+        io.load_target(tmp_path / "g.png", (16, 32))
+
+
+def test_prepare_target_crops_the_centre_and_default_targets():
+    img = np.zeros((40, 80))
+    img[:, 20:60] = 1.0  # the centre 40 x 40 square is white
+    np.testing.assert_allclose(io.prepare_target(img, (16, 16), "x"), 1.0)
+    t, names = io.default_targets(3, (16, 24))
+    assert t.shape == (3, 16, 24) and t.min() >= 0 and t.max() <= 1
+    assert names == ["skimage.data.camera", "skimage.data.astronaut", "skimage.data.chelsea"]
+
+
+def test_write_png_rounds_to_8_bits(tmp_path):
+    img = np.array([[0.0, 0.5, 1.0, 1.7], [-1.0, 0.25, 0.002, 0.998]])
+    io.write_png(str(tmp_path / "x.png"), img)
+    back = skio.imread(tmp_path / "x.png")
+    assert back.dtype == np.uint8
+    np.testing.assert_array_equal(back, [[0, 128, 255, 255], [0, 64, 1, 254]])
+
+
+def test_write_outputs_of_a_hand_built_result(tmp_path):
+    board = Board(shape=(16, 16))
+    s = Scratches(np.float32([[0.01, 0.02], [0.1, 0.1]]), np.float32([[0.05, 0.02], [0.2, 0.25]]),
+                  np.float32([2.5e-4, 3e-4]), np.float32([1.28e-4, 1e-4]), np.float32([0.04, 0.05]))
+    views = Views(np.float32([[0.0, 0.5, 0.8], [0.5, 0.0, 0.8]]), np.float32([[0.3, 0.3, 0.9]] * 2),
+                  np.float32([1.0, 2.0]))
+    disp = np.random.default_rng(1).random((2, 16, 16))
+    res = DesignResult(s, views, board, None, np.ones(2, bool), disp, disp, disp,
+                       {"total": [2.0, 1.0], "terms": {"E_p": [2.0, 1.0]}},
+                       {"ssim": [0.5, 0.6], "ghosting": [0.1, 0.2], "loss": float("nan")},
+                       DesignConfig(n_scratches=2))
+    io.write_outputs(res, tmp_path / "out", {"note": "x"})
+    d = designfile.load_design(tmp_path / "out" / "design.npz")
+    np.testing.assert_allclose(d.p0, np.asarray(s.p0), rtol=1e-7)
+    np.testing.assert_allclose(d.intensity, [1.0, 2.0])
+    for f in ("design.svg", "view0_render.png", "view1_target.png", "comparison.png", "loss.png"):
+        assert (tmp_path / "out" / f).stat().st_size > 0
+    assert json.loads((tmp_path / "out" / "metrics.json").read_text())["loss"] is None
+    cfg = json.loads((tmp_path / "out" / "config.json").read_text())
+    assert cfg["note"] == "x" and cfg["board"]["shape"] == [16, 16] and cfg["design"]["n_scratches"] == 2

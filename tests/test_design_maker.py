@@ -1,0 +1,92 @@
+"""Tests of jscratch.design.maker: a machine profile carried from its file through the design and
+its npz to fabricate (plunges in range cutting exactly the design's grooves, the recorded feeds,
+a different cutter refused), and the carving-time estimate by hand."""
+
+import json
+
+import numpy as np
+import pytest
+
+from jscratch import designfile
+from jscratch import fabricate
+from jscratch.design import main as design_main
+from jscratch.designfile import groove_half_width
+from jscratch.machine import MachineProfile, carving_seconds
+
+SIZE = 16
+
+
+def _toml(path, **kw):
+    lines = ["[machine]"] + [f"{k} = {json.dumps(v)}" for k, v in kw.items()]
+    path.write_text("\n".join(lines) + "\n")
+    return str(path)
+
+
+# ----------------------------------------------------------------------------------------------
+# The profile file.
+
+
+_MINE = dict(name="mine", cutter_radius_mm=0.2, plunge_min_mm=0.01, plunge_max_mm=0.08, feed_mm_min=600.0,
+             overhead_s=0.5)
+
+
+def test_profile_round_trip_file_design_npz_fabricate(tmp_path, capsys):
+    prof = _toml(tmp_path / "mine.toml", **_MINE)
+    out = tmp_path / "run"
+    args = ["--views", "2", "--size", str(SIZE), "--scratches", "150", "--iterations", "1",
+            "--no-discard", "--machine", prof, "--as-carved-samples", "0", "--out", str(out), "--quiet"]
+    assert design_main(args) == 0
+    d = designfile.load_design(out / "design.npz")
+    assert d.machine == MachineProfile.from_toml(prof).to_dict()
+    # Every recorded plunge lies in the file's range and cuts exactly the design's groove.
+    assert d.plunge.shape == (d.n,) and d.plunge.min() >= 1e-5 and d.plunge.max() <= 8e-5
+    R_ = 2e-4
+    np.testing.assert_allclose(np.sqrt(2 * R_ * d.plunge - d.plunge**2),
+                               groove_half_width(d.width, d.depth), rtol=1e-4)
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["machine"]["name"] == "mine" and metrics["groove"] == "carvable"
+    assert metrics["carving"]["estimated_seconds"] > d.n * 0.5  # overhead_s alone
+    # Fabricate uses the recorded profile (feed 600, R 0.2) without being told.
+    job = tmp_path / "new" / "job"
+    assert fabricate.main([str(out / "design.npz"), "--dry-run", "--out", str(job), "--order-time", "1",
+                           "--quiet"]) == 0
+    info = json.loads((tmp_path / "new" / "job.summary.json").read_text())
+    assert info["fit"]["mode"] == "design" and info["fit"]["unreachable"] == 0
+    assert info["cutter_radius_mm"] == 0.2
+    code = (tmp_path / "new" / "job.gcode").read_text()
+    assert "F600.0" in code and "F900.0" not in code
+    zs = [float(w[1:]) for line in code.splitlines() if line.startswith("G1 Z") for w in line.split()[1:2]]
+    assert len(zs) == d.n and all(-0.08 - 1e-3 <= z <= -0.01 + 1e-3 for z in zs)
+    # A different cutter is refused, naming the key; feeds alone only warn.
+    other = _toml(tmp_path / "other.toml", cutter_radius_mm=0.125)
+    capsys.readouterr()
+    assert fabricate.main([str(out / "design.npz"), "--dry-run", "--out", str(tmp_path / "x" / "j"),
+                           "--machine", other]) == 2
+    err = capsys.readouterr().err
+    assert "machine mismatch" in err and "cutter_radius_mm" in err and err.count("\n") == 1
+    assert not (tmp_path / "x").exists()  # refused before anything is written
+    assert fabricate.main([str(out / "design.npz"), "--dry-run", "--out", str(tmp_path / "y" / "j"),
+                           "--feed", "700", "--order-time", "1"]) == 0
+    assert "differ from the design's recorded profile" in capsys.readouterr().err
+    assert "F700.0" in (tmp_path / "y" / "j.gcode").read_text()
+
+
+# ----------------------------------------------------------------------------------------------
+# The carving-time estimate.
+
+
+def test_carving_estimate_by_hand():
+    prof = MachineProfile(feed_mm_min=600.0, rapid_mm_min=1200.0, plunge_mm_min=60.0, safe_z_mm=2.0,
+                          overhead_s=0.5)
+    # Two 10 mm scratches, 5 mm apart, starting 0 mm from the tool: travel 5 mm.
+    t = carving_seconds(prof, n=2, cut_mm=20.0, travel_mm=5.0, plunge_mm_total=0.1)
+    by_hand = (20 / 10 + 5 / 20 + 0.1 / 1 + 2 * (2 * 2 / 20) + 2 * (2 / 1)) + 2 * 0.5
+    assert t == pytest.approx(by_hand)
+    from jscratch.design.maker import carving_estimate
+
+    d = designfile.validate_design([[0.0, 0.0], [0.0, 0.015]], [[0.0, 0.01], [0.0, 0.025]],
+                                   [2.5e-4] * 2, [1.28e-4] * 2, [0.04] * 2, [0.3, 0.3])
+    est = carving_estimate(d, prof, time_limit=0.1, plunge=np.array([5e-5, 5e-5]))
+    assert est["travel_m"] == pytest.approx(0.005) and est["cut_length_m"] == pytest.approx(0.02)
+
+

@@ -1,0 +1,73 @@
+"""Tests of jscratch.design.run without an optimisation step: `design`'s input refusals (one line,
+naming what is wrong; float64 without x64 in the default float32 setting), and `setup` /
+`pair_lists` / `rebin`: the initial scratches are `Scratches.random` of the config's seed, the
+intensities the views', and the pair lists hold exactly the pairs `bvh.build_pairs` finds for
+the scratches before and after they move."""
+
+import dataclasses
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jscratch import bvh
+from jscratch.design import DesignConfig, design
+from jscratch.design.run import pair_lists, rebin, setup
+from jscratch.designfile import DesignError
+from jscratch.scene import Board, Scratches, views_on_circle
+
+CFG = DesignConfig(n_scratches=60, iterations=1, seed=3)
+
+
+def _inputs():
+    board = Board(shape=(16, 16))
+    views = views_on_circle(2, math.radians(50), board=board, intensity=jnp.asarray([1.0, 2.0]))
+    targets = np.random.default_rng(0).random((2, 16, 16))
+    return targets, views, board
+
+
+def test_design_refuses_bad_inputs(tmp_path):
+    targets, views, board = _inputs()
+    with pytest.raises(DesignError, match="config must be a DesignConfig, got dict"):
+        design(targets, views, board, {"n_scratches": 5})
+    with pytest.raises(DesignError, match="views must be a jscratch.render.Views, got tuple"):
+        design(targets, (views.camera, views.light), board, CFG)
+    with pytest.raises(DesignError, match=r"targets are 16x16 px but the board's image shape is \(8, 8\)"):
+        design(targets, views, Board(shape=(8, 8)), CFG)
+    with pytest.raises(DesignError, match="got 1 target images for 2 views"):
+        design(targets[:1], views, board, CFG)
+    with pytest.raises(DesignError, match="resume=True needs a checkpoint path"):
+        design(targets, views, board, CFG, resume=True)
+    # the default float32 setting: a float64 design is refused, saying how to enable it
+    assert not jax.config.jax_enable_x64
+    with pytest.raises(DesignError, match="dtype float64 needs jax_enable_x64"):
+        design(targets, views, board, dataclasses.replace(CFG, dtype="float64"))
+
+
+def _kept(p):
+    v = np.asarray(p.valid)
+    return sorted(zip(np.asarray(p.pixel)[v].tolist(), np.asarray(p.scratch)[v].tolist()))
+
+
+def test_setup_pair_lists_and_rebin():
+    targets, views, board = _inputs()
+    params, optimizer, ctx = setup(targets, views, board, CFG)
+    s = params.scratches()
+    ref = Scratches.random(jax.random.PRNGKey(3), 60, board, length=CFG.init_length,
+                           width=CFG.init_width, depth=CFG.init_depth, alpha=CFG.init_alpha,
+                           dtype=jnp.float32)
+    assert s.dtype == jnp.float32
+    np.testing.assert_allclose(np.asarray(s.p0), np.asarray(ref.p0), atol=3e-6)
+    np.testing.assert_allclose(np.asarray(s.width), CFG.init_width, rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(params.intensity()), [1.0, 2.0], rtol=1e-6)
+    assert ctx.hs.shape == (2, 256, 3) and ctx.board is board
+    lists = pair_lists(params, ctx, CFG)
+    full, _ = bvh.build_pairs(s.p0, s.p1, s.width, s.depth, board=(0.3, 0.3), shape=(16, 16))
+    assert _kept(lists.shared) == _kept(full) and len(_kept(full)) > 60
+    moved = eqx.tree_at(lambda p: p.geom, params, params.geom + 0.05)
+    m = moved.scratches()
+    again, _ = bvh.build_pairs(m.p0, m.p1, m.width, m.depth, board=(0.3, 0.3), shape=(16, 16))
+    assert _kept(rebin(lists, moved, ctx).shared) == _kept(again) != _kept(full)

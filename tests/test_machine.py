@@ -1,0 +1,68 @@
+"""Tests of jscratch.machine: the profile's TOML round trip, bad values refused in one line naming
+the key (by the profile, by fabricate and by the design CLI), the shipped default printed and read
+back, and the carving-time estimate by hand."""
+
+import dataclasses
+import json
+import math
+
+import pytest
+
+from jscratch import fabricate, machine
+from jscratch.design import main as design_main
+from jscratch.machine import MachineProfile, carving_seconds
+
+
+@pytest.mark.parametrize("key,value", [
+    ("cutter_radius_mm", -1.0), ("plunge_max_mm", 0.2), ("plunge_min_mm", 0.2), ("feed_mm_min", "fast"),
+    ("cutter", "flat"), ("holder", "glue"), ("board_offset_mm", [1.0]), ("overhead_s", float("nan")),
+    ("drop_short", 3), ("spindle_rpm", -5.0), ("typo_mm", 1.0),
+])
+def test_bad_profile_values_one_line_naming_the_key(tmp_path, key, value, capsys):
+    path = tmp_path / "bad.toml"
+    v = "nan" if isinstance(value, float) and math.isnan(value) else json.dumps(value)
+    path.write_text(f"[machine]\n{key} = {v}\n")
+    with pytest.raises(ValueError) as e:
+        MachineProfile.from_toml(path)
+    msg = str(e.value)
+    assert f"machine.{key}" in msg and str(path) in msg and "\n" not in msg
+    capsys.readouterr()
+    assert fabricate.main(["--dry-run", "--machine", str(path), "--out", str(tmp_path / "o" / "j")]) == 2
+    err = capsys.readouterr().err
+    assert f"machine.{key}" in err and err.count("\n") == 1
+    assert not (tmp_path / "o").exists()
+    assert design_main(["--machine", str(path), "--out", str(tmp_path / "d"), "--quiet"]) == 2
+
+
+
+def test_profile_toml_round_trip_and_the_config_option(tmp_path):
+    p = MachineProfile(name="x", cutter_radius_mm=0.3, plunge_max_mm=0.2, board_offset_mm=(1.0, 2.0), spindle_rpm=1e4)
+    path = tmp_path / "p.toml"
+    path.write_text(p.to_toml())
+    assert MachineProfile.from_toml(path) == p
+    assert fabricate.MachineConfig is MachineProfile
+    # `--config` reads the same file (MachineConfig is the same class).
+    assert fabricate.main(["--dry-run", "--config", str(path), "--demo-n", "5", "--out", str(tmp_path / "o" / "j"),
+                           "--quiet", "--order-time", "0.1"]) == 0
+    assert "S10000" in (tmp_path / "o" / "j.gcode").read_text()
+
+
+def test_default_profile_printed_and_read_back(tmp_path, capsys):
+    assert machine.main([]) == 0
+    text = capsys.readouterr().out
+    path = tmp_path / "default.toml"
+    path.write_text(text)
+    assert machine.load_machine(path) == machine.load_machine() == MachineProfile()
+    assert machine.main([str(tmp_path / "missing.toml")]) == 1
+    assert "missing.toml" in capsys.readouterr().err
+
+
+def test_carving_seconds_by_hand():
+    prof = MachineProfile(feed_mm_min=600.0, rapid_mm_min=1200.0, plunge_mm_min=60.0, safe_z_mm=2.0,
+                          overhead_s=3.0, spindle_rpm=0.0)
+    # 3 scratches: 30 mm cut at 10 mm/s, 12 mm travel at 20 mm/s, 0.3 mm plunged at 1 mm/s, per
+    # scratch a 2 mm rapid up and down (0.2 s) and 2 mm at the plunge feed (2 s), 3 s overhead.
+    t = carving_seconds(prof, n=3, cut_mm=30.0, travel_mm=12.0, plunge_mm_total=0.3)
+    assert t == pytest.approx(3.0 + 0.6 + 0.3 + 3 * (0.2 + 2.0) + 3 * 3.0)
+    spun = dataclasses.replace(prof, spindle_rpm=1e4, spinup_s=4.0)
+    assert carving_seconds(spun, n=3, cut_mm=30.0, travel_mm=12.0, plunge_mm_total=0.3) == pytest.approx(t + 4.0)

@@ -1,0 +1,122 @@
+"""Tests of jscratch.scene: `Scratches.random` (lengths, board, directions, dtype), the value rules
+and their one-line messages (host checks and the traced `scene_checks`), `Board`, `Views`, the
+flat-board highlight by hand (mirror geometry), and the `views_on_circle` layout."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jscratch import scene
+from jscratch.scene import Board, Scratches, Views, flat_highlight, views_on_circle
+
+
+def test_random_scratches_lie_on_the_board_with_lengths_in_range():
+    board = Board(shape=(8, 8), Sx=0.3, Sy=0.2)
+    s = Scratches.random(jax.random.PRNGKey(0), 2000, board, length=(0.01, 0.05), dtype=jnp.float32)
+    assert s.n == 2000 and s.dtype == jnp.float32 and s.width.shape == (2000,)
+    p0, p1 = np.asarray(s.p0, np.float64), np.asarray(s.p1, np.float64)
+    for p in (p0, p1):
+        # on the board up to float32 rounding of its size
+        assert np.all(p >= 0) and np.all(p[:, 0] <= np.float32(0.3)) and np.all(p[:, 1] <= np.float32(0.2))
+    length = np.linalg.norm(p1 - p0, axis=1)
+    assert np.all(length <= 0.05 + 1e-6)
+    # only segments shortened at the board's edge fall below the range, and they touch an edge
+    short = length < 0.01 - 1e-6
+    ends = np.concatenate([p0[short], p1[short]], 1)
+    edge = (np.isclose(ends, 0, atol=1e-6) | np.isclose(ends, [0.3, 0.2, 0.3, 0.2], atol=1e-6))
+    assert short.mean() < 0.2 and np.all(edge.any(1))
+    # directions uniform: the mean of the doubled angle's unit vector is near zero
+    phi = np.arctan2(*(p1 - p0)[:, ::-1].T)
+    assert abs(np.mean(np.exp(2j * phi))) < 0.1
+    np.testing.assert_allclose(np.mean((p0 + p1) / 2, 0), [0.15, 0.1], atol=0.01)
+
+
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        (dict(width=np.float32([1e-4, 0.0])), r"Scratches: scratch 1: width = 0.0 must be > 0 m"),
+        (dict(depth=np.float32([1e-4, -1.0])), r"scratch 1: depth = -1.0 must be > 0 m"),
+        (dict(alpha=np.float32([0.1, 1.0])), r"scratch 1: alpha = 1.0 must lie in \(0, 1\)"),
+        (dict(width=np.float32([np.inf, 1e-4])), r"scratch 0: width = inf is not finite"),
+    ],
+)
+def test_scratch_rules_name_the_scratch(kw, match):
+    with pytest.raises(ValueError, match=match):
+        Scratches(np.zeros((2, 2), np.float32), np.ones((2, 2), np.float32), **kw)
+
+
+def test_shapes_board_and_views_errors():
+    with pytest.raises(ValueError, match="`p1` must have shape"):
+        Scratches(jnp.zeros((3, 2)), jnp.zeros((3, 3)))
+    with pytest.raises(ValueError, match=r"`width` must have shape \(N,\) = \(3,\)"):
+        Scratches(jnp.zeros((3, 2)), jnp.ones((3, 2)), width=jnp.ones(2))
+    with pytest.raises(ValueError, match="`shape` must be positive"):
+        Board(shape=(0, 4))
+    with pytest.raises(ValueError, match="`Sx` must be a positive finite length"):
+        Board(Sx=-1.0)
+    with pytest.raises(ValueError, match=r"`a_S` must lie in \(0, 1\]"):
+        Board(a_S=0.0)
+    with pytest.raises(ValueError, match="view 0: camera is at z = -1.0"):
+        Views(jnp.asarray([[0.0, 0.0, -1.0]]), jnp.asarray([[0.0, 0.0, 1.0]]))
+    with pytest.raises(ValueError, match="view 1: intensity is negative"):
+        Views(jnp.ones((2, 3)), jnp.ones((2, 3)), jnp.asarray([1.0, -2.0]))
+    with pytest.raises(ValueError, match="scratch 0: p1 = .* lies off the board"):
+        scene.check_scratches(np.zeros((1, 2)), np.full((1, 2), 0.5), 1e-4, 1e-4, board=(0.3, 0.3))
+    scene.check_scratches(np.zeros((1, 2)), np.full((1, 2), 0.3), 1e-4, 1e-4, board=(0.3, 0.3))
+    b = Board(shape=(4, 5), Sx=0.2, Sy=0.1)
+    assert (b.H, b.W, b.n_pixels) == (4, 5, 20) and b.pixel_area == pytest.approx(0.04 * 0.025)
+
+
+def test_scene_checks_inside_jit():
+    s = Scratches(np.zeros((2, 2), np.float32), np.ones((2, 2), np.float32))
+    v = Views(np.ones((1, 3), np.float32), np.ones((1, 3), np.float32))
+    broken = jax.jit(lambda s, v: jnp.stack([c for c, _ in scene.scene_checks(s, v)]))
+    assert not np.any(np.asarray(broken(s, v)))
+    bad_v = Views.__new__(Views)
+    object.__setattr__(bad_v, "camera", -v.camera)
+    object.__setattr__(bad_v, "light", v.light)
+    object.__setattr__(bad_v, "intensity", v.intensity)
+    flags = np.asarray(broken(s, bad_v))
+    msgs = [m for _, m in scene.scene_checks(s, v)]
+    assert flags.sum() == 1 and "above the board" in msgs[int(np.argmax(flags))]
+
+
+def test_flat_highlight_is_the_mirror_point():
+    camera = np.array([0.1, 0.0, 1.0])
+    light = np.array([0.3, 0.2, 0.5])
+    x = flat_highlight(camera, light)
+    # equal angles: the reflected ray from x towards the camera comes from the light
+    p = np.array([x[0], x[1], 0.0])
+    a, b = camera - p, light - p
+    h = a / np.linalg.norm(a) + b / np.linalg.norm(b)
+    np.testing.assert_allclose(h[:2] / np.linalg.norm(h), 0.0, atol=1e-12)
+
+
+@pytest.mark.float64
+def test_views_on_circle_layout():
+    v = views_on_circle(5, math.radians(40), 1.0)
+    c = np.asarray(v.camera) - [0.15, 0.15, 0]
+    np.testing.assert_allclose(np.linalg.norm(c, axis=-1), 1.0, rtol=1e-12)
+    np.testing.assert_allclose(np.arccos(c[:, 2]), math.radians(40), rtol=1e-12)
+    az = np.sort(np.mod(np.arctan2(c[:, 1], c[:, 0]), 2 * np.pi))
+    np.testing.assert_allclose(np.diff(az), 2 * np.pi / 5, rtol=1e-9)
+    # Light at azimuth 0: no camera within pi/5 of the mirror azimuth pi (flat highlight refused).
+    assert np.min(np.abs(az - np.pi)) > np.pi / 5 - 1e-9
+    assert np.all(np.asarray(v.light) == np.asarray(v.light)[0]) and v.intensity.shape == (5,)
+    with pytest.raises(ValueError, match="sees the light mirrored"):
+        views_on_circle(4, math.radians(40), offset=math.pi)
+    with pytest.raises(ValueError, match="radians: did you mean"):
+        views_on_circle(4, 40.0)
+
+
+def test_views_on_circle_float32_and_even_count():
+    v = views_on_circle(4, math.radians(50), 0.8, dtype=jnp.float32)
+    assert v.camera.dtype == jnp.float32 and v.m == 4
+    c = np.asarray(v.camera, np.float64) - [0.15, 0.15, 0]
+    np.testing.assert_allclose(np.linalg.norm(c, axis=-1), 0.8, rtol=1e-6)
+    # even M: the light's mirror azimuth (pi) lies midway between two cameras
+    az = np.sort(np.mod(np.arctan2(c[:, 1], c[:, 0]), 2 * np.pi))
+    np.testing.assert_allclose(az, np.pi / 4 + np.arange(4) * np.pi / 2, atol=1e-6)
