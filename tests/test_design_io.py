@@ -1,8 +1,8 @@
 """Tests of jscratch.design.io: the target checks and their one-line refusals, the view check
 (a camera at the light's mirror direction), image files read as display values (8-bit gray, RGB
 by the Rec. 709 luma, RGBA, 16-bit) against hand-made pixels, the aspect refusal, the default
-targets, the PNG writer's rounding, the targets' hash, and `write_outputs` for a hand-built
-result (its design file read back)."""
+targets, the PNG writer's rounding, the targets' hash, and `save_result` / `load_result` for a
+hand-built result (its design file read back)."""
 
 import json
 
@@ -93,23 +93,33 @@ def test_write_png_rounds_to_8_bits(tmp_path):
     np.testing.assert_array_equal(back, [[0, 128, 255, 255], [0, 64, 1, 254]])
 
 
-def test_write_outputs_of_a_hand_built_result(tmp_path):
+def test_save_and_load_a_hand_built_result(tmp_path):
+    from jscratch.design.params import DesignParams
+
     board = Board(shape=(16, 16))
     s = Scratches(np.float32([[0.01, 0.02], [0.1, 0.1]]), np.float32([[0.05, 0.02], [0.2, 0.25]]),
                   np.float32([2.5e-4, 3e-4]), np.float32([1.28e-4, 1e-4]), np.float32([0.04, 0.05]))
     views = Views(np.float32([[0.0, 0.5, 0.8], [0.5, 0.0, 0.8]]), np.float32([[0.3, 0.3, 0.9]] * 2),
                   np.float32([1.0, 2.0]))
+    params = DesignParams.from_physical(s, np.asarray(views.intensity), board)
     disp = np.random.default_rng(1).random((2, 16, 16))
-    res = DesignResult(s, views, board, None, np.ones(2, bool), disp, disp, disp,
+    res = DesignResult(s, views, board, params, np.ones(2, bool), disp, disp, disp,
                        {"total": [2.0, 1.0], "terms": {"E_p": [2.0, 1.0]}},
                        {"ssim": [0.5, 0.6], "ghosting": [0.1, 0.2], "loss": float("nan")},
-                       DesignConfig(n_scratches=2))
-    io.write_outputs(res, tmp_path / "out", {"note": "x"})
+                       DesignConfig(n_scratches=2, groove="free"))
+    io.save_result(res, tmp_path / "out")
     d = designfile.load_design(tmp_path / "out" / "design.npz")
     np.testing.assert_allclose(d.p0, np.asarray(s.p0), rtol=1e-7)
     np.testing.assert_allclose(d.intensity, [1.0, 2.0])
+    assert d.plunge is None and d.machine["name"] == "paper"  # free grooves: no plunges recorded
     for f in ("design.svg", "view0_render.png", "view1_target.png", "comparison.png", "loss.png"):
         assert (tmp_path / "out" / f).stat().st_size > 0
-    assert json.loads((tmp_path / "out" / "metrics.json").read_text())["loss"] is None
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert metrics["loss"] is None and metrics["groove"] == "free" and "carving" in metrics
     cfg = json.loads((tmp_path / "out" / "config.json").read_text())
-    assert cfg["note"] == "x" and cfg["board"]["shape"] == [16, 16] and cfg["design"]["n_scratches"] == 2
+    assert cfg["board"]["shape"] == [16, 16] and cfg["design"]["n_scratches"] == 2
+    back = io.load_result(tmp_path / "out")
+    np.testing.assert_array_equal(back.scratches.p1, s.p1)
+    np.testing.assert_array_equal(back.display, disp)
+    np.testing.assert_array_equal(np.asarray(back.params.geom), np.asarray(params.geom))
+    assert back.history == res.history and back.config == res.config
