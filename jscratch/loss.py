@@ -781,7 +781,8 @@ def make_loss(config: LossConfig | None = None) -> Loss:
 
     **Arguments:**
 
-    - `config`: a ``LossConfig``; default ``LossConfig()`` (``E_p + LAMBDA_G E_g``, filter bank).
+    - `config`: a ``LossConfig``; default ``LossConfig()`` (``E_p + LAMBDA_G E_g + LAMBDA_X E_x``,
+      filter bank, the design's loss).
 
     **Returns:**
 

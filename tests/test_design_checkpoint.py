@@ -16,6 +16,7 @@ from jscratch.design.config import DesignConfig
 from jscratch.design.params import DesignParams
 from jscratch.design.solver import make_adam
 from jscratch.designfile import DesignError
+from jscratch.errors import DesignFileError
 from jscratch.scene import Board, Scratches, views_on_circle
 from jscratch.shading import half_vectors
 
@@ -63,7 +64,7 @@ def test_refusals(tmp_path):
     state = _state(30)
     cfg = DesignConfig(n_scratches=30)
     path = str(tmp_path / "ckpt.npz")
-    with pytest.raises(DesignError, match="no checkpoint at"):
+    with pytest.raises(DesignFileError, match="no checkpoint at"):
         load_checkpoint(path, state, cfg, "abc")
     save_checkpoint(path, state, cfg, "abc")
     with pytest.raises(DesignError, match="different target images"):

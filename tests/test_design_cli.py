@@ -140,10 +140,7 @@ def test_carvable_result_fabricates_as_carved(cli_run, tmp_path):
 ])
 def test_bad_options_one_line_nothing_written(tmp_path, capsys, argv, words):
     out = tmp_path / "out"
-    try:
-        code = cli.main([*argv, "--out", str(out), "--quiet"])
-    except SystemExit as e:  # argparse's refusals
-        code = e.code
+    code = cli.main([*argv, "--out", str(out), "--quiet"])
     err = capsys.readouterr().err
     assert code == 2
     assert err.startswith("error: ") and err.count("\n") == 1, err

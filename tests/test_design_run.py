@@ -19,7 +19,7 @@ from jscratch.design.run import pair_lists, rebin, setup
 from jscratch.designfile import DesignError
 from jscratch.scene import Board, Scratches, views_on_circle
 
-CFG = DesignConfig(n_scratches=60, iterations=1, seed=3)
+CFG = DesignConfig(n_scratches=60, iterations=1, seed=3, groove="free")  # widths as initialised
 
 
 def _inputs():
@@ -33,7 +33,7 @@ def test_design_refuses_bad_inputs(tmp_path):
     targets, views, board = _inputs()
     with pytest.raises(DesignError, match="config must be a DesignConfig, got dict"):
         design(targets, views, board, {"n_scratches": 5})
-    with pytest.raises(DesignError, match="views must be a jscratch.render.Views, got tuple"):
+    with pytest.raises(DesignError, match="views must be a jscratch.Views, got tuple"):
         design(targets, (views.camera, views.light), board, CFG)
     with pytest.raises(DesignError, match=r"targets are 16x16 px but the board's image shape is \(8, 8\)"):
         design(targets, views, Board(shape=(8, 8)), CFG)

@@ -15,6 +15,7 @@ from grbl_sim import GcodeError, check_line  # noqa: E402
 
 from jscratch import gcode  # noqa: E402
 from jscratch.designfile import demo_design  # noqa: E402
+from jscratch.errors import DesignFileError  # noqa: E402
 from jscratch.fabricate import MachineConfig, make_program, read_program, write_program  # noqa: E402
 
 
@@ -100,11 +101,11 @@ def test_check_program_lines_extents_and_refusals(small):
 def test_read_program_refuses_a_missing_or_mismatched_map(tmp_path, small):
     _, prog = small
     path = tmp_path / "p.gcode"
-    with pytest.raises(FileNotFoundError, match="does not exist"):
+    with pytest.raises(DesignFileError, match="does not exist"):
         gcode.read_program(path)
     map_path = gcode.write_program(prog, path)
     os.remove(map_path)
-    with pytest.raises(FileNotFoundError, match="line map .* does not exist"):
+    with pytest.raises(DesignFileError, match="line map .* does not exist"):
         gcode.read_program(path)
     gcode.write_program(prog, path)
     rows = open(map_path).read().splitlines()

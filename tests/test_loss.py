@@ -220,7 +220,8 @@ def test_float32_follows_input_and_agrees_with_float64():
     t64, i64 = _smooth(7), _smooth(8)
     w = jnp.asarray([1.0, loss_mod.LAMBDA_G])
     v64, g64 = _VG(jnp.asarray(i64), jnp.asarray(t64), w)
-    ref = float(loss_mod.make_loss()(jnp.asarray(i64), jnp.asarray(t64)))  # eager, the public path
+    no_x = loss_mod.LossConfig(lambda_x=0.0)  # E_p + LAMBDA_G E_g, as _VG computes
+    ref = float(loss_mod.make_loss(no_x)(jnp.asarray(i64), jnp.asarray(t64)))  # eager, public path
     assert float(v64) == pytest.approx(ref, rel=1e-12)
     v32, g32 = _VG(jnp.asarray(i64, jnp.float32), jnp.asarray(t64), w.astype(jnp.float32))
     assert v32.dtype == jnp.float32 and g32.dtype == jnp.float32
@@ -242,13 +243,17 @@ def test_make_loss_kinds_and_bind():
     loss_l2 = loss_mod.make_loss(loss_mod.LossConfig(kind="l2", lambda_p=2.0))
     assert float(loss_l2(i, t)) == pytest.approx(2.0 * float(l2), rel=1e-14)
     assert float(loss_l2.terms(i, t)["l2"]) == pytest.approx(float(l2), rel=1e-14)
-    loss_p = loss_mod.make_loss(loss_mod.LossConfig(kind="perceptual"))
+    loss_p = loss_mod.make_loss(loss_mod.LossConfig(kind="perceptual", lambda_x=0.0))
     assert loss_p.features is None
     assert float(loss_p(i, t)) == pytest.approx(float(ep), rel=1e-14)
-    loss = loss_mod.make_loss(loss_mod.LossConfig(lambda_g=3.0))
+    loss = loss_mod.make_loss(loss_mod.LossConfig(lambda_g=3.0, lambda_x=0.0))
     expected = float(ep) + 3.0 * float(eg)
     assert float(loss(i, t)) == pytest.approx(expected, rel=1e-13)
-    assert float(loss_mod.make_loss()(i, t)) == pytest.approx(float(ep) + loss_mod.LAMBDA_G * float(eg), 1e-13)
+    no_x = loss_mod.make_loss(loss_mod.LossConfig(lambda_x=0.0))
+    assert float(no_x(i, t)) == pytest.approx(float(ep) + loss_mod.LAMBDA_G * float(eg), 1e-13)
+    with_x = loss_mod.make_loss().terms(i, t)  # the default adds LAMBDA_X E_x
+    assert float(with_x["total"]) == pytest.approx(
+        float(ep) + loss_mod.LAMBDA_G * float(eg) + loss_mod.LAMBDA_X * float(with_x["E_x"]), 1e-12)
     assert float(loss_mod.total_loss(i, t, lambda_g=3.0)) == pytest.approx(expected, rel=1e-13)
     terms = loss.terms(i, t)
     assert set(terms) == {"total", "E_p", "E_g"}
@@ -359,7 +364,8 @@ def _np_gram(f):
 @pytest.mark.float64
 def test_vgg_features_loss_and_gradient_match_scipy(tiny_vgg_file):
     # One compilation: value_and_grad of the configured loss, with the features and terms as aux.
-    loss = loss_mod.make_loss(loss_mod.LossConfig(vgg_weights=str(tiny_vgg_file), lambda_g=0.5))
+    loss = loss_mod.make_loss(loss_mod.LossConfig(vgg_weights=str(tiny_vgg_file), lambda_g=0.5,
+                                                  lambda_x=0.0))
     assert isinstance(loss.features, loss_mod.VGG19Features)
 
     def f(r, t, loss):
@@ -489,7 +495,7 @@ def test_ghost_loss_zero_at_target_positive_for_ghost_and_descends():
 def test_lambda_x_in_loss_terms():
     t = jnp.asarray(_ghost_images())
     r = t.at[0].set(t[1])
-    plain = loss_mod.make_loss(loss_mod.LossConfig(kind="perceptual")).terms(r, t)
+    plain = loss_mod.make_loss(loss_mod.LossConfig(kind="perceptual", lambda_x=0.0)).terms(r, t)
     with_x = loss_mod.make_loss(loss_mod.LossConfig(kind="perceptual", lambda_x=0.1)).bind(t).terms(r)
     assert "E_x" not in plain and float(with_x["E_x"]) > 0
     assert float(with_x["total"]) == pytest.approx(float(plain["total"]) + 0.1 * float(with_x["E_x"]),
@@ -511,7 +517,8 @@ def test_ghost_baseline_zero_penalises_raw_cross_ssim():
     assert ref > 0.05  # the targets resemble each other: a perfect render is penalised too
     assert float(got["E_x"]) == pytest.approx(ref, rel=1e-4)
     assert float(got["total"]) == pytest.approx(0.1 * ref, rel=1e-4)  # E_p = 0 here
-    default = loss_mod.make_loss(loss_mod.LossConfig(kind="perceptual", lambda_x=0.1))
-    assert float(default.bind(t).terms(t)["E_x"]) == pytest.approx(0.0, abs=1e-12)
+    excess = loss_mod.make_loss(loss_mod.LossConfig(kind="perceptual", lambda_x=0.1,
+                                                    ghost_baseline="targets"))
+    assert float(excess.bind(t).terms(t)["E_x"]) == pytest.approx(0.0, abs=1e-12)
     with pytest.raises(ValueError, match="ghost_baseline"):
         loss_mod.LossConfig(ghost_baseline="none")

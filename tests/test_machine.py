@@ -53,7 +53,7 @@ def test_default_profile_printed_and_read_back(tmp_path, capsys):
     path = tmp_path / "default.toml"
     path.write_text(text)
     assert machine.load_machine(path) == machine.load_machine() == MachineProfile()
-    assert machine.main([str(tmp_path / "missing.toml")]) == 1
+    assert machine.main([str(tmp_path / "missing.toml")]) == 2
     assert "missing.toml" in capsys.readouterr().err
 
 

@@ -177,6 +177,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     printing a refusal as one line (`jscratch.errors.report`)."""
     try:
         return _run(argv)
+    except SystemExit as e:  # argparse: --help (0) or a refused option, already printed (2)
+        return e.code if isinstance(e.code, int) else 2
     except (JscratchError, OSError) as e:
         return report(e)
     except KeyboardInterrupt:
