@@ -21,7 +21,7 @@ SIZE = 32
 
 def _config(**kw):
     base = dict(n_scratches=300, iterations=6, cull_eps=0.0, checkpoint_every=2, prune_every=2,
-                prune_fraction=0.1, prune_until=1.0)
+                prune_fraction=0.1, prune_until=1.0, groove="free")  # re-seeded widths: init_width
     base.update(kw)
     return DesignConfig(**base)
 
