@@ -85,6 +85,17 @@ def test_config_file_under_given_options(cli_run):
     assert config.seed == 7 and config.n_scratches == 150 and scene.size == 24
 
 
+def test_config_file_without_a_scene_needs_scene_options(cli_run, tmp_path, capsys):
+    saved = json.loads((cli_run / "config.json").read_text())
+    saved["scene"] = None  # as save_result writes it for a design with views of its own
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps(saved))
+    assert cli.main(["--config", str(path), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    assert "has no scene" in capsys.readouterr().err and not (tmp_path / "o").exists()
+    _, scene, config = cli.configs(["--config", str(path), "--size", "24", "--views", "2"])
+    assert scene.size == 24 and config.n_scratches == 150
+
+
 def test_result_round_trip_and_rerender(cli_run):
     import jax.numpy as jnp
 
