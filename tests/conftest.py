@@ -67,3 +67,33 @@ def two_view_scene():
     targets, _ = default_targets(2, (32, 32))
     board = Board(shape=(32, 32))
     return targets, views_on_circle(2, math.radians(50), board=board), board
+
+
+@pytest.fixture(scope="session")
+def random_layout():
+    """``layout(rng, n, lo, hi) -> (mid (n, 2), u (n, 2))``: scratch midpoints uniform in
+    ``[lo, hi]^2`` (m) and unit directions of uniform angle, drawn in that order from `rng` (the
+    random scenes of the binning and culling tests)."""
+    import numpy as np
+
+    def layout(rng, n, lo, hi):
+        mid = rng.uniform(lo, hi, (n, 2))
+        ang = rng.uniform(0, 2 * np.pi, n)
+        return mid, np.stack([np.cos(ang), np.sin(ang)], -1)
+
+    return layout
+
+
+@pytest.fixture(scope="session")
+def smooth_images():
+    """``images(m, h, w, seed) -> (m, h, w)``: smooth random images in [0, 1] (float64 numpy;
+    a Gaussian blur of uniform noise, stretched to the full range), for the SSIM and ghosting
+    tests."""
+    import numpy as np
+    from skimage.filters import gaussian
+
+    def images(m=3, h=24, w=20, seed=0):
+        base = gaussian(np.random.default_rng(seed).uniform(size=(m, h, w)), sigma=(0, 1.5, 1.5))
+        return (base - base.min()) / (base.max() - base.min())
+
+    return images

@@ -77,13 +77,11 @@ def half_vectors(board, shape, camera, light):
 
 
 
-def test_cull_ratio_is_a_tight_bound_of_the_point_ndf():
+def test_cull_ratio_is_a_tight_bound_of_the_point_ndf(random_layout):
     # rho * (1 / (pi alpha^2)) bounds D_x over the whole groove, and is attained by it.
     rng = np.random.default_rng(2)
     n = 64
-    mid = rng.uniform(0.05, 0.25, (n, 2))
-    ang = rng.uniform(0, 2 * np.pi, n)
-    u = np.stack([np.cos(ang), np.sin(ang)], -1)
+    mid, u = random_layout(rng, n, 0.05, 0.25)
     p0, p1 = mid - 0.01 * u, mid + 0.01 * u
     width = rng.uniform(1e-4, 5e-4, n)
     depth = width * rng.uniform(0.05, 2.0, n)
@@ -109,13 +107,12 @@ def test_cull_ratio_is_a_tight_bound_of_the_point_ndf():
 
 
 
-def test_cull_keeps_all_at_zero_and_obeys_the_error_bound():
+def test_cull_keeps_all_at_zero_and_obeys_the_error_bound(random_layout):
     board, shape = BOARD, (32, 32)
     rng = np.random.default_rng(9)
     n = 300
-    mid = rng.uniform(0, 1, (n, 2)) * board
-    ang = rng.uniform(0, 2 * np.pi, n)
-    half = 0.5 * rng.uniform(0.005, 0.025, n)[:, None] * np.stack([np.cos(ang), np.sin(ang)], -1)
+    mid, u = random_layout(rng, n, 0.0, 0.3)
+    half = 0.5 * rng.uniform(0.005, 0.025, n)[:, None] * u
     p0, p1 = np.clip(mid - half, 0, 0.3), np.clip(mid + half, 0, 0.3)
     width = np.full(n, 2.5e-3)  # wide grooves: more of the arc inside each pixel
     depth = rng.uniform(2e-4, 1.5e-3, n)
@@ -157,7 +154,7 @@ def test_cull_keeps_all_at_zero_and_obeys_the_error_bound():
 
 
 
-def test_cull_error_bound_with_the_ndf_kernel():
+def test_cull_error_bound_with_the_ndf_kernel(random_layout):
     # The rendered path: per-pixel D sums of jscratch.ndf.pair_integral over the unculled and the
     # culled list (grooves of docs/model.md §5, narrower than a pixel), float64.
     from jscratch import ndf
@@ -165,9 +162,8 @@ def test_cull_error_bound_with_the_ndf_kernel():
     board, shape = BOARD, (48, 48)
     rng = np.random.default_rng(21)
     n = 400
-    mid = rng.uniform(0, 1, (n, 2)) * board
-    ang = rng.uniform(0, 2 * np.pi, n)
-    half = 0.5 * rng.uniform(0.005, 0.025, n)[:, None] * np.stack([np.cos(ang), np.sin(ang)], -1)
+    mid, u = random_layout(rng, n, 0.0, 0.3)
+    half = 0.5 * rng.uniform(0.005, 0.025, n)[:, None] * u
     p0, p1 = np.clip(mid - half, 0, 0.3), np.clip(mid + half, 0, 0.3)
     width, depth = np.full(n, 2.5e-4), np.full(n, 1.28e-4)
     alpha = rng.uniform(0.02, 0.1, n)

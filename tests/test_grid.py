@@ -275,13 +275,11 @@ def test_brute_force_reference_agrees_with_polygon_clipping():
 
 
 @pytest.mark.float64
-def test_overflow_flag_in_jit_and_driver_regrows():
+def test_overflow_flag_in_jit_and_driver_regrows(random_layout):
     board, shape = BOARD, (64, 64)
     rng = np.random.default_rng(11)
     n = 200
-    mid = rng.uniform(0.05, 0.25, (n, 2))
-    ang = rng.uniform(0, 2 * np.pi, n)
-    u = np.stack([np.cos(ang), np.sin(ang)], -1)
+    mid, u = random_layout(rng, n, 0.05, 0.25)
     short = (mid - 0.002 * u, mid + 0.002 * u)
     long_ = (mid - 0.04 * u, mid + 0.04 * u)
     width, depth = np.full(n, 2.5e-4), np.full(n, 1.28e-4)
@@ -309,13 +307,11 @@ def test_overflow_flag_in_jit_and_driver_regrows():
 
 
 @pytest.mark.float64
-def test_needs_rebin_and_maybe_update():
+def test_needs_rebin_and_maybe_update(random_layout):
     board, shape = BOARD, (64, 64)
     rng = np.random.default_rng(5)
     n = 120
-    mid = rng.uniform(0.03, 0.27, (n, 2))
-    ang = rng.uniform(0, 2 * np.pi, n)
-    u = np.stack([np.cos(ang), np.sin(ang)], -1)
+    mid, u = random_layout(rng, n, 0.03, 0.27)
     p0, p1 = mid - 0.006 * u, mid + 0.006 * u
     p1[0] = p0[0]  # a zero-length scratch
     width, depth = np.full(n, 2.5e-4), np.full(n, 1.28e-4)

@@ -13,7 +13,6 @@ import numpy as np
 import pytest
 import scipy.ndimage
 import scipy.signal
-from skimage.filters import gaussian
 from skimage.metrics import structural_similarity
 
 from jscratch import loss as loss_mod
@@ -464,17 +463,9 @@ def test_converter_maps_torchvision_keys(tmp_path):
 # ----------------------------------------------------------------------------------------------
 # The ghosting term E_x
 
-
-def _ghost_images(m=3, h=24, w=20, seed=0):
-    """Smooth random images in [0, 1], ``(m, h, w)`` float64 numpy."""
-    r = np.random.default_rng(seed)
-    base = gaussian(r.uniform(size=(m, h, w)), sigma=(0, 1.5, 1.5))
-    return (base - base.min()) / (base.max() - base.min())
-
-
 @pytest.mark.float64
-def test_ghost_loss_zero_at_target_positive_for_ghost_and_descends():
-    t = jnp.asarray(_ghost_images())
+def test_ghost_loss_zero_at_target_positive_for_ghost_and_descends(smooth_images):
+    t = jnp.asarray(smooth_images())
     assert float(loss_mod.ghost_loss(t, t)) == pytest.approx(0.0, abs=1e-12)
     # view 0 shows a mix of its target and view 1's: a ghost
     ghost = t.at[0].set(0.5 * t[0] + 0.5 * t[1])
@@ -492,8 +483,8 @@ def test_ghost_loss_zero_at_target_positive_for_ghost_and_descends():
 
 
 @pytest.mark.float64
-def test_lambda_x_in_loss_terms():
-    t = jnp.asarray(_ghost_images())
+def test_lambda_x_in_loss_terms(smooth_images):
+    t = jnp.asarray(smooth_images())
     r = t.at[0].set(t[1])
     plain = loss_mod.make_loss(loss_mod.LossConfig(kind="perceptual", lambda_x=0.0)).terms(r, t)
     with_x = loss_mod.make_loss(loss_mod.LossConfig(kind="perceptual", lambda_x=0.1)).bind(t).terms(r)
@@ -506,8 +497,8 @@ def test_lambda_x_in_loss_terms():
 
 
 @pytest.mark.float64
-def test_ghost_baseline_zero_penalises_raw_cross_ssim():
-    t = jnp.asarray(_ghost_images())
+def test_ghost_baseline_zero_penalises_raw_cross_ssim(smooth_images):
+    t = jnp.asarray(smooth_images())
     cfg = loss_mod.LossConfig(kind="perceptual", lambda_x=0.1, ghost_baseline="zero")
     got = loss_mod.make_loss(cfg).bind(t).terms(t)
     # independent: scikit-image SSIM of every (render j, target k != j) pair of the blurred images

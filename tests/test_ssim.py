@@ -6,29 +6,21 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from skimage.filters import gaussian
 from skimage.metrics import structural_similarity
 
 from jscratch.ssim import ssim_mean
 
-
-def _images(m=3, h=24, w=20, seed=0):
-    r = np.random.default_rng(seed)
-    base = gaussian(r.uniform(size=(m, h, w)), sigma=(0, 1.5, 1.5))
-    return (base - base.min()) / (base.max() - base.min())
-
-
 @pytest.mark.float64
-def test_ssim_mean_matches_skimage():
-    x, y = _images(2, seed=1)
+def test_ssim_mean_matches_skimage(smooth_images):
+    x, y = smooth_images(2, seed=1)
     for a, b in ((x, y), (x, 0.3 * x + 0.2), (y, y)):
         ref = structural_similarity(a, b, data_range=1.0)
         got = float(ssim_mean(jnp.asarray(a), jnp.asarray(b)))
         assert got == pytest.approx(ref, abs=1e-10)
 
 
-def test_ssim_mean_float32_and_batched():
-    x, y = _images(3, seed=2), _images(3, seed=3)
+def test_ssim_mean_float32_and_batched(smooth_images):
+    x, y = smooth_images(3, seed=2), smooth_images(3, seed=3)
     got = ssim_mean(jnp.asarray(x, jnp.float32), jnp.asarray(y, jnp.float32))
     assert got.shape == (3,) and got.dtype == jnp.float32
     ref = [structural_similarity(a, b, data_range=1.0) for a, b in zip(x, y)]
@@ -38,8 +30,8 @@ def test_ssim_mean_float32_and_batched():
 
 
 @pytest.mark.float64
-def test_ssim_mean_gradient_matches_finite_differences():
-    x, y = (jnp.asarray(a[0]) for a in (_images(1, 12, 11, seed=4), _images(1, 12, 11, seed=5)))
+def test_ssim_mean_gradient_matches_finite_differences(smooth_images):
+    x, y = (jnp.asarray(smooth_images(1, 12, 11, seed=k)[0]) for k in (4, 5))
     g = np.asarray(jax.grad(lambda a: ssim_mean(a, y))(x))
     rng = np.random.default_rng(6)
     for _ in range(3):
