@@ -111,7 +111,7 @@ def test_carvable_bounds_never_violated_during_optimisation(lr, start, seed):
     o_ = opt.init(p_)
     moved = 0.0
     for _ in range(3):
-        new, o_, terms, _, _, _ = step(p_, o_, pairs, ctx, opt)
+        new, o_, terms, *_ = step(p_, o_, pairs, ctx, opt)
         pl = np.asarray(new.plunge(), np.float64)
         s = new.scratches()
         assert np.all((pl >= 1e-5 * (1 - 1e-6)) & (pl <= 8e-5 * (1 + 1e-6)))

@@ -49,9 +49,10 @@ def optimised(two_view_scene):
     warm.join()
     p, o, lists = st.params, st.opt_state, st.lists
     for _ in range(cfg.iterations):
-        p, o, _, must_rebin, *_ = solver.step(p, o, lists, ctx, opt)
-        if bool(must_rebin):
-            lists = rebin(lists, p, ctx)
+        p_old, lists_old = p, lists
+        p, o, _, lists, *_ = solver.step(p, o, lists, ctx, opt)
+        if bool(lists.shared.overflow):
+            lists = rebin(lists_old, p, ctx)
     rad, terms, _ = solver.evaluate(p, lists, jnp.ones((N,), bool), ctx)
     return targets, views, board, p, lists, ctx, rad, terms
 

@@ -45,3 +45,49 @@ def test_schedule_config_and_cli(capsys):
     for opt in ("--lr-schedule", "--lr-final", "--target-ssim", "--prune-every", "--lambda-x"):
         assert opt in out
     assert "default: constant" in out and "default: 0.1" in out
+
+
+def _kept(p):
+    v = np.asarray(p.valid)
+    return sorted(zip(np.asarray(p.pixel)[v].tolist(), np.asarray(p.scratch)[v].tolist()))
+
+
+@pytest.mark.parametrize("skin", [0.0, 2e-3])
+def test_step_rebuilds_the_shared_list_only_when_a_groove_left_its_envelope(skin):
+    """The pair list the step returns for the new parameters is the one `bvh.build_pairs` bins
+    for them (at the same capacities) whenever `bvh.needs_rebin` says the old one may miss a
+    pair, and the old list itself (no binning) otherwise; with a skin most steps keep it."""
+    import math
+
+    from jscratch import bvh
+    from jscratch.design.run import initial_state, setup
+    from jscratch.scene import Board, views_on_circle
+
+    board = Board(shape=(16, 16))
+    views = views_on_circle(2, math.radians(50), board=board)
+    targets = np.random.default_rng(0).random((2, 16, 16))
+    cfg = DesignConfig(n_scratches=60, iterations=6, seed=3, groove="free", skin=skin,
+                       lr_endpoints=3e-3)
+    params, opt, ctx = setup(targets, views, board, cfg)
+    state, warm = initial_state(params, opt, ctx, targets, cfg)
+    warm.join()
+    p, o, lists = state.params, state.opt_state, state.lists
+    flags = []
+    for _ in range(cfg.iterations):
+        new, o, _, new_lists, rebinned, *_ = solver.step(p, o, lists, ctx, opt)
+        s = new.scratches()
+        needed = bool(bvh.needs_rebin(lists.shared, s.p0, s.p1, s.width, s.depth))
+        assert bool(rebinned) == needed and not bool(new_lists.shared.overflow)
+        if needed:
+            ref, _ = bvh.build_pairs(s.p0, s.p1, s.width, s.depth, board=(board.Sx, board.Sy),
+                                     shape=board.shape, spec=lists.spec)
+            assert _kept(new_lists.shared) == _kept(ref)
+            np.testing.assert_array_equal(np.asarray(new_lists.shared.bin_p0), np.asarray(s.p0))
+        else:
+            for f in ("pixel", "scratch", "valid", "bin_p0", "bin_p1"):
+                np.testing.assert_array_equal(np.asarray(getattr(new_lists.shared, f)),
+                                              np.asarray(getattr(lists.shared, f)))
+        flags.append(needed)
+        p, lists = new, new_lists
+    # without a skin every moving step rebuilds; a skin of ~2 px outlasts several steps
+    assert all(flags) if skin == 0 else (0 < flags.count(False))

@@ -253,7 +253,7 @@ def _iterate(state, optimizer, ctx, config, n_iter, checkpoint, thash, progress)
             if prune_mod.due(state.iteration, config) and not any(
                     r[0] == state.iteration for r in state.history.get("prune", [])):
                 state = _prune(state, ctx, config)
-            new, opt_state, terms, must_rebin, counts, health = step(
+            new, opt_state, terms, new_lists, rebinned, counts, health = step(
                 state.params, state.opt_state, state.lists, ctx, optimizer)
             counts = np.asarray(counts)
             if state.lists.culled and np.any(counts > np.asarray(state.lists.caps)):
@@ -265,10 +265,9 @@ def _iterate(state, optimizer, ctx, config, n_iter, checkpoint, thash, progress)
             for k, v in terms.items():
                 if k != "total":
                     hist["terms"].setdefault(k, []).append(float(v))
-            lists, rebins = state.lists, state.rebins
-            if bool(must_rebin):
-                lists = rebin(lists, new, ctx)
-                rebins += 1
+            lists, rebins = new_lists, state.rebins + int(rebinned)
+            if bool(lists.shared.overflow):  # rebuilt in the step, but the capacities were short
+                lists = rebin(state.lists, new, ctx)
             state = State(state.iteration + 1, new, opt_state, lists, hist, rebins)
             step_times.append(time.perf_counter() - t0)
             if bar is not None:

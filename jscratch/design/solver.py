@@ -125,9 +125,16 @@ def _jitted_step():
 
 
 def _step_impl(params: DesignParams, opt_state, lists: bvh.PairLists, ctx: Context, adam):
-    """One Adam iteration (`make_adam`, then ``-lr`` per group). Returns the new state, the loss
-    terms at ``params``, whether the shared pair list must be rebuilt for the new parameters, the
-    per-list counts (to detect capacity overflow) and the health report."""
+    """One Adam iteration (`make_adam`, then ``-lr`` per group). Returns the new parameters and
+    Adam state, the loss terms at ``params``, the pair lists for the new parameters, whether their
+    shared list was rebuilt, the per-list counts (to detect capacity overflow) and the health
+    report.
+
+    The shared list is rebuilt inside the step, only when a groove left the envelope it was binned
+    with (`bvh.needs_rebin`, then `grid.update` at the same capacities under a `lax.cond`): no
+    host round trip, and a step that needs no rebuild does no binning. When the rebuilt list
+    overflows its capacities (``lists.shared.overflow``), the host rebuilds it with larger ones
+    (`bvh.rebin_lists`)."""
     culled = view_lists(params, lists, ctx)
 
     def f(p):
@@ -146,9 +153,13 @@ def _step_impl(params: DesignParams, opt_state, lists: bvh.PairLists, ctx: Conte
     ok = lambda x: jnp.isfinite(x) & (x > 0)
     p0 = jnp.where(jnp.isfinite(s.p0), s.p0, 0)
     p1 = jnp.where(jnp.isfinite(s.p1), s.p1, 0)
-    rebin = bvh.needs_rebin(lists.shared, p0, p1, jnp.where(ok(s.width), s.width, 1e-4),
-                            jnp.where(ok(s.depth), s.depth, 1e-4))
-    return new, opt_state, terms, rebin, culled.counts, _health(value, grads, new)
+    w = jnp.where(ok(s.width), s.width, 1e-4)
+    d = jnp.where(ok(s.depth), s.depth, 1e-4)
+    rebin = bvh.needs_rebin(lists.shared, p0, p1, w, d)
+    shared = jax.lax.cond(rebin, lambda: bvh.update(lists.spec, p0, p1, w, d),
+                          lambda: lists.shared)
+    new_lists = dataclasses.replace(lists, shared=shared, views=None, coverage=None)
+    return new, opt_state, terms, new_lists, rebin, culled.counts, _health(value, grads, new)
 
 
 @eqx.filter_jit
