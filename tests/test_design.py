@@ -57,6 +57,13 @@ def test_cli_end_to_end_resume_and_nan(tmp_path, capsys):
     for key in ("ssim", "psnr", "ghosting", "time_total", "pairs_per_view", "discarded", "loss"):
         assert key in metrics
     assert len(metrics["ssim"]) == 2 and metrics["iterations"] == 4
+    # the pair counts and the time per part: every step evaluates each view's pairs
+    assert metrics["pair_views_evaluated"] == 4 * 2 * metrics["pairs_total"] > 0 or (
+        metrics["rebins"] > 0 and metrics["pair_views_evaluated"] > 0)
+    assert metrics["pairs_total"] <= metrics["pair_capacity"]
+    assert set(metrics["time_parts"]) == {"setup", "initial_state", "steps", "prune",
+                                          "rebuild_overflow", "checkpoint", "finish"}
+    assert sum(metrics["time_parts"].values()) <= metrics["time_total"]
     meta_full, ck_full = _ckpt(full / "checkpoint.npz")
     hist = meta_full["history"]["total"]
     assert len(hist) == 4 and hist[-1] < hist[0]  # the optimiser decreases the loss

@@ -29,11 +29,15 @@ class DesignResult:
       iteration started from).
     - `metrics`: docs/model.md §7 metrics (`metrics.image_metrics`) plus ``loss``,
       ``loss_before_discard``, ``metrics_before_discard`` (the same metrics with every scratch),
-      ``discarded``, ``kept``, ``pairs_total``, ``pairs_per_view``, ``coverage_pairs`` (pairs in
-      the coverage pass after `cull.cull_coverage`), ``rebins``,
+      ``discarded``, ``kept``, ``pairs_total`` (pairs binned in the final shared list),
+      ``pair_capacity`` (its slots), ``pairs_per_view``, ``coverage_pairs`` (pairs in the
+      coverage pass after `cull.cull_coverage`), ``pair_views_evaluated`` (summed over the
+      steps), ``rebins`` (rebuilds of the shared list: in the steps and at prune rounds),
       timing (s): ``time_total``, ``time_first_step`` (the first step's wall time; the step is
       compiled meanwhile on a second thread, whose wall time is ``time_compile_step``),
-      ``time_step_median``, ``time_discard``; ``kernel``: which pair kernel ran
+      ``time_step_median``, ``time_discard``, ``time_parts`` (``setup``, ``initial_state``,
+      ``steps``, ``prune``, ``rebuild_overflow``, ``checkpoint``, ``finish``: the final render,
+      discard and metrics); ``kernel``: which pair kernel ran
       (`jscratch.native.status`). `jscratch.design.io.save_result` adds the machine, the groove
       mode, the carving estimate and (optionally) the as-carved SSIM.
     - `config`: the `DesignConfig`.

@@ -74,12 +74,15 @@ def design(
     saving the last good state to `checkpoint`).
     """
     t_start = time.perf_counter()
+    parts = {}  # wall time per part of the run (s): `metrics["time_parts"]`
     native.prepare()  # the native kernel builds (first run only) while the setup goes on
     config = DesignConfig() if config is None else config
     tnp, views, board = check_inputs(targets, views, board, config, checkpoint, resume)
     checkpoint = None if checkpoint is None else os.fspath(checkpoint)
     thash = targets_hash(tnp)
     params, optimizer, ctx = setup(tnp, views, board, config)
+    t = time.perf_counter()
+    parts["setup"] = t - t_start
     warm = None
     if resume:
         like = State(0, params, optimizer.init(params), None, {}, 0)
@@ -90,15 +93,22 @@ def design(
     if warm is not None:
         warm.join()
         compile_seconds = warm.seconds
+    parts["initial_state"] = time.perf_counter() - t
     n_iter = config.iterations if stop_after is None else min(config.iterations, stop_after)
-    state, step_times = _iterate(state, optimizer, ctx, config, n_iter, checkpoint, thash, progress)
+    state, step_times, loop = _iterate(state, optimizer, ctx, config, n_iter, checkpoint, thash,
+                                       progress)
+    parts.update(loop)
+    t = time.perf_counter()
     result = _finish(state, ctx, tnp, config, discard_now=(
         config.discard or config.target_ssim is not None) and stop_after is None)
+    parts["finish"] = time.perf_counter() - t
+    result.metrics["pair_views_evaluated"] = loop.pop("pair_views")
     result.metrics.update({
         "time_total": time.perf_counter() - t_start,
         "time_first_step": step_times[0] if step_times else None,
         "time_step_median": float(np.median(step_times[1:])) if len(step_times) > 1 else None,
         "time_compile_step": compile_seconds,
+        "time_parts": {k: v for k, v in parts.items() if k != "pair_views"},
         "kernel": native.status(),
     })
     return result
@@ -239,8 +249,14 @@ def _check_health(health, state, config, checkpoint, thash):
 
 def _iterate(state, optimizer, ctx, config, n_iter, checkpoint, thash, progress):
     """Run `step` until ``n_iter``: capacity retries, health checks, history, rebinning,
-    progress bar and checkpoints. Returns the final state and the per-step wall times."""
+    progress bar and checkpoints. Returns the final state, the per-step wall times and the loop's
+    parts: wall time (s) in the steps (``steps``), the prune rounds (``prune``), host rebuilds
+    after an overflow (``rebuild_overflow``) and checkpoints (``checkpoint``), and the pair-views
+    the steps evaluated (``pair_views``)."""
     step_times: list[float] = []
+    parts = {"steps": 0.0, "prune": 0.0, "rebuild_overflow": 0.0, "checkpoint": 0.0,
+             "pair_views": 0}
+    m = ctx.hs.shape[0]
     bar = None
     if progress:
         from tqdm.auto import tqdm
@@ -253,9 +269,12 @@ def _iterate(state, optimizer, ctx, config, n_iter, checkpoint, thash, progress)
             if prune_mod.due(state.iteration, config) and not any(
                     r[0] == state.iteration for r in state.history.get("prune", [])):
                 state = _prune(state, ctx, config)
+                parts["prune"] += time.perf_counter() - t0
+            t1 = time.perf_counter()
             new, opt_state, terms, new_lists, rebinned, counts, health = step(
                 state.params, state.opt_state, state.lists, ctx, optimizer)
             counts = np.asarray(counts)
+            parts["steps"] += time.perf_counter() - t1
             if state.lists.culled and np.any(counts > np.asarray(state.lists.caps)):
                 state = dataclasses.replace(state, lists=bvh.grow_lists(state.lists, counts))
                 continue  # retry the same iteration with larger per-view lists
@@ -265,9 +284,12 @@ def _iterate(state, optimizer, ctx, config, n_iter, checkpoint, thash, progress)
             for k, v in terms.items():
                 if k != "total":
                     hist["terms"].setdefault(k, []).append(float(v))
+            parts["pair_views"] += int(counts[:m].sum())
             lists, rebins = new_lists, state.rebins + int(rebinned)
             if bool(lists.shared.overflow):  # rebuilt in the step, but the capacities were short
+                t1 = time.perf_counter()
                 lists = rebin(state.lists, new, ctx)
+                parts["rebuild_overflow"] += time.perf_counter() - t1
             state = State(state.iteration + 1, new, opt_state, lists, hist, rebins)
             step_times.append(time.perf_counter() - t0)
             if bar is not None:
@@ -275,11 +297,13 @@ def _iterate(state, optimizer, ctx, config, n_iter, checkpoint, thash, progress)
                 bar.update(1)
             if checkpoint is not None and (state.iteration % config.checkpoint_every == 0
                                            or state.iteration == n_iter):
+                t1 = time.perf_counter()
                 save_checkpoint(checkpoint, state, config, thash)
+                parts["checkpoint"] += time.perf_counter() - t1
     finally:
         if bar is not None:
             bar.close()
-    return state, step_times
+    return state, step_times, parts
 
 
 def _prune(state, ctx, config):
@@ -330,6 +354,7 @@ def _finish(state, ctx, tnp, config, *, discard_now: bool) -> DesignResult:
         "discarded": int((~keep).sum()),
         "kept": int(keep.sum()),
         "pairs_total": int(np.asarray(lists.shared.valid).sum()),
+        "pair_capacity": int(lists.shared.valid.shape[0]),
         "pairs_per_view": [int(c) for c in np.asarray(counts)[:m]],
         "coverage_pairs": (int(np.asarray(counts)[m]) if len(counts) > m
                            else int(np.asarray(lists.shared.valid).sum())),
