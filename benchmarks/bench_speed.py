@@ -1,7 +1,8 @@
 """The pair kernel, the renderer and the design step against an earlier commit, in one run on the
 same pairs: how much faster (or slower) the working tree is than a given commit.
 
-    python benchmarks/bench_speed.py [--base 57360a2] [--sections kernel render design]
+    python benchmarks/bench_speed.py [--base b8f83e0] [--sections kernel render design]
+                                     [--iterations 12] [--design-args "--groove free"]
                                      [--out benchmarks/results/speed]
 
 The base commit's package is exported with `git archive` into a temporary folder; each
@@ -17,8 +18,9 @@ in a file, so both codes see the same pairs.
   `render.grad_compiler_options`), XLA cost-analysis flops and bytes per pair-view.
 - ``render``: `render.render_pairs` on the default scene (20,000 scratches, 256x256, views on a
   circle at 50 degrees, unculled `bin_pairs` list): forward and value + VJP, ns per pair-view.
-- ``design``: ``python -m jscratch.design --iterations 6 --no-discard`` (default scene, free
-  grooves for both codes): median step and first step (compilation included).
+- ``design``: ``python -m jscratch.design --iterations N --no-discard`` (the command line's
+  defaults, plus ``--design-args`` for both codes): median step, first step, the loss after N
+  iterations and the shared list's rebuilds.
 
 Medians of repeated `block_until_ready` runs after a warm-up, compile time apart. Writes
 ``speed.json`` and ``speed.md`` to ``--out`` and prints the Markdown.
@@ -122,17 +124,19 @@ def worker_render(repeats: int) -> dict:
 def worker_design(iterations: int) -> dict:
     from jscratch import design  # in this process: the code this worker's PYTHONPATH selects
 
-    # The same scene for both codes: free grooves (the base predates `--groove`, whose default
-    # became `carvable`; its parser refuses the option, and then it runs without).
+    # The same scene for both codes: the command line's defaults (a base older than `--groove`
+    # ran free grooves by default: pass `--design-args "--groove free"` to compare like with like).
     with tempfile.TemporaryDirectory() as out:
         args = ["--iterations", str(iterations), "--no-discard", "--quiet", "--out", out]
+        extra = os.environ.get("JSCRATCH_BENCH_DESIGN_ARGS", "").split()
         try:
-            design.main(args + ["--groove", "free"])
-        except SystemExit:
-            design.main(args)
+            design.main(args + extra)
+        except SystemExit as e:
+            if e.code not in (0, None):
+                raise
         m = json.loads(Path(out, "metrics.json").read_text())
     return {"step_median_s": m["time_step_median"], "first_step_s": m["time_first_step"],
-            "loss": m["loss"]}
+            "loss": m["loss"], "rebins": m.get("rebins")}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -207,18 +211,24 @@ def _markdown(res: dict) -> str:
         lines.append("")
     if "design" in res:
         b, c = res["design"]["base"], res["design"]["current"]
-        lines += ["| default design, 6 iterations | base | now | speed-up |", "|---|---|---|---|",
+        it = res["design"]["iterations"]
+        lines += [f"| default design{res['design']['args']}, {it} iterations | base | now |"
+                  " speed-up |", "|---|---|---|---|",
                   f"| median step (s) | {b['step_median_s']:.2f} | {c['step_median_s']:.2f} |"
                   f" {_ratio(b['step_median_s'], c['step_median_s'])} |",
                   f"| first step (s) | {b['first_step_s']:.2f} | {c['first_step_s']:.2f} |"
                   f" {_ratio(b['first_step_s'], c['first_step_s'])} |",
-                  f"| loss after 6 iterations | {b['loss']:.6g} | {c['loss']:.6g} | |", ""]
+                  f"| loss after {it} iterations | {b['loss']!r} | {c['loss']!r} | |",
+                  f"| shared-list rebuilds | {b.get('rebins')} | {c.get('rebins')} | |", ""]
     return "\n".join(lines)
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--base", default="57360a2", help="commit to compare with (default 57360a2)")
+    ap.add_argument("--base", default="b8f83e0", help="commit to compare with (default b8f83e0)")
+    ap.add_argument("--iterations", type=int, default=12, help="design section: iterations")
+    ap.add_argument("--design-args", default="",
+                    help='design section: extra options for both codes, e.g. "--groove free"')
     ap.add_argument("--sections", nargs="+", default=["kernel", "render", "design"],
                     choices=["kernel", "render", "design"])
     ap.add_argument("--repeats", type=int, default=7, help="timed runs per measurement")
@@ -230,7 +240,7 @@ def main(argv=None) -> int:
         what, *rest = a.worker
         res = {"kernel": lambda: worker_kernel(rest[0], a.repeats),
                "render": lambda: worker_render(max(3, a.repeats // 2)),
-               "design": lambda: worker_design(6)}[what]()
+               "design": lambda: worker_design(a.iterations)}[what]()
         import jscratch
 
         res["code"] = os.path.dirname(jscratch.__file__)  # which package was measured
@@ -250,11 +260,16 @@ def main(argv=None) -> int:
         codes = {"base": tmp, "current": None}
         for section in a.sections:
             args = {"kernel": ["kernel", str(inputs)], "render": ["render"],
-                    "design": ["design"]}[section] + ["--repeats", str(a.repeats)]
+                    "design": ["design", "--iterations", str(a.iterations)]}[section] + [
+                "--repeats", str(a.repeats)]
+            os.environ["JSCRATCH_BENCH_DESIGN_ARGS"] = a.design_args
             res[section] = {}
             for name, code in codes.items():
                 print(f"{section}: {name} ...", file=sys.stderr, flush=True)
                 res[section][name] = _run_worker(code, args)
+            if section == "design":
+                res["design"].update(iterations=a.iterations,
+                                     args=f" `{a.design_args}`" if a.design_args else "")
     res["load_after"] = " ".join(f"{x:.2f}" for x in os.getloadavg())
     md = _markdown(json.loads(json.dumps(res)))
     (out / "speed.json").write_text(json.dumps(res, indent=1))
