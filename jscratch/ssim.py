@@ -25,8 +25,11 @@ def ssim_mean(x: Float[Array, "... H W"], y: Float[Array, "... H W"]) -> Float[A
     n = w * w
 
     def mean(a):
-        dims = (1,) * (a.ndim - 2) + (w, w)
-        return jax.lax.reduce_window(a, 0.0, jax.lax.add, dims, (1,) * a.ndim, "VALID") / n
+        # The 7x7 box sum as a 7-row sum then a 7-column sum: 14 adds per pixel, not 49 (a
+        # different order of the same float sums).
+        ones, lead = (1,) * a.ndim, (1,) * (a.ndim - 2)
+        a = jax.lax.reduce_window(a, 0.0, jax.lax.add, lead + (w, 1), ones, "VALID")
+        return jax.lax.reduce_window(a, 0.0, jax.lax.add, lead + (1, w), ones, "VALID") / n
 
     mx, my = mean(x), mean(y)
     cn = n / (n - 1)
