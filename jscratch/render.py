@@ -73,7 +73,7 @@ import numpy as np
 from jax.sharding import PartitionSpec
 from jaxtyping import Array, Float
 
-from jscratch import ndf
+from jscratch import lobe, native, ndf
 from jscratch.bvh import DEFAULT_CHUNK, bin_pairs, cull_pairs, pixels_per_shard
 from jscratch.errors import InputError
 from jscratch.scene import (
@@ -214,6 +214,22 @@ def _chunk_lit(pieces: int, geometry, valid, a, h):
     return jnp.where(valid[None], D, jnp.zeros((), dt))
 
 
+def _native(dtype) -> bool:
+    """Whether a chunk is evaluated by the native whole-pair kernel (`native.pair_values`,
+    `native.pair_vjp`) rather than by `_chunk_geometry` and `_chunk_lit`."""
+    return native.available(dtype)
+
+
+def _chunk_native(cfg: _Cfg, xe, ye, pix, valid, p0, p1, w, d, a, h):
+    """The native kernel's inputs for a chunk: the footprints ``(chunk, 4, 2)``, the gathered
+    parameters, `valid` and the half vectors ``(V, chunk, 3)`` (none where ``D`` is not needed);
+    the kernel gives padding slots exact zeros."""
+    footprints = jax.vmap(functools.partial(_footprint, cfg, xe, ye))(pix)
+    if not cfg.need_D:  # no view to integrate
+        h = h[:0]
+    return footprints, p0, p1, w, d, a, valid, h
+
+
 def _budgets(fn):
     """`lax.switch` branches: ``fn(pieces, ...)`` for each of `PIECE_BUDGETS`."""
     return [functools.partial(fn, k) for k in PIECE_BUDGETS]
@@ -253,6 +269,14 @@ def _fwd_local(cfg: _Cfg, params, h_loc, out, scr, valid):
         oc, sc, vc = xs
         pix, local = _split_index(cfg, oc)
         p0, p1, w, d, a, h = _gather(params, h_rows, sc, local)
+        if _native(dt):
+            D, A = native.pair_values(lobe.nodes(dt), *_chunk_native(cfg, xe, ye, pix, vc, p0, p1,
+                                                                   w, d, a, h))
+            if cfg.need_D:
+                Ds = Ds.at[:, local].add(D, mode="drop")
+            if cfg.need_A:
+                As = As.at[local].add(A, mode="drop")
+            return Ds, As
         geometry, budget = _chunk_geometry(cfg, xe, ye, pix, vc, p0, p1, w, d)
         if cfg.need_D:
             D = jax.lax.switch(budget, _budgets(_chunk_lit), geometry, vc, a, h)
@@ -288,6 +312,15 @@ def _bwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, gD, gA):
         oc, sc, vc = xs
         pix, local = _split_index(cfg, oc)
         p0, p1, w, d, a, h = _gather(params, h_rows, sc, local)
+        if _native(dt):
+            args = _chunk_native(cfg, xe, ye, pix, vc, p0, p1, w, d, a, h)
+            ctD = (gD.at[:, local].get(mode="clip") if cfg.need_D
+                   else jnp.zeros(args[-1].shape[:-1], dt))
+            ctA = gA.at[local].get(mode="clip") if cfg.need_A else jnp.zeros_like(w)
+            d0, d1, dw, dd, da, dh = native.pair_vjp(lobe.nodes(dt), *args, ctD, ctA)
+            if not cfg.need_D:
+                dh = jnp.zeros_like(h)
+            return scatter((gp0, gp1, gw, gd, ga, gh), sc, local, d0, d1, dw, dd, da, dh)
         geometry, geometry_vjp, budget = jax.vjp(
             lambda *x: _chunk_geometry(cfg, xe, ye, pix, vc, *x), p0, p1, w, d, has_aux=True)
         # Only the outputs the caller uses are differentiated (no dead reverse work).
@@ -302,14 +335,13 @@ def _bwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, gD, gA):
             ctA = jnp.where(vc, gA.at[local].get(mode="clip"), 0)
             g_geometry = g_geometry._replace(area=g_geometry.area + ctA)
         d0, d1, dw, dd = geometry_vjp(g_geometry)
+        return scatter((gp0, gp1, gw, gd, ga, gh), sc, local, d0, d1, dw, dd, da, dh)
+
+    def scatter(grads, sc, local, *parts):
         # The sentinel index N is out of range: mode="drop" discards padding slots (already zero).
-        gp0 = gp0.at[sc].add(d0, mode="drop")
-        gp1 = gp1.at[sc].add(d1, mode="drop")
-        gw = gw.at[sc].add(dw, mode="drop")
-        gd = gd.at[sc].add(dd, mode="drop")
-        ga = ga.at[sc].add(da, mode="drop")
-        gh = gh.at[:, local].add(dh, mode="drop")
-        return gp0, gp1, gw, gd, ga, gh
+        *per_scratch, gh = grads
+        out = tuple(g.at[sc].add(x, mode="drop") for g, x in zip(per_scratch, parts))
+        return out + (gh.at[:, local].add(parts[-1], mode="drop"),)
 
     def body(carry, xs):
         return jax.lax.cond(jnp.any(xs[2]), add_chunk, lambda c, _: c, carry, xs), None
