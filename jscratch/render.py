@@ -31,16 +31,25 @@ gradients), so a gradient step also holds ``O(M H W + N + chunk)`` floats beyond
 Cost: the backward pass re-evaluates the forward kernel once (as `jax.checkpoint` would).
 Consequence: forward-mode autodiff (``jax.jvp``) is not available through `render_pairs`.
 
-**Work skipped.** Before the scans, each shard's pairs are sorted (stably, O(L)) by class
-(`_pair_classes`): by how many of the `ndf.N_PIECES` boundary pieces of footprint ∩ groove
-are not points (`ndf.PairGeometry.count`: at most 2, 3, more), padding last. Per chunk the
-kernel computes each pair's view-independent geometry once (`ndf.pair_geometry`) and then, per
-view, integrates only the first `k` pieces (`ndf.lit_integral(..., pieces=k)`), `k` the
-smallest of `PIECE_BUDGETS` that holds every count of the chunk (one `lax.switch` branch per
-budget, forward and reverse); chunks of padding are not evaluated. Most pairs of a scene have
-two pieces (the footprint edges the groove crosses) where the general kernel integrates six.
-The budget is chosen from the counts the kernel computes itself, so the sorting decides only
-the speed: the results are those of the full kernel whatever the layout.
+**The pair kernel.** Per chunk the pairs' parameters and half vectors are gathered (XLA), the
+pairs evaluated, and the results segment-added into the per-pixel sums (forward) or
+scatter-added into the per-scratch and per-pixel gradients (reverse), deterministically. On the
+CPU with the native kernel available (`jscratch.native`) a chunk is one native call,
+`native.pair_values` forward and `native.pair_vjp` in the reverse pass: each pair's
+view-independent geometry and its Jacobian once, then every view's lit integral over that
+pair's own pieces that are not points, chained (docs/model.md §12). Elsewhere (another backend,
+``JSCRATCH_NATIVE=0``) the jnp path runs: `ndf.pair_geometry` vmapped over the chunk, then per
+view `ndf.lit_integral(..., pieces=k)` with `k` the smallest of `PIECE_BUDGETS` that holds
+every `ndf.PairGeometry.count` of the chunk (one `lax.switch` branch per budget, forward and
+reverse; the reverse pass `jax.vjp` of the geometry). Most pairs have two pieces (the footprint
+edges the groove crosses) where the general kernel integrates six.
+
+**Work skipped.** Before the scans, each shard's pairs are sorted (stably, O(L)) by class,
+padding last, and chunks of padding only are not evaluated. On the jnp path the class is the
+piece budget a pair needs (`_pair_classes`, from `ndf.piece_count_estimate`), so chunks mostly
+need the smallest; the budget is chosen from the counts the kernel computes itself, so the
+sorting decides only the speed. The native kernel needs no budgets: there the class is only
+valid or padding.
 
 **Multiple devices.** Given a `jax.sharding.Mesh`, `render_pairs` shards the *pixel* axis
 over the mesh axes with `jax.shard_map`: the ``H*W`` pixels (row-major) are split into
@@ -488,7 +497,12 @@ def _run_pair_sums(scratches: Scratches, board: Board, h_views, out, scr, valid,
     cfg = _Cfg(board.H, board.W, board.Sx, board.Sy, chunk, mesh, axes, Pb, per_view, need_D,
                need_A)
     params = (scratches.p0, scratches.p1, scratches.width, scratches.depth, scratches.alpha)
-    klass = _pair_classes(cfg, params, out, scr, valid)
+    if _native(scratches.dtype):
+        # The native kernel integrates each pair's own pieces: only the padding is put last (its
+        # chunks are skipped), no piece counts are estimated.
+        klass = jax.lax.stop_gradient(valid.astype(jnp.int8))
+    else:
+        klass = _pair_classes(cfg, params, out, scr, valid)
     out, scr, valid = _sort_pairs(out, scr, valid, klass, shards)
     Ds, As = _pair_sums(cfg, params, h_views, out, scr, valid)
     return Ds[:, :P], As[:, :P]

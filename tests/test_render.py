@@ -307,9 +307,10 @@ def test_sharded_per_view_lists_and_layout_check():
 
 @pytest.mark.float64
 def test_gradient_tests_run_chunks_with_several_piece_budgets():
-    """The reference and gradient tests above evaluate chunks with different piece budgets
-    (`render.PIECE_BUDGETS`): the scene's pairs, sorted by class (`render._sort_pairs`), fill
-    chunks of `CHUNK` with the smallest budget and chunks with a larger one."""
+    """On the jnp path (`test_native_pair_kernel_equals_jnp_path`, and every test where the
+    native kernel is unavailable) the scene's pairs, sorted by class (`render._sort_pairs`), fill
+    chunks of `CHUNK` with the smallest piece budget (`render.PIECE_BUDGETS`) and chunks with a
+    larger one, so every budget's branch is checked."""
     s, v = _scene()
     pairs = _pairs(s)
     cfg = render._Cfg(BOARD.H, BOARD.W, BOARD.Sx, BOARD.Sy, CHUNK, None, (), BOARD.n_pixels, False,
