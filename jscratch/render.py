@@ -31,25 +31,22 @@ gradients), so a gradient step also holds ``O(M H W + N + chunk)`` floats beyond
 Cost: the backward pass re-evaluates the forward kernel once (as `jax.checkpoint` would).
 Consequence: forward-mode autodiff (``jax.jvp``) is not available through `render_pairs`.
 
-**The pair kernel.** Per chunk the pairs' parameters and half vectors are gathered (XLA), the
-pairs evaluated, and the results segment-added into the per-pixel sums (forward) or
-scatter-added into the per-scratch and per-pixel gradients (reverse), deterministically. On the
-CPU with the native kernel available (`jscratch.native`) a chunk is one native call,
-`native.pair_values` forward and `native.pair_vjp` in the reverse pass: each pair's
-view-independent geometry and its Jacobian once, then every view's lit integral over that
-pair's own pieces that are not points, chained (docs/model.md §12). Elsewhere (another backend,
-``JSCRATCH_NATIVE=0``) the jnp path runs: `ndf.pair_geometry` vmapped over the chunk, then per
-view `ndf.lit_integral(..., pieces=k)` with `k` the smallest of `PIECE_BUDGETS` that holds
-every `ndf.PairGeometry.count` of the chunk (one `lax.switch` branch per budget, forward and
-reverse; the reverse pass `jax.vjp` of the geometry). Most pairs have two pieces (the footprint
-edges the groove crosses) where the general kernel integrates six.
+**The pair kernel.** Per chunk the pairs' parameters and half vectors are gathered, the pairs
+evaluated, and the results segment-added into the per-pixel sums (forward) or scatter-added
+into the gradients (reverse). With the native kernel (`jscratch.native`: CPU) a chunk is one
+call, `native.pair_values` forward and `native.pair_vjp` in reverse: each pair's geometry and
+its Jacobian once, then every view over that pair's own pieces that are not points
+(docs/model.md §12). Elsewhere (another backend, ``JSCRATCH_NATIVE=0``) the jnp path runs:
+`ndf.pair_geometry` vmapped over the chunk, then per view `ndf.lit_integral(..., pieces=k)`,
+`k` the smallest of `PIECE_BUDGETS` that holds every `ndf.PairGeometry.count` of the chunk
+(one `lax.switch` branch per budget; most pairs have two pieces, the footprint edges the
+groove crosses, of six).
 
-**Work skipped.** Before the scans, each shard's pairs are sorted (stably, O(L)) by class,
-padding last, and chunks of padding only are not evaluated. On the jnp path the class is the
-piece budget a pair needs (`_pair_classes`, from `ndf.piece_count_estimate`), so chunks mostly
-need the smallest; the budget is chosen from the counts the kernel computes itself, so the
-sorting decides only the speed. The native kernel needs no budgets: there the class is only
-valid or padding.
+**Work skipped.** Before the scans each shard's pairs are sorted (stably, O(L)) by class,
+padding last; chunks of padding only are not evaluated. On the jnp path the class is the budget
+a pair needs (`_pair_classes`), so most chunks need the smallest; the kernel picks each chunk's
+budget from the counts it computes, so the sorting decides only the speed. On the native path
+the class is only valid or padding.
 
 **Multiple devices.** Given a `jax.sharding.Mesh`, `render_pairs` shards the *pixel* axis
 over the mesh axes with `jax.shard_map`: the ``H*W`` pixels (row-major) are split into
@@ -223,20 +220,12 @@ def _chunk_lit(pieces: int, geometry, valid, a, h):
     return jnp.where(valid[None], D, jnp.zeros((), dt))
 
 
-def _native(dtype) -> bool:
-    """Whether a chunk is evaluated by the native whole-pair kernel (`native.pair_values`,
-    `native.pair_vjp`) rather than by `_chunk_geometry` and `_chunk_lit`."""
-    return native.available(dtype)
-
-
 def _chunk_native(cfg: _Cfg, xe, ye, pix, valid, p0, p1, w, d, a, h):
     """The native kernel's inputs for a chunk: the footprints ``(chunk, 4, 2)``, the gathered
     parameters, `valid` and the half vectors ``(V, chunk, 3)`` (none where ``D`` is not needed);
     the kernel gives padding slots exact zeros."""
     footprints = jax.vmap(functools.partial(_footprint, cfg, xe, ye))(pix)
-    if not cfg.need_D:  # no view to integrate
-        h = h[:0]
-    return footprints, p0, p1, w, d, a, valid, h
+    return footprints, p0, p1, w, d, a, valid, (h if cfg.need_D else h[:0])
 
 
 def _budgets(fn):
@@ -278,14 +267,11 @@ def _fwd_local(cfg: _Cfg, params, h_loc, out, scr, valid):
         oc, sc, vc = xs
         pix, local = _split_index(cfg, oc)
         p0, p1, w, d, a, h = _gather(params, h_rows, sc, local)
-        if _native(dt):
+        if native.available(dt):
             D, A = native.pair_values(lobe.nodes(dt), *_chunk_native(cfg, xe, ye, pix, vc, p0, p1,
                                                                    w, d, a, h))
-            if cfg.need_D:
-                Ds = Ds.at[:, local].add(D, mode="drop")
-            if cfg.need_A:
-                As = As.at[local].add(A, mode="drop")
-            return Ds, As
+            Ds = Ds.at[:, local].add(D, mode="drop") if cfg.need_D else Ds
+            return Ds, (As.at[local].add(A, mode="drop") if cfg.need_A else As)
         geometry, budget = _chunk_geometry(cfg, xe, ye, pix, vc, p0, p1, w, d)
         if cfg.need_D:
             D = jax.lax.switch(budget, _budgets(_chunk_lit), geometry, vc, a, h)
@@ -317,19 +303,15 @@ def _bwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, gD, gA):
         return vjp(ct)
 
     def add_chunk(carry, xs):
-        gp0, gp1, gw, gd, ga, gh = carry
         oc, sc, vc = xs
         pix, local = _split_index(cfg, oc)
         p0, p1, w, d, a, h = _gather(params, h_rows, sc, local)
-        if _native(dt):
+        if native.available(dt):
             args = _chunk_native(cfg, xe, ye, pix, vc, p0, p1, w, d, a, h)
-            ctD = (gD.at[:, local].get(mode="clip") if cfg.need_D
-                   else jnp.zeros(args[-1].shape[:-1], dt))
+            ctD = gD.at[:, local].get(mode="clip")[:len(args[-1])]  # (no rows without D)
             ctA = gA.at[local].get(mode="clip") if cfg.need_A else jnp.zeros_like(w)
-            d0, d1, dw, dd, da, dh = native.pair_vjp(lobe.nodes(dt), *args, ctD, ctA)
-            if not cfg.need_D:
-                dh = jnp.zeros_like(h)
-            return scatter((gp0, gp1, gw, gd, ga, gh), sc, local, d0, d1, dw, dd, da, dh)
+            *dp, dh = native.pair_vjp(lobe.nodes(dt), *args, ctD, ctA)
+            return scatter(carry, sc, local, *dp, dh if cfg.need_D else jnp.zeros_like(h))
         geometry, geometry_vjp, budget = jax.vjp(
             lambda *x: _chunk_geometry(cfg, xe, ye, pix, vc, *x), p0, p1, w, d, has_aux=True)
         # Only the outputs the caller uses are differentiated (no dead reverse work).
@@ -343,8 +325,7 @@ def _bwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, gD, gA):
         if cfg.need_A:
             ctA = jnp.where(vc, gA.at[local].get(mode="clip"), 0)
             g_geometry = g_geometry._replace(area=g_geometry.area + ctA)
-        d0, d1, dw, dd = geometry_vjp(g_geometry)
-        return scatter((gp0, gp1, gw, gd, ga, gh), sc, local, d0, d1, dw, dd, da, dh)
+        return scatter(carry, sc, local, *geometry_vjp(g_geometry), da, dh)
 
     def scatter(grads, sc, local, *parts):
         # The sentinel index N is out of range: mode="drop" discards padding slots (already zero).
@@ -497,12 +478,9 @@ def _run_pair_sums(scratches: Scratches, board: Board, h_views, out, scr, valid,
     cfg = _Cfg(board.H, board.W, board.Sx, board.Sy, chunk, mesh, axes, Pb, per_view, need_D,
                need_A)
     params = (scratches.p0, scratches.p1, scratches.width, scratches.depth, scratches.alpha)
-    if _native(scratches.dtype):
-        # The native kernel integrates each pair's own pieces: only the padding is put last (its
-        # chunks are skipped), no piece counts are estimated.
-        klass = jax.lax.stop_gradient(valid.astype(jnp.int8))
-    else:
-        klass = _pair_classes(cfg, params, out, scr, valid)
+    # (the native kernel integrates each pair's own pieces: only padding is put last)
+    klass = (valid.astype(jnp.int8) if native.available(scratches.dtype)
+             else _pair_classes(cfg, params, out, scr, valid))
     out, scr, valid = _sort_pairs(out, scr, valid, klass, shards)
     Ds, As = _pair_sums(cfg, params, h_views, out, scr, valid)
     return Ds[:, :P], As[:, :P]
