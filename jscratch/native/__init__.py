@@ -1,21 +1,30 @@
-"""The pair kernel's per-view stage as a native CPU kernel (an XLA FFI custom call).
+"""The pair kernel as native CPU kernels (XLA FFI custom calls, `native_lit.cc`).
 
-`jscratch.ndf` evaluates a pair-view's per-view stage (slab, lobe, cut, piece integrals) and its
-hand-written partial derivatives either with jnp (`ndf._view`, `lobe`, `ndf._lit_sum`: XLA's CPU
-backend evaluates the many gradient outputs in separate fusions that each recompute the shared
-arithmetic) or, where this module is available, with `native_lit.cc`: the same formulas, line
-by line, one SIMD lane per pair-view, on XLA's intra-op thread pool, in a values-only and a
-values + partials variant. Same results up to rounding (`tests/test_native.py` compares the two
-in float64 and float32).
+`jscratch.ndf` evaluates a pair with jnp (XLA's CPU backend evaluates the many gradient outputs
+in separate fusions that each recompute the shared arithmetic); where this module is available,
+`native_lit.cc` runs the same formulas, line by line, on XLA's intra-op thread pool. Two kernels,
+each with a values-only and a reverse-pass variant:
+
+- the whole pair (`pair_values`, `pair_vjp`, differentiable `pairs`; what `jscratch.render` runs
+  per chunk): the view-independent geometry (`ndf.pair_geometry`) and its Jacobian with respect
+  to ``p0, p1, width, depth`` (forward mode), then every view's lit integral over the pair's
+  pieces that are not points, chained; one SIMD lane per pair;
+- the per-view stage (`lit`, `lit_values`, `lit_partials`; what `ndf.lit_integral` calls): the
+  slab, lobe, cut and piece integrals and their partials; one SIMD lane per pair-view.
+
+Same results up to rounding (`tests/test_native.py` compares them with the jnp path in float64
+and float32).
 
 - `prepare()`: start the build on a background thread (the design does, before its setup).
-- `available(dtype) -> bool`: whether `lit_partials` can run for arrays of `dtype` here: the
+- `available(dtype) -> bool`: whether the kernels can run for arrays of `dtype` here: the
   native kernel is enabled (`enabled`), the default backend is the CPU and the kernel was built
-  and loaded. Otherwise jscratch uses the jnp reverse pass.
+  and loaded. Otherwise jscratch uses the jnp path.
 - `lit(n_gl, ua, ub, Ya, Yb, X, h, b, t, alpha)`: the lit integral, differentiable (reverse
   mode: its partials from the kernel; `ndf` calls this).
 - `lit_partials(n_gl, ua, ub, Ya, Yb, X, h, b, t, alpha)`: the lit integral and its partials
   (`native_lit.cc` says which); `lit_values(...)`: the integral alone.
+- `pair_values(n_gl, footprint, p0, p1, width, depth, alpha, valid, h) -> (D, A)`,
+  `pair_vjp(..., ct_D, ct_A)`, `pairs(...)`: the whole pair.
 - `status()`: what runs and why, a JSON-friendly dict (the design writes it to metrics.json);
   ``python -m jscratch.native [--json]`` prints it (and builds the kernel if needed).
 

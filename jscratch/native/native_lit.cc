@@ -1,26 +1,36 @@
-// The per-view stage of the scratch NDF's pair integral with its partial derivatives, as one
-// XLA FFI custom call for the CPU (`jscratch.native`). It is a line-by-line port of the jnp code
-// it replaces in a reverse pass (`jscratch.ndf._view`, `lit_interval`, `jscratch.lobe.lobe`,
-// `lobe_params`, `ndf._cut`, `lobe.piece_values(..., with_partials=True)`, `ndf._cut_transpose`
-// and the autodiff of the view algebra), evaluated per pair-view in registers instead of
-// through XLA's fusions. The jnp code stays the reference: tests compare the two in float64
-// (equal to rounding) and float32.
+// The scratch NDF's pair integral with its derivatives, as XLA FFI custom calls for the CPU
+// (`jscratch.native`): line-by-line ports of the jnp code they replace, evaluated in registers
+// instead of through XLA's fusions. The jnp code stays the reference: tests compare the two in
+// float64 (equal to rounding) and float32.
 //
-// Inputs per pair-view (leading axes flattened, n pair-views; the pieces have a trailing axis
-// of k): ua, ub, Ya, Yb (n, k) the boundary pieces cut to the groove (`ndf.PairGeometry`), X (n)
-// the groove half-width in widths, h (n, 3) the board-frame half vector (normalised here), b, t
-// (n, 2) the scratch's across and along unit vectors, alpha (n). Attributes: n_gl Gauss-Legendre
-// nodes per piece, threads (the most workers one call uses, the calling thread included).
+// The per-view stage (`JscratchLit*`, `JscratchLitValues*`; `jscratch.ndf._view`,
+// `lit_interval`, `jscratch.lobe.lobe`, `lobe_params`, `ndf._cut`, `lobe.piece_values`,
+// `ndf._cut_transpose` and the autodiff of the view algebra), one SIMD lane per pair-view.
+// Inputs (leading axes flattened, n pair-views; the pieces have a trailing axis of k): ua, ub,
+// Ya, Yb (n, k) the boundary pieces cut to the groove (`ndf.PairGeometry`), X (n) the groove
+// half-width in widths, h (n, 3) the board-frame half vector (normalised here), b, t (n, 2) the
+// scratch's across and along unit vectors, alpha (n). Outputs: lit (n) = sum over pieces of the
+// integral of Y (F1 + F2) du over the piece cut to the lit slab, and its partial derivatives with
+// respect to every input, or the value alone.
 //
-// Threads: the pair-views are cut into chunks of `kChunk` (whole vectors; the cut depends on n
-// alone) that the calling thread and up to threads - 1 tasks on XLA's intra-op thread pool (the
-// FFI execution context's `ThreadPool`, alive as long as the client) claim one at a time. The
-// lanes are independent, so the results are the same bits for any thread count; a task that
-// starts after the last chunk was claimed returns at once, and the caller never waits for a task
-// that has not started (no deadlock when the pool is busy or runs tasks inline).
-// Outputs: lit (n) = sum over pieces of the integral of Y (F1 + F2) du over the piece cut to the
-// lit slab, and its partial derivatives with respect to every input (`JscratchLit*`), or the
-// value alone (`JscratchLitValues*`).
+// The whole pair (`JscratchPairs*`, `JscratchPairsVjp*`; `ndf._pair_geometry`, then the
+// per-view stage for every view), one SIMD lane per pair. Inputs: footprint (n, 4, 2), p0, p1
+// (n, 2), width, depth, alpha (n), valid (n, bool), h (V, n, 3); outputs D (V, n) and A (n), or,
+// given the cotangents ctD (V, n) and ctA (n), the gradients with respect to p0, p1, width, depth,
+// alpha and h. The geometry's Jacobian with respect to p0, p1, width and depth is carried in
+// forward mode (`Dual`, kGeo tangents) and chained with every view's partials. Padding slots
+// (valid false) are evaluated as a benign dummy pair and give exact zeros.
+//
+// Attributes: n_gl Gauss-Legendre nodes per piece, threads (the most workers one call uses, the
+// calling thread included).
+//
+// Threads: the lanes are cut into chunks (`kChunk` pair-views, `kPairChunk` pairs: whole vectors;
+// the cut depends on n alone) that the calling thread and up to threads - 1 tasks on XLA's
+// intra-op thread pool (the FFI execution context's `ThreadPool`, alive as long as the client)
+// claim one at a time. The lanes are independent, so the results are the same bits for any
+// thread count; a task that starts after the last chunk was claimed returns at once, and the
+// caller never waits for a task that has not started (no deadlock when the pool is busy or runs
+// tasks inline).
 
 #include <algorithm>
 #include <atomic>
