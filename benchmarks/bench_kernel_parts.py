@@ -12,7 +12,11 @@ compiled with `render.grad_compiler_options`):
   once per pair, its outputs summed;
 - ``lit, k pieces``: `ndf.lit_integral(..., pieces=k)` from a precomputed geometry (gradient
   with respect to the geometry, half vectors and alpha), per view: ``k = 2`` is what most chunks
-  of a scene integrate (`render.PIECE_BUDGETS`).
+  of a scene integrate (`render.PIECE_BUDGETS`);
+- ``whole pair, native``: `native.pairs` (what the renderer's chunks run where the native kernel
+  is available): the geometry and its Jacobian once per pair, then the M views, ``D + A``,
+  gradient with respect to the half vectors, endpoints, width, depth and alpha (a custom call:
+  XLA's cost analysis does not see its flops and bytes).
 """
 
 from __future__ import annotations
@@ -23,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jscratch import ndf
+from jscratch import lobe, native, ndf
 from jscratch import render
 from jscratch.bench import median_time
 from jscratch.bench.ndf_cases import random_cases
@@ -33,14 +37,15 @@ def _ns(fn, args, per, repeats):
     return 1e9 * median_time(lambda: fn(*args), repeats)[0] / per
 
 
-def _row(name, f, args, argnums, per, repeats):
+def _row(name, f, args, argnums, per, repeats, costs=True):
     fwd = jax.jit(f).lower(*args).compile()
     grad = jax.jit(jax.grad(f, argnums=argnums),
                    compiler_options=render.grad_compiler_options()).lower(*args).compile()
     ca = grad.cost_analysis()
     ca = ca[0] if isinstance(ca, list) else ca
+    cost = (f"{ca['flops'] / per:,.0f} | {ca['bytes accessed'] / per:,.0f}" if costs else "- | -")
     print(f"| {name} | {_ns(fwd, args, per, repeats):.0f} | {_ns(grad, args, per, repeats):.0f} |"
-          f" {ca['flops'] / per:,.0f} | {ca['bytes accessed'] / per:,.0f} |", flush=True)
+          f" {cost} |", flush=True)
 
 
 def main(argv=None):
@@ -84,6 +89,16 @@ def main(argv=None):
             return jnp.sum(f(g, H, al))
 
         _row(f"lit, {k} pieces (per view)", lit, (g, H, al), (0, 1, 2), per, a.repeats)
+
+    if native.available(jnp.float32):
+        valid, n_gl = jnp.ones((n,), bool), lobe.nodes(jnp.float32)
+
+        def fused(H, p0, p1, w, d, al):
+            D, A = native.pairs(n_gl, fp, p0, p1, w, d, al, valid, H)
+            return jnp.sum(D) + jnp.sum(A)
+
+        _row("whole pair, native (geometry once, M views)", fused, (H, p0, p1, w, d, al),
+             tuple(range(6)), per, a.repeats, costs=False)
 
 
 if __name__ == "__main__":

@@ -69,7 +69,8 @@ since ``∂Y/∂y`` is the indicator of ``0 <= y <= L``. The slab ``[u_lo, u_hi]
    first `N_COMPACT` also kept apart by `_compact`) are what every view integrates.
 2. *Per view* (`lit_integral`, `_lit_sum`): the pieces clamped to the lit slab, which lies
    inside the groove, and integrated; a renderer integrates only the first pieces, as many as
-   the largest `count` of a chunk of pairs (`jscratch.render`, which sorts pairs by `count`).
+   the largest `count` of a chunk of pairs (`jscratch.render`'s jnp path, which sorts pairs by
+   `count`; on the CPU the renderer runs both stages natively, `jscratch.native.pair_values`).
 
 Six pieces per pair, whatever the footprint-groove configuration (all eight types of the
 paper's Fig. 7, and footprints larger or smaller than the groove). ``y_ref`` (the mean ``y`` of

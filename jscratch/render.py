@@ -31,16 +31,22 @@ gradients), so a gradient step also holds ``O(M H W + N + chunk)`` floats beyond
 Cost: the backward pass re-evaluates the forward kernel once (as `jax.checkpoint` would).
 Consequence: forward-mode autodiff (``jax.jvp``) is not available through `render_pairs`.
 
-**Work skipped.** Before the scans, each shard's pairs are sorted (stably, O(L)) by class
-(`_pair_classes`): by how many of the `ndf.N_PIECES` boundary pieces of footprint ∩ groove
-are not points (`ndf.PairGeometry.count`: at most 2, 3, more), padding last. Per chunk the
-kernel computes each pair's view-independent geometry once (`ndf.pair_geometry`) and then, per
-view, integrates only the first `k` pieces (`ndf.lit_integral(..., pieces=k)`), `k` the
-smallest of `PIECE_BUDGETS` that holds every count of the chunk (one `lax.switch` branch per
-budget, forward and reverse); chunks of padding are not evaluated. Most pairs of a scene have
-two pieces (the footprint edges the groove crosses) where the general kernel integrates six.
-The budget is chosen from the counts the kernel computes itself, so the sorting decides only
-the speed: the results are those of the full kernel whatever the layout.
+**The pair kernel.** Per chunk the pairs' parameters and half vectors are gathered, the pairs
+evaluated, and the results segment-added into the per-pixel sums (forward) or scatter-added
+into the gradients (reverse). With the native kernel (`jscratch.native`: CPU) a chunk is one
+call, `native.pair_values` forward and `native.pair_vjp` in reverse: each pair's geometry and
+its Jacobian once, then every view over that pair's own pieces that are not points
+(docs/model.md §12). Elsewhere (another backend, ``JSCRATCH_NATIVE=0``) the jnp path runs:
+`ndf.pair_geometry` vmapped over the chunk, then per view `ndf.lit_integral(..., pieces=k)`,
+`k` the smallest of `PIECE_BUDGETS` that holds every `ndf.PairGeometry.count` of the chunk
+(one `lax.switch` branch per budget; most pairs have two pieces, the footprint edges the
+groove crosses, of six).
+
+**Work skipped.** Before the scans each shard's pairs are sorted (stably, O(L)) by class,
+padding last; chunks of padding only are not evaluated. On the jnp path the class is the budget
+a pair needs (`_pair_classes`), so most chunks need the smallest; the kernel picks each chunk's
+budget from the counts it computes, so the sorting decides only the speed. On the native path
+the class is only valid or padding.
 
 **Multiple devices.** Given a `jax.sharding.Mesh`, `render_pairs` shards the *pixel* axis
 over the mesh axes with `jax.shard_map`: the ``H*W`` pixels (row-major) are split into
@@ -73,7 +79,7 @@ import numpy as np
 from jax.sharding import PartitionSpec
 from jaxtyping import Array, Float
 
-from jscratch import ndf
+from jscratch import lobe, native, ndf
 from jscratch.bvh import DEFAULT_CHUNK, bin_pairs, cull_pairs, pixels_per_shard
 from jscratch.errors import InputError
 from jscratch.scene import (
@@ -214,6 +220,14 @@ def _chunk_lit(pieces: int, geometry, valid, a, h):
     return jnp.where(valid[None], D, jnp.zeros((), dt))
 
 
+def _chunk_native(cfg: _Cfg, xe, ye, pix, valid, p0, p1, w, d, a, h):
+    """The native kernel's inputs for a chunk: the footprints ``(chunk, 4, 2)``, the gathered
+    parameters, `valid` and the half vectors ``(V, chunk, 3)`` (none where ``D`` is not needed);
+    the kernel gives padding slots exact zeros."""
+    footprints = jax.vmap(functools.partial(_footprint, cfg, xe, ye))(pix)
+    return footprints, p0, p1, w, d, a, valid, (h if cfg.need_D else h[:0])
+
+
 def _budgets(fn):
     """`lax.switch` branches: ``fn(pieces, ...)`` for each of `PIECE_BUDGETS`."""
     return [functools.partial(fn, k) for k in PIECE_BUDGETS]
@@ -253,6 +267,11 @@ def _fwd_local(cfg: _Cfg, params, h_loc, out, scr, valid):
         oc, sc, vc = xs
         pix, local = _split_index(cfg, oc)
         p0, p1, w, d, a, h = _gather(params, h_rows, sc, local)
+        if native.available(dt):
+            D, A = native.pair_values(lobe.nodes(dt), *_chunk_native(cfg, xe, ye, pix, vc, p0, p1,
+                                                                   w, d, a, h))
+            Ds = Ds.at[:, local].add(D, mode="drop") if cfg.need_D else Ds
+            return Ds, (As.at[local].add(A, mode="drop") if cfg.need_A else As)
         geometry, budget = _chunk_geometry(cfg, xe, ye, pix, vc, p0, p1, w, d)
         if cfg.need_D:
             D = jax.lax.switch(budget, _budgets(_chunk_lit), geometry, vc, a, h)
@@ -284,10 +303,15 @@ def _bwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, gD, gA):
         return vjp(ct)
 
     def add_chunk(carry, xs):
-        gp0, gp1, gw, gd, ga, gh = carry
         oc, sc, vc = xs
         pix, local = _split_index(cfg, oc)
         p0, p1, w, d, a, h = _gather(params, h_rows, sc, local)
+        if native.available(dt):
+            args = _chunk_native(cfg, xe, ye, pix, vc, p0, p1, w, d, a, h)
+            ctD = gD.at[:, local].get(mode="clip")[:len(args[-1])]  # (no rows without D)
+            ctA = gA.at[local].get(mode="clip") if cfg.need_A else jnp.zeros_like(w)
+            *dp, dh = native.pair_vjp(lobe.nodes(dt), *args, ctD, ctA)
+            return scatter(carry, sc, local, *dp, dh if cfg.need_D else jnp.zeros_like(h))
         geometry, geometry_vjp, budget = jax.vjp(
             lambda *x: _chunk_geometry(cfg, xe, ye, pix, vc, *x), p0, p1, w, d, has_aux=True)
         # Only the outputs the caller uses are differentiated (no dead reverse work).
@@ -301,15 +325,13 @@ def _bwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, gD, gA):
         if cfg.need_A:
             ctA = jnp.where(vc, gA.at[local].get(mode="clip"), 0)
             g_geometry = g_geometry._replace(area=g_geometry.area + ctA)
-        d0, d1, dw, dd = geometry_vjp(g_geometry)
+        return scatter(carry, sc, local, *geometry_vjp(g_geometry), da, dh)
+
+    def scatter(grads, sc, local, *parts):
         # The sentinel index N is out of range: mode="drop" discards padding slots (already zero).
-        gp0 = gp0.at[sc].add(d0, mode="drop")
-        gp1 = gp1.at[sc].add(d1, mode="drop")
-        gw = gw.at[sc].add(dw, mode="drop")
-        gd = gd.at[sc].add(dd, mode="drop")
-        ga = ga.at[sc].add(da, mode="drop")
-        gh = gh.at[:, local].add(dh, mode="drop")
-        return gp0, gp1, gw, gd, ga, gh
+        *per_scratch, gh = grads
+        out = tuple(g.at[sc].add(x, mode="drop") for g, x in zip(per_scratch, parts))
+        return out + (gh.at[:, local].add(parts[-1], mode="drop"),)
 
     def body(carry, xs):
         return jax.lax.cond(jnp.any(xs[2]), add_chunk, lambda c, _: c, carry, xs), None
@@ -456,7 +478,9 @@ def _run_pair_sums(scratches: Scratches, board: Board, h_views, out, scr, valid,
     cfg = _Cfg(board.H, board.W, board.Sx, board.Sy, chunk, mesh, axes, Pb, per_view, need_D,
                need_A)
     params = (scratches.p0, scratches.p1, scratches.width, scratches.depth, scratches.alpha)
-    klass = _pair_classes(cfg, params, out, scr, valid)
+    # (the native kernel integrates each pair's own pieces: only padding is put last)
+    klass = (valid.astype(jnp.int8) if native.available(scratches.dtype)
+             else _pair_classes(cfg, params, out, scr, valid))
     out, scr, valid = _sort_pairs(out, scr, valid, klass, shards)
     Ds, As = _pair_sums(cfg, params, h_views, out, scr, valid)
     return Ds[:, :P], As[:, :P]

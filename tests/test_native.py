@@ -20,7 +20,7 @@ import jaxlib
 import numpy as np
 import pytest
 
-from jscratch import native, ndf
+from jscratch import lobe, native, ndf
 from jscratch.bench import ndf_cases
 from jscratch.errors import InputError
 
@@ -311,3 +311,201 @@ def test_design_with_and_without_the_native_kernel_agree(tmp_path):
         out[flag] = json.loads((d / "metrics.json").read_text())
     assert out["1"]["loss"] == pytest.approx(out["0"]["loss"], rel=1e-5)
     np.testing.assert_allclose(out["1"]["ssim"], out["0"]["ssim"], atol=1e-5)
+
+
+# --------------------------------------------------------------------------------------------
+# The whole-pair kernel (`native.pair_values`, `native.pair_vjp`): geometry and every view.
+
+
+def _pair_population(dtype):
+    """Every adversarial family (grazing, degenerate, ...) and 512 random pairs, two views (the
+    case's own half vector and another case's), about one slot in eight padding."""
+    C = ndf_cases.concat([*ndf_cases.all_families().values(), ndf_cases.random_cases(512)])
+    h, fp, p0, p1, w, d, a = (jnp.asarray(x, dtype) for x in C.astype(np.float64).args())
+    H = jnp.stack([h, jnp.roll(h, 7, axis=0)])
+    valid = jnp.asarray(np.random.default_rng(3).random(C.len()) > 0.12)
+    return fp, p0, p1, w, d, a, valid, H
+
+
+def _pair_reference(fp, p0, p1, w, d, a, valid, H):
+    """`(D (V, n), A (n,))` of `ndf.pair_geometry` + `ndf.lit_integral` (all pieces), padding
+    zeroed: the jnp path the kernel replaces."""
+    def one(fp, p0, p1, w, d, a, h):
+        g = ndf.pair_geometry(fp, p0, p1, w, d)
+        return ndf.lit_integral(g, h, a), g.area
+
+    D, A = jax.vmap(jax.vmap(one), in_axes=(None,) * 6 + (0,))(fp, p0, p1, w, d, a, H)
+    return jnp.where(valid, D, 0), jnp.where(valid, A[0], 0)
+
+
+def _pair_vjps(args, ct, use_native: bool):
+    """``(d_p0, d_p1, d_w, d_d, d_alpha, d_h)`` at the cotangents `ct`: the kernel's reverse pass,
+    or op by op through the jnp path (`_pair_reference`, the jnp per-view stage too)."""
+    if use_native:
+        return native.pair_vjp(lobe.nodes(args[1].dtype), *args, *ct)
+    fp, p0, p1, w, d, a, valid, H = args
+    with native.override(enabled=False):
+        _, vjp = jax.vjp(lambda *x: _pair_reference(fp, *x[:5], valid, x[5]), p0, p1, w, d, a, H)
+        return vjp(ct)
+
+
+def _kinks(fp, p0, p1, w, d, a, valid, H):
+    """Pairs with a view whose lit slab ends where the groove does, to rounding (`max(-X, u_-)`,
+    `min(X, u_+)` at a tie: a kink of the integral, whose one-sided derivatives differ), per
+    pair."""
+    def one(fp, p0, p1, w, d, h):
+        g = ndf.pair_geometry(fp, p0, p1, w, d)
+        hx, _, hz, _, _ = ndf._view(g, h)
+        u_m, u_p = ndf.lit_interval(hx, hz)
+        return (jnp.abs(u_m + g.X) <= 1e-12) | (jnp.abs(u_p - g.X) <= 1e-12)
+
+    k = jax.vmap(jax.vmap(one), in_axes=(None,) * 5 + (0,))(fp, p0, p1, w, d, H)
+    return np.asarray(jnp.any(k, axis=0))
+
+
+def _rows(g, n):
+    """Per-pair rows of a reverse pass's outputs (`d_h`'s view axis moved behind the pair)."""
+    return [np.asarray(jnp.moveaxis(x, 0, 1) if x.ndim == 3 else x, np.float64).reshape(n, -1)
+            for x in g]
+
+
+@needs_native
+@pytest.mark.float64
+def test_pair_kernel_equals_jnp_path_float64():
+    """The whole-pair kernel against the jnp path (geometry and per-view stage, op by op) on
+    every adversarial family and random pairs, float64: values to 1e-12 relative, every gradient
+    to 1e-10 of its pair's scale (plus 1e-14 of what it cancels from), padding exactly zero. Pairs at
+    a kink (`_kinks`: the grazing family's slab ending on the groove edge) are left out of the
+    gradient comparison: there each path takes another one-sided derivative."""
+    jax.config.update("jax_enable_x64", True)
+    args = _pair_population(jnp.float64)
+    valid, n = np.asarray(args[6]), args[1].shape[0]
+    D, A = native.pair_values(lobe.nodes(jnp.float64), *args)
+    with native.override(enabled=False):
+        Dr, Ar = _pair_reference(*args)
+    for x, r in ((D, Dr), (A, Ar)):
+        x, r = np.asarray(x), np.asarray(r)
+        np.testing.assert_allclose(x, r, rtol=1e-12, atol=1e-14 * np.max(np.abs(r)))
+        assert np.all(x[..., ~valid] == 0)
+    rng = np.random.default_rng(5)
+    ct = (jnp.asarray(rng.normal(size=D.shape)), jnp.asarray(rng.normal(size=A.shape)))
+    got = _rows(_pair_vjps(args, ct, True), n)
+    ref = _rows(_pair_vjps(args, ct, False), n)
+    kink = _kinks(*args)
+    assert 0 < kink.sum() < 0.05 * n
+    # What a gradient cancels from: a sharp peak of width alpha w moves with the scratch's axis
+    # (D / (alpha w) per metre) while the lit part of the groove stays inside the footprint.
+    w, a = np.asarray(args[3]), np.asarray(args[5])
+    cancels = np.sum(np.abs(np.asarray(D)), axis=0) / (a * w)
+    for k, (a, b) in enumerate(zip(got, ref)):
+        assert np.all(np.isfinite(a)) and np.all(a[~valid] == 0), k
+        scale = np.max(np.abs(b), axis=1)
+        tol = 1e-10 * scale + 1e-14 * cancels + 1e-15 * np.percentile(scale[valid], 90)
+        err = (np.max(np.abs(a - b), axis=1) / np.where(tol > 0, tol, 1))[~kink]
+        assert err.max() <= 1, (k, err.max(), int(np.argmax(err)))
+        assert np.any(np.abs(b) > 0), k
+
+
+@needs_native
+@pytest.mark.float64
+def test_pair_kernel_float32_as_accurate_as_jnp():
+    """Float32 values and gradients against float64 at the same rounded inputs: the kernel's
+    error is that of the jnp path (median within 2x, 99th percentile within 2x + 1e-4 of each
+    pair's gradient scale; values: 99th percentile within 2x + 1e-6, worst within 3x or
+    float32's 1e-3)."""
+    jax.config.update("jax_enable_x64", True)
+    a32 = _pair_population(jnp.float32)
+    a64 = tuple(x.astype(jnp.float64) if x.dtype == jnp.float32 else x for x in a32)
+    n = a32[1].shape[0]
+    Dr, _ = _pair_reference(*a64)
+    Dn, _ = native.pair_values(lobe.nodes(jnp.float32), *a32)
+    with native.override(enabled=False):
+        Dj, _ = jax.jit(_pair_reference)(*a32)
+    Dr = np.asarray(Dr)
+    den = np.abs(Dr) + 1e-6 * np.max(np.abs(Dr))
+    e_nat = np.abs(np.asarray(Dn, np.float64) - Dr) / den
+    e_jnp = np.abs(np.asarray(Dj, np.float64) - Dr) / den
+    assert np.percentile(e_nat, 99) <= 2 * np.percentile(e_jnp, 99) + 1e-6
+    assert e_nat.max() <= max(3 * e_jnp.max(), 1e-3), (e_nat.max(), e_jnp.max())
+    rng = np.random.default_rng(6)
+    ct = (rng.normal(size=Dr.shape), rng.normal(size=(n,)))
+    ref = _rows(_pair_vjps(a64, tuple(jnp.asarray(c) for c in ct), False), n)
+    ct32 = tuple(jnp.asarray(c, jnp.float32) for c in ct)
+    nat = _rows(native.pair_vjp(lobe.nodes(jnp.float32), *a32, *ct32), n)
+    with native.override(enabled=False):
+        jnp32 = _rows(jax.jit(lambda *x: _pair_vjps(x, ct32, False))(*a32), n)
+    for k, (a, b, r) in enumerate(zip(nat, jnp32, ref)):
+        s = np.max(np.abs(r), axis=1)
+        scale = s + 1e-5 * np.percentile(s, 90)
+        e_nat = np.max(np.abs(a - r), axis=1) / scale
+        e_jnp = np.max(np.abs(b - r), axis=1) / scale
+        assert np.all(np.isfinite(a)), k
+        assert np.median(e_nat) <= 2 * np.median(e_jnp) + 1e-7, (k, np.median(e_nat))
+        assert np.percentile(e_nat, 99) <= 2 * np.percentile(e_jnp, 99) + 1e-4, k
+
+
+@needs_native
+def test_pair_kernel_padding_is_exactly_zero_whatever_it_holds():
+    """Padding slots give exact zeros, value and reverse pass, even holding NaN and infinities;
+    the valid slots are unchanged by them."""
+    fp, p0, p1, w, d, a, valid, H = _pair_population(jnp.float32)
+    bad = ~valid
+    junk = lambda x, v: jnp.where(bad.reshape(bad.shape + (1,) * (x.ndim - 1)), v, x)
+    dirty = (junk(fp, jnp.nan), junk(p0, jnp.inf), junk(p1, jnp.nan), junk(w, 0.0),
+             junk(d, -1.0), junk(a, jnp.nan), valid,
+             jnp.where(bad[None, :, None], jnp.nan, H))
+    clean = (fp, p0, p1, w, d, a, valid, H)
+    ng = lobe.nodes(jnp.float32)
+    ct = (jnp.ones(H.shape[:2], jnp.float32), jnp.ones(w.shape, jnp.float32))
+    pair_axis = (1, 0, 0, 0, 0, 0, 0, 1)  # D, A, d_p0, d_p1, d_w, d_d, d_alpha, d_h
+    for x, y, ax in zip(native.pair_values(ng, *dirty) + native.pair_vjp(ng, *dirty, *ct),
+                        native.pair_values(ng, *clean) + native.pair_vjp(ng, *clean, *ct),
+                        pair_axis):
+        x, y = np.asarray(x), np.asarray(y)
+        assert np.all(np.isfinite(x))
+        np.testing.assert_array_equal(x, y)
+        assert np.all(np.moveaxis(x, ax, 0)[np.asarray(bad)] == 0)
+
+
+@needs_native
+def test_pair_kernel_threads_give_identical_results():
+    """One thread or four give the same bits, values and reverse pass."""
+    args = _pair_population(jnp.float32)
+    ct = (jnp.full(args[7].shape[:2], 0.5, jnp.float32), jnp.ones(args[3].shape, jnp.float32))
+    ng = lobe.nodes(jnp.float32)
+    res = {}
+    for t in (1, 4):
+        with native.override(threads=t):
+            res[t] = jax.jit(lambda *x: (native.pair_values(ng, *x),
+                                         native.pair_vjp(ng, *x, *ct)))(*args)
+    for a, b in zip(jax.tree_util.tree_leaves(res[1]), jax.tree_util.tree_leaves(res[4])):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+@needs_native
+@pytest.mark.float64
+def test_pair_kernel_gradients_match_finite_differences_float64():
+    """`native.pairs` (the differentiable wrapper): the directional derivative of a weighted sum
+    of ``D`` and ``A`` over random pairs against central differences of the kernel's values."""
+    jax.config.update("jax_enable_x64", True)
+    C = ndf_cases.random_cases(256)
+    h, fp, p0, p1, w, d, a = (jnp.asarray(x, jnp.float64) for x in C.args())
+    H = jnp.stack([h, jnp.roll(h, 3, axis=0)])
+    valid = jnp.ones(w.shape, bool)
+    rng = np.random.default_rng(8)
+    cD, cA = rng.normal(size=H.shape[:2]), rng.normal(size=w.shape) * 1e3
+
+    def f(p0, p1, w, d, a, H):
+        D, A = native.pairs(16, fp, p0, p1, w, d, a, valid, H)
+        return jnp.sum(cD * D) + jnp.sum(cA * A)
+
+    x = (p0, p1, w, d, a, H)
+    g = jax.grad(f, argnums=range(6))(*x)
+    scales = (1e-5, 1e-5, 0.1 * w, 0.1 * d, 0.1 * a, 0.1)
+    for k in range(6):
+        u = jnp.asarray(rng.normal(size=x[k].shape)) * scales[k]
+        step = 1e-5
+        at = lambda t: f(*(xi + t * u if i == k else xi for i, xi in enumerate(x)))
+        fd = float(at(step) - at(-step)) / (2 * step)
+        ad = float(jnp.sum(g[k] * u))
+        assert abs(ad - fd) <= 1e-6 * abs(fd) + 1e-12, (k, ad, fd)

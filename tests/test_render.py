@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jscratch import brute, bvh, ndf
+from jscratch import brute, bvh, native, ndf
 from jscratch import render
 
 BOARD = render.Board(shape=(10, 10), Sx=0.01, Sy=0.01)  # 1 mm pixels
@@ -307,9 +307,10 @@ def test_sharded_per_view_lists_and_layout_check():
 
 @pytest.mark.float64
 def test_gradient_tests_run_chunks_with_several_piece_budgets():
-    """The reference and gradient tests above evaluate chunks with different piece budgets
-    (`render.PIECE_BUDGETS`): the scene's pairs, sorted by class (`render._sort_pairs`), fill
-    chunks of `CHUNK` with the smallest budget and chunks with a larger one."""
+    """On the jnp path (`test_native_pair_kernel_equals_jnp_path`, and every test where the
+    native kernel is unavailable) the scene's pairs, sorted by class (`render._sort_pairs`), fill
+    chunks of `CHUNK` with the smallest piece budget (`render.PIECE_BUDGETS`) and chunks with a
+    larger one, so every budget's branch is checked."""
     s, v = _scene()
     pairs = _pairs(s)
     cfg = render._Cfg(BOARD.H, BOARD.W, BOARD.Sx, BOARD.Sy, CHUNK, None, (), BOARD.n_pixels, False,
@@ -322,6 +323,42 @@ def test_gradient_tests_run_chunks_with_several_piece_budgets():
     assert np.array_equal(klass > 0, np.asarray(valid))
     groups = {int(klass[i:i + CHUNK].max()) for i in range(0, klass.shape[0], CHUNK)}
     assert 1 in groups and len(groups - {0, 1}) >= 1, groups
+
+
+@pytest.mark.skipif(not native.available(jnp.float32),
+                    reason=f"native kernel unavailable: {native.status()['why']}")
+@pytest.mark.float64
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_native_pair_kernel_equals_jnp_path(dtype):
+    """`render_pairs`' value and VJP with the chunks evaluated by the native whole-pair kernel
+    and by the jnp path (``JSCRATCH_NATIVE=0``): a shared pair list, and per-view lists with the
+    coverage from the shared one. float64: 1e-12 of the radiance's scale, gradients 1e-10 of
+    each gradient's largest entry; float32: 1e-5 and 3e-5 (rounding of the two paths)."""
+    s, v = _scene(dtype)
+    pairs = _pairs(s)
+    wts = _loss_weights(dtype)
+    tol_v, tol_g = (1e-12, 1e-10) if dtype == jnp.float64 else (1e-5, 3e-5)
+
+    def objective(sv, per_view):
+        p, cov = ([pairs] * 3, pairs) if per_view else (pairs, None)
+        rad = render.render_pairs(*sv, BOARD, p, cov, chunk=CHUNK)
+        return jnp.sum(wts * rad), rad
+
+    for per_view in (False, True):
+        out = {}
+        for on in (True, False):
+            with native.override(enabled=on):
+                f = jax.jit(jax.value_and_grad(lambda sv: objective(sv, per_view), has_aux=True),
+                            compiler_options=FAST)
+                out[on] = f((s, v))
+        (_, r1), g1 = out[True]
+        (_, r0), g0 = out[False]
+        r1, r0 = np.asarray(r1, np.float64), np.asarray(r0, np.float64)
+        assert np.max(np.abs(r1 - r0)) <= tol_v * np.max(np.abs(r0)), per_view
+        for a, b in zip(jax.tree_util.tree_leaves(g1), jax.tree_util.tree_leaves(g0)):
+            a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+            assert np.max(np.abs(b)) > 0
+            assert np.max(np.abs(a - b)) <= tol_g * np.max(np.abs(b)), (per_view, a.shape)
 
 
 def test_gradients_f32_finite_on_stress_scene():

@@ -1,21 +1,30 @@
-"""The pair kernel's per-view stage as a native CPU kernel (an XLA FFI custom call).
+"""The pair kernel as native CPU kernels (XLA FFI custom calls, `native_lit.cc`).
 
-`jscratch.ndf` evaluates a pair-view's per-view stage (slab, lobe, cut, piece integrals) and its
-hand-written partial derivatives either with jnp (`ndf._view`, `lobe`, `ndf._lit_sum`: XLA's CPU
-backend evaluates the many gradient outputs in separate fusions that each recompute the shared
-arithmetic) or, where this module is available, with `native_lit.cc`: the same formulas, line
-by line, one SIMD lane per pair-view, on XLA's intra-op thread pool, in a values-only and a
-values + partials variant. Same results up to rounding (`tests/test_native.py` compares the two
-in float64 and float32).
+`jscratch.ndf` evaluates a pair with jnp (XLA's CPU backend evaluates the many gradient outputs
+in separate fusions that each recompute the shared arithmetic); where this module is available,
+`native_lit.cc` runs the same formulas, line by line, on XLA's intra-op thread pool. Two kernels,
+each with a values-only and a reverse-pass variant:
+
+- the whole pair (`pair_values`, `pair_vjp`, differentiable `pairs`; what `jscratch.render` runs
+  per chunk): the view-independent geometry (`ndf.pair_geometry`) and its Jacobian with respect
+  to ``p0, p1, width, depth`` (forward mode), then every view's lit integral over the pair's
+  pieces that are not points, chained; one SIMD lane per pair;
+- the per-view stage (`lit`, `lit_values`, `lit_partials`; what `ndf.lit_integral` calls): the
+  slab, lobe, cut and piece integrals and their partials; one SIMD lane per pair-view.
+
+Same results up to rounding (`tests/test_native.py` compares them with the jnp path in float64
+and float32).
 
 - `prepare()`: start the build on a background thread (the design does, before its setup).
-- `available(dtype) -> bool`: whether `lit_partials` can run for arrays of `dtype` here: the
+- `available(dtype) -> bool`: whether the kernels can run for arrays of `dtype` here: the
   native kernel is enabled (`enabled`), the default backend is the CPU and the kernel was built
-  and loaded. Otherwise jscratch uses the jnp reverse pass.
+  and loaded. Otherwise jscratch uses the jnp path.
 - `lit(n_gl, ua, ub, Ya, Yb, X, h, b, t, alpha)`: the lit integral, differentiable (reverse
   mode: its partials from the kernel; `ndf` calls this).
 - `lit_partials(n_gl, ua, ub, Ya, Yb, X, h, b, t, alpha)`: the lit integral and its partials
   (`native_lit.cc` says which); `lit_values(...)`: the integral alone.
+- `pair_values(n_gl, footprint, p0, p1, width, depth, alpha, valid, h) -> (D, A)`,
+  `pair_vjp(..., ct_D, ct_A)`, `pairs(...)`: the whole pair.
 - `status()`: what runs and why, a JSON-friendly dict (the design writes it to metrics.json);
   ``python -m jscratch.native [--json]`` prints it (and builds the kernel if needed).
 
@@ -71,7 +80,8 @@ import jaxlib
 from jscratch.errors import InputError, error_line
 
 __all__ = ["NativeKernelWarning", "available", "enabled", "lit", "lit_partials", "lit_values",
-           "main", "override", "prepare", "status", "threads"]
+           "main", "override", "pair_values", "pair_vjp", "pairs", "prepare", "status",
+           "threads"]
 
 _SOURCE = Path(__file__).with_name("native_lit.cc")
 #: (dtype, with partials) -> (FFI target name, symbol in the library).
@@ -79,6 +89,11 @@ _TARGETS = {(jnp.dtype(dt), partials): (f"jscratch_lit{'' if partials else '_val
                                         f"JscratchLit{'' if partials else 'Values'}{name.upper()}")
             for dt, name in ((jnp.float32, "f32"), (jnp.float64, "f64"))
             for partials in (True, False)}
+#: (dtype, reverse pass) -> (FFI target name, symbol) of the whole-pair kernel.
+_PAIR_TARGETS = {(jnp.dtype(dt), vjp): (f"jscratch_pairs{'_vjp' if vjp else ''}_{name}",
+                                        f"JscratchPairs{'Vjp' if vjp else ''}{name.upper()}")
+                 for dt, name in ((jnp.float32, "f32"), (jnp.float64, "f64"))
+                 for vjp in (True, False)}
 _FLAGS = ("-O3", "-march=native", "-fno-math-errno", "-ffp-contract=off", "-std=c++17", "-shared",
           "-fPIC", "-pthread", "-w")
 #: What the jnp path costs, in the fallback warning (`benchmarks/RESULTS.md`).
@@ -309,7 +324,7 @@ def _load_once() -> bool:
         if "error" in _build:
             raise RuntimeError(_build["error"])
         handle = _build["info"]["handle"]
-        for target, symbol in _TARGETS.values():
+        for target, symbol in (*_TARGETS.values(), *_PAIR_TARGETS.values()):
             jax.ffi.register_ffi_target(target, jax.ffi.pycapsule(getattr(handle, symbol)),
                                         platform="cpu")
     except Exception as e:  # no compiler, a failed build, an FFI this jaxlib lacks: jnp path
@@ -416,6 +431,54 @@ def _lit_bwd(n_gl, partials, ct):
 
 
 lit.defvjp(_lit_fwd, _lit_bwd)
+
+def pair_values(n_gl: int, footprint, p0, p1, width, depth, alpha, valid, h):
+    """The whole pair integral of ``n`` pixel-scratch pairs under ``V`` views, natively:
+    ``(D_hat, A)``, ``(V, n)`` and ``(n,)``, as ``ndf.lit_integral(ndf.pair_geometry(...), ...)``
+    and that geometry's ``area`` give them (the geometry once per pair, every view on its pieces
+    that are not points). ``footprint`` ``(n, 4, 2)``, ``p0, p1`` ``(n, 2)``, ``width, depth,
+    alpha`` ``(n,)`` (m, m, m, 1), ``valid`` ``(n,)`` bool (padding slots: exact zeros), ``h``
+    ``(V, n, 3)`` board-frame half vectors; ``n_gl`` Gauss-Legendre nodes (`lobe.nodes`). Needs
+    `available`; works under `jax.shard_map`."""
+    dt = jnp.dtype(width.dtype)
+    args = (footprint, p0, p1, width, depth, alpha, valid, h)
+    call = jax.ffi.ffi_call(_PAIR_TARGETS[dt, False][0],
+                            (jax.ShapeDtypeStruct(h.shape[:-1], dt),
+                             jax.ShapeDtypeStruct(width.shape, dt)))
+    D, A = call(*args, n_gl=int(n_gl), threads=threads())
+    return (functools.reduce(_varying_like, args, D), functools.reduce(_varying_like, args, A))
+
+
+def pair_vjp(n_gl: int, footprint, p0, p1, width, depth, alpha, valid, h, ct_D, ct_A):
+    """The reverse pass of `pair_values` at the cotangents ``ct_D`` ``(V, n)`` and ``ct_A``
+    ``(n,)``: ``(d_p0, d_p1, d_width, d_depth, d_alpha, d_h)``, shaped as those inputs (zeros on
+    padding slots; the footprint is data). The geometry's Jacobian is computed in forward mode
+    (six tangents) and chained with every view's partials (`lit_partials`' formulas)."""
+    dt = jnp.dtype(width.dtype)
+    args = (footprint, p0, p1, width, depth, alpha, valid, h, ct_D, ct_A)
+    out = tuple(jax.ShapeDtypeStruct(x.shape, dt) for x in (p0, p1, width, depth, alpha, h))
+    call = jax.ffi.ffi_call(_PAIR_TARGETS[dt, True][0], out)
+    res = call(*args, n_gl=int(n_gl), threads=threads())
+    return tuple(functools.reduce(_varying_like, args, r) for r in res)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def pairs(n_gl: int, footprint, p0, p1, width, depth, alpha, valid, h):
+    """`pair_values`, differentiable (reverse mode, by `pair_vjp`; no gradient to the
+    footprint or `valid`)."""
+    return pair_values(n_gl, footprint, p0, p1, width, depth, alpha, valid, h)
+
+
+def _pairs_fwd(n_gl, *args):
+    return pair_values(n_gl, *args), args
+
+
+def _pairs_bwd(n_gl, args, ct):
+    d0, d1, dw, dd, da, dh = pair_vjp(n_gl, *args, *ct)
+    return jnp.zeros_like(args[0]), d0, d1, dw, dd, da, None, dh
+
+
+pairs.defvjp(_pairs_fwd, _pairs_bwd)
 
 #: How the CLI names the key's inputs.
 _COVERS = {"source": "native_lit.cc sha256", "compiler": "compiler",

@@ -1,26 +1,36 @@
-// The per-view stage of the scratch NDF's pair integral with its partial derivatives, as one
-// XLA FFI custom call for the CPU (`jscratch.native`). It is a line-by-line port of the jnp code
-// it replaces in a reverse pass (`jscratch.ndf._view`, `lit_interval`, `jscratch.lobe.lobe`,
-// `lobe_params`, `ndf._cut`, `lobe.piece_values(..., with_partials=True)`, `ndf._cut_transpose`
-// and the autodiff of the view algebra), evaluated per pair-view in registers instead of
-// through XLA's fusions. The jnp code stays the reference: tests compare the two in float64
-// (equal to rounding) and float32.
+// The scratch NDF's pair integral with its derivatives, as XLA FFI custom calls for the CPU
+// (`jscratch.native`): line-by-line ports of the jnp code they replace, evaluated in registers
+// instead of through XLA's fusions. The jnp code stays the reference: tests compare the two in
+// float64 (equal to rounding) and float32.
 //
-// Inputs per pair-view (leading axes flattened, n pair-views; the pieces have a trailing axis
-// of k): ua, ub, Ya, Yb (n, k) the boundary pieces cut to the groove (`ndf.PairGeometry`), X (n)
-// the groove half-width in widths, h (n, 3) the board-frame half vector (normalised here), b, t
-// (n, 2) the scratch's across and along unit vectors, alpha (n). Attributes: n_gl Gauss-Legendre
-// nodes per piece, threads (the most workers one call uses, the calling thread included).
+// The per-view stage (`JscratchLit*`, `JscratchLitValues*`; `jscratch.ndf._view`,
+// `lit_interval`, `jscratch.lobe.lobe`, `lobe_params`, `ndf._cut`, `lobe.piece_values`,
+// `ndf._cut_transpose` and the autodiff of the view algebra), one SIMD lane per pair-view.
+// Inputs (leading axes flattened, n pair-views; the pieces have a trailing axis of k): ua, ub,
+// Ya, Yb (n, k) the boundary pieces cut to the groove (`ndf.PairGeometry`), X (n) the groove
+// half-width in widths, h (n, 3) the board-frame half vector (normalised here), b, t (n, 2) the
+// scratch's across and along unit vectors, alpha (n). Outputs: lit (n) = sum over pieces of the
+// integral of Y (F1 + F2) du over the piece cut to the lit slab, and its partial derivatives with
+// respect to every input, or the value alone.
 //
-// Threads: the pair-views are cut into chunks of `kChunk` (whole vectors; the cut depends on n
-// alone) that the calling thread and up to threads - 1 tasks on XLA's intra-op thread pool (the
-// FFI execution context's `ThreadPool`, alive as long as the client) claim one at a time. The
-// lanes are independent, so the results are the same bits for any thread count; a task that
-// starts after the last chunk was claimed returns at once, and the caller never waits for a task
-// that has not started (no deadlock when the pool is busy or runs tasks inline).
-// Outputs: lit (n) = sum over pieces of the integral of Y (F1 + F2) du over the piece cut to the
-// lit slab, and its partial derivatives with respect to every input (`JscratchLit*`), or the
-// value alone (`JscratchLitValues*`).
+// The whole pair (`JscratchPairs*`, `JscratchPairsVjp*`; `ndf._pair_geometry`, then the
+// per-view stage for every view), one SIMD lane per pair. Inputs: footprint (n, 4, 2), p0, p1
+// (n, 2), width, depth, alpha (n), valid (n, bool), h (V, n, 3); outputs D (V, n) and A (n), or,
+// given the cotangents ctD (V, n) and ctA (n), the gradients with respect to p0, p1, width, depth,
+// alpha and h. The geometry's Jacobian with respect to p0, p1, width and depth is carried in
+// forward mode (`Dual`, kGeo tangents) and chained with every view's partials. Padding slots
+// (valid false) are evaluated as a benign dummy pair and give exact zeros.
+//
+// Attributes: n_gl Gauss-Legendre nodes per piece, threads (the most workers one call uses, the
+// calling thread included).
+//
+// Threads: the lanes are cut into chunks (`kChunk` pair-views, `kPairChunk` pairs: whole vectors;
+// the cut depends on n alone) that the calling thread and up to threads - 1 tasks on XLA's
+// intra-op thread pool (the FFI execution context's `ThreadPool`, alive as long as the client)
+// claim one at a time. The lanes are independent, so the results are the same bits for any
+// thread count; a task that starts after the last chunk was claimed returns at once, and the
+// caller never waits for a task that has not started (no deadlock when the pool is busy or runs
+// tasks inline).
 
 #include <algorithm>
 #include <atomic>
@@ -78,115 +88,116 @@ inline V vmin(V a, V b) {
   return sel<V>(a < b, a, b);
 }
 
-// Forward-mode number with kTan tangents: the view algebra's Jacobian (a few dozen operations
-// per pair-view, as jax's autodiff of the same jnp code computes it).
-template <typename V>
+// Forward-mode number with N tangents: the view algebra's Jacobian (N = kTan, a few dozen
+// operations per pair-view, as jax's autodiff of the same jnp code computes it) and the pair
+// geometry's (N = kGeo: p0, p1, width, depth; N = 0 for values alone).
+template <typename V, int N = kTan>
 struct Dual {
   V v;
-  V d[kTan];
+  V d[N > 0 ? N : 1];
 };
 
-template <typename V>
-Dual<V> cst(V v) {
-  Dual<V> r;
+template <int N = kTan, typename V>
+Dual<V, N> cst(V v) {
+  Dual<V, N> r;
   r.v = v;
-  for (int i = 0; i < kTan; ++i) r.d[i] = V{};
+  for (int i = 0; i < N; ++i) r.d[i] = V{};
   return r;
 }
-template <typename V>
-Dual<V> var(V v, int i) {
-  Dual<V> r = cst(v);
-  r.d[i] = splat<V>(1);
+template <int N = kTan, typename V>
+Dual<V, N> var(V v, int i) {
+  Dual<V, N> r = cst<N>(v);
+  if (i < N) r.d[i] = splat<V>(1);
   return r;
 }
-template <typename V>
-Dual<V> operator+(const Dual<V>& a, const Dual<V>& b) {
-  Dual<V> r;
+template <typename V, int N>
+Dual<V, N> operator+(const Dual<V, N>& a, const Dual<V, N>& b) {
+  Dual<V, N> r;
   r.v = a.v + b.v;
-  for (int i = 0; i < kTan; ++i) r.d[i] = a.d[i] + b.d[i];
+  for (int i = 0; i < N; ++i) r.d[i] = a.d[i] + b.d[i];
   return r;
 }
-template <typename V>
-Dual<V> operator-(const Dual<V>& a, const Dual<V>& b) {
-  Dual<V> r;
+template <typename V, int N>
+Dual<V, N> operator-(const Dual<V, N>& a, const Dual<V, N>& b) {
+  Dual<V, N> r;
   r.v = a.v - b.v;
-  for (int i = 0; i < kTan; ++i) r.d[i] = a.d[i] - b.d[i];
+  for (int i = 0; i < N; ++i) r.d[i] = a.d[i] - b.d[i];
   return r;
 }
-template <typename V>
-Dual<V> operator-(const Dual<V>& a) {
-  Dual<V> r;
+template <typename V, int N>
+Dual<V, N> operator-(const Dual<V, N>& a) {
+  Dual<V, N> r;
   r.v = -a.v;
-  for (int i = 0; i < kTan; ++i) r.d[i] = -a.d[i];
+  for (int i = 0; i < N; ++i) r.d[i] = -a.d[i];
   return r;
 }
-template <typename V>
-Dual<V> operator*(const Dual<V>& a, const Dual<V>& b) {
-  Dual<V> r;
+template <typename V, int N>
+Dual<V, N> operator*(const Dual<V, N>& a, const Dual<V, N>& b) {
+  Dual<V, N> r;
   r.v = a.v * b.v;
-  for (int i = 0; i < kTan; ++i) r.d[i] = a.d[i] * b.v + a.v * b.d[i];
+  for (int i = 0; i < N; ++i) r.d[i] = a.d[i] * b.v + a.v * b.d[i];
   return r;
 }
-template <typename V>
-Dual<V> scale(V s, const Dual<V>& a) {
-  Dual<V> r;
+template <typename V, int N>
+Dual<V, N> scale(V s, const Dual<V, N>& a) {
+  Dual<V, N> r;
   r.v = s * a.v;
-  for (int i = 0; i < kTan; ++i) r.d[i] = s * a.d[i];
+  for (int i = 0; i < N; ++i) r.d[i] = s * a.d[i];
   return r;
 }
-template <typename V>
-Dual<V> operator/(const Dual<V>& a, const Dual<V>& b) {
-  Dual<V> r;
+template <typename V, int N>
+Dual<V, N> operator/(const Dual<V, N>& a, const Dual<V, N>& b) {
+  Dual<V, N> r;
   r.v = a.v / b.v;
   const V inv = 1 / b.v;
-  for (int i = 0; i < kTan; ++i) r.d[i] = (a.d[i] - r.v * b.d[i]) * inv;
+  for (int i = 0; i < N; ++i) r.d[i] = (a.d[i] - r.v * b.d[i]) * inv;
   return r;
 }
-template <typename V>
-Dual<V> dsel(decltype(V{} < V{}) m, const Dual<V>& a, const Dual<V>& b) {
-  Dual<V> r;
+template <typename V, int N>
+Dual<V, N> dsel(decltype(V{} < V{}) m, const Dual<V, N>& a, const Dual<V, N>& b) {
+  Dual<V, N> r;
   r.v = sel<V>(m, a.v, b.v);
-  for (int i = 0; i < kTan; ++i) r.d[i] = sel<V>(m, a.d[i], b.d[i]);
+  for (int i = 0; i < N; ++i) r.d[i] = sel<V>(m, a.d[i], b.d[i]);
   return r;
 }
-template <typename T, typename V>
-Dual<V> dsqrt(const Dual<V>& a) {
-  Dual<V> r;
+template <typename T, typename V, int N>
+Dual<V, N> dsqrt(const Dual<V, N>& a) {
+  Dual<V, N> r;
   r.v = vsqrt<T>(a.v);
   const V inv = splat<V>(0.5) / r.v;
-  for (int i = 0; i < kTan; ++i) r.d[i] = a.d[i] * inv;
+  for (int i = 0; i < N; ++i) r.d[i] = a.d[i] * inv;
   return r;
 }
 // `ndf._safe_sqrt`: 0 with derivative 0 where the argument is not positive.
-template <typename T, typename V>
-Dual<V> dsafe_sqrt(const Dual<V>& a) {
+template <typename T, typename V, int N>
+Dual<V, N> dsafe_sqrt(const Dual<V, N>& a) {
   auto pos = a.v > 0;
-  Dual<V> safe = dsel(pos, a, cst(splat<V>(1)));
-  return dsel(pos, dsqrt<T>(safe), cst(V{}));
+  Dual<V, N> safe = dsel(pos, a, cst<N>(splat<V>(1)));
+  return dsel(pos, dsqrt<T>(safe), cst<N>(V{}));
 }
-template <typename T, typename V>
-Dual<V> dabs(const Dual<V>& a) {
+template <typename T, typename V, int N>
+Dual<V, N> dabs(const Dual<V, N>& a) {
   V s = sel<V>(a.v > 0, splat<V>(1), sel<V>(a.v < 0, splat<V>(-1), V{}));
-  Dual<V> r;
+  Dual<V, N> r;
   r.v = vabs<T>(a.v);
-  for (int i = 0; i < kTan; ++i) r.d[i] = s * a.d[i];
+  for (int i = 0; i < N; ++i) r.d[i] = s * a.d[i];
   return r;
 }
 // jax's max/min: at a tie each argument gets half the derivative.
-template <typename T, typename V>
-Dual<V> dmax(const Dual<V>& a, const Dual<V>& b) {
+template <typename T, typename V, int N>
+Dual<V, N> dmax(const Dual<V, N>& a, const Dual<V, N>& b) {
   V wa = sel<V>(a.v > b.v, splat<V>(1), sel<V>(a.v == b.v, splat<V>(0.5), V{}));
-  Dual<V> r;
+  Dual<V, N> r;
   r.v = vmax<T>(a.v, b.v);
-  for (int i = 0; i < kTan; ++i) r.d[i] = wa * a.d[i] + (1 - wa) * b.d[i];
+  for (int i = 0; i < N; ++i) r.d[i] = wa * a.d[i] + (1 - wa) * b.d[i];
   return r;
 }
-template <typename T, typename V>
-Dual<V> dmin(const Dual<V>& a, const Dual<V>& b) {
+template <typename T, typename V, int N>
+Dual<V, N> dmin(const Dual<V, N>& a, const Dual<V, N>& b) {
   V wa = sel<V>(a.v < b.v, splat<V>(1), sel<V>(a.v == b.v, splat<V>(0.5), V{}));
-  Dual<V> r;
+  Dual<V, N> r;
   r.v = vmin<T>(a.v, b.v);
-  for (int i = 0; i < kTan; ++i) r.d[i] = wa * a.d[i] + (1 - wa) * b.d[i];
+  for (int i = 0; i < N; ++i) r.d[i] = wa * a.d[i] + (1 - wa) * b.d[i];
   return r;
 }
 
@@ -539,6 +550,25 @@ struct Job {
   }
 };
 
+// `work(i0, i1)` over [0, n) in chunks of `chunk` on the caller and up to `threads` - 1 tasks
+// of `pool` (the cut depends on n and chunk alone).
+template <typename F>
+void parallel(ffi::ThreadPool& pool, size_t n, size_t chunk, int64_t threads, F work) {
+  const size_t chunks = (n + chunk - 1) / chunk;
+  size_t workers = std::min<size_t>(chunks, static_cast<size_t>(std::max<int64_t>(1, threads)));
+  if (workers > 1) workers = std::min<size_t>(workers, std::max<int64_t>(1, pool.num_threads()));
+  if (workers <= 1) {
+    work(size_t{0}, n);
+    return;
+  }
+  auto job = std::make_shared<Job>();
+  job->chunks = chunks;
+  job->body = [&](size_t c) { work(c * chunk, std::min(n, (c + 1) * chunk)); };
+  for (size_t w = 1; w < workers; ++w) pool.Schedule([job] { job->drain(); });
+  job->drain();
+  job->wait();
+}
+
 // Pair-views [0, n) on the caller and up to `threads` - 1 tasks of `pool` (chunks of `kChunk`).
 template <typename T, bool kPartials>
 ffi::Error run(ffi::ThreadPool& pool, const size_t* counts, int64_t n_gl, int64_t threads,
@@ -556,22 +586,9 @@ ffi::Error run(ffi::ThreadPool& pool, const size_t* counts, int64_t n_gl, int64_
                       "(n, 2) b and t, k <= 8");
   double xs[kMaxNodes], ws[kMaxNodes];
   gauss_legendre(static_cast<int>(n_gl), xs, ws);
-  auto work = [&](size_t i0, size_t i1) {
+  parallel(pool, n, kChunk, threads, [&](size_t i0, size_t i1) {
     lit_range<T, kPartials>(static_cast<int>(n_gl), xs, ws, k, i0, i1, in, res);
-  };
-  const size_t chunks = (n + kChunk - 1) / kChunk;
-  size_t workers = std::min<size_t>(chunks, static_cast<size_t>(std::max<int64_t>(1, threads)));
-  if (workers > 1) workers = std::min<size_t>(workers, std::max<int64_t>(1, pool.num_threads()));
-  if (workers <= 1) {
-    work(0, n);
-    return ffi::Error::Success();
-  }
-  auto job = std::make_shared<Job>();
-  job->chunks = chunks;
-  job->body = [&](size_t c) { work(c * kChunk, std::min(n, (c + 1) * kChunk)); };
-  for (size_t w = 1; w < workers; ++w) pool.Schedule([job] { job->drain(); });
-  job->drain();
-  job->wait();
+  });
   return ffi::Error::Success();
 }
 
@@ -615,6 +632,437 @@ ffi::Error LitValuesImpl(ffi::ThreadPool pool, ffi::Buffer<DT> ua, ffi::Buffer<D
   return run<T, false>(pool, counts, n_gl, threads, in, res);
 }
 
+// ------------------------------------------------------------------------------------------
+// The whole pair: the view-independent geometry (`ndf._pair_geometry`) with its Jacobian with
+// respect to p0, p1, width and depth (forward mode, kGeo tangents; the footprint is data), then
+// every view's lit integral (`lit_lanes`) on the pieces that are not points, chained.
+
+constexpr int kGeo = 6;     // tangents of the pair geometry: p0 (2), p1 (2), width, depth
+constexpr int kPieces = 6;  // `ndf.N_PIECES`
+
+template <typename V>
+inline V vsign(V x) {
+  return sel<V>(x > 0, splat<V>(1), sel<V>(x < 0, splat<V>(-1), V{}));
+}
+
+// Error-free sum and product (`ndf._two_sum`, `ndf._two_prod`; -ffp-contract=off keeps them so).
+template <typename T, typename V>
+inline void two_sum(V a, V b, V* s, V* e) {
+  *s = a + b;
+  V bb = *s - a;
+  *e = (a - (*s - bb)) + (b - bb);
+}
+template <typename T, typename V>
+inline void two_prod(V a, V b, V* p, V* e) {
+  const V split = splat<V>(sizeof(T) == 4 ? 4097.0 : 134217729.0);
+  *p = a * b;
+  V ca = split * a, ah = ca - (ca - a), al = a - ah;
+  V cb = split * b, bh = cb - (cb - b), bl = b - bh;
+  *e = ((ah * bh - *p) + ah * bl + al * bh) + al * bl;
+}
+
+// `ndf._cross_accurate(o, p0, p1)` for a constant `o`: the value compensated, the tangents those
+// of `(o - p0) x (p1 - p0)` (what autodiff of the compensated form gives, up to rounding).
+template <typename T, typename V, int N>
+Dual<V, N> cross_accurate(V ox, V oy, const Dual<V, N>& p0x, const Dual<V, N>& p0y,
+                          const Dual<V, N>& p1x, const Dual<V, N>& p1y) {
+  V ex, ex_lo, ey, ey_lo, dx, dx_lo, dy, dy_lo, a, a_lo, b, b_lo;
+  two_sum<T>(ox, -p0x.v, &ex, &ex_lo);
+  two_sum<T>(oy, -p0y.v, &ey, &ey_lo);
+  two_sum<T>(p1x.v, -p0x.v, &dx, &dx_lo);
+  two_sum<T>(p1y.v, -p0y.v, &dy, &dy_lo);
+  two_prod<T>(ex, dy, &a, &a_lo);
+  two_prod<T>(ey, dx, &b, &b_lo);
+  V small = (a_lo - b_lo) + (ex * dy_lo + ex_lo * dy) - (ey * dx_lo + ey_lo * dx);
+  Dual<V, N> r;
+  r.v = (a - b) + small;
+  for (int i = 0; i < N; ++i)
+    r.d[i] = (-p0x.d[i] * dy + ex * (p1y.d[i] - p0y.d[i])) -
+             (-p0y.d[i] * dx + ey * (p1x.d[i] - p0x.d[i]));
+  return r;
+}
+
+// `ndf._lerp` with a dual parameter.
+template <typename V, int N>
+inline Dual<V, N> dlerp(const Dual<V, N>& a, const Dual<V, N>& b, const Dual<V, N>& d,
+                        const Dual<V, N>& t) {
+  return dsel(t.v <= splat<V>(0.5), a + t * d, b - (cst<N>(splat<V>(1)) - t) * d);
+}
+
+// `ndf._ratio_clipped`.
+template <typename T, typename V>
+inline V ratio_clipped(V num, V den) {
+  auto ok = (vabs<T>(num) <= 2 * vabs<T>(den)) & (den != 0);
+  V r = num / sel<V>(ok, den, splat<V>(1));
+  V out = 2 * vsign(num) * vsign(den);
+  return sel<V>(ok, r, sel<V>(den == 0, 2 * vsign(num), out));
+}
+
+// One pair per lane, view-independent: Q's boundary cut to the groove (`ndf.PairGeometry`'s
+// `pieces`), the area, `scale` = -w (orientation sign), the frame and X.
+template <typename V, int N>
+struct Geo {
+  Dual<V, N> ua[kPieces], ub[kPieces], Ya[kPieces], Yb[kPieces];
+  Dual<V, N> area, scale, X, tx, ty, bx, by;
+};
+
+template <typename T, typename V, int N>
+void geometry(const V (&fp)[4][2], const Dual<V, N>& p0x, const Dual<V, N>& p0y,
+              const Dual<V, N>& p1x, const Dual<V, N>& p1y, const Dual<V, N>& w,
+              const Dual<V, N>& dep, Geo<V, N>* g) {
+  typedef Dual<V, N> D;
+  const V zero = V{}, one = splat<V>(1), half = splat<V>(0.5);
+  const D cone = cst<N>(one), czero = cst<N>(zero);
+  // `ndf.local_frame`.
+  D dx = p1x - p0x, dy = p1y - p0y;
+  D L2 = dx * dx + dy * dy;
+  D L = dsafe_sqrt<T>(L2);
+  auto pos = L2.v > 0;
+  D Ls = dsel(pos, L, cone);
+  D tx = dsel(pos, dx / Ls, czero), ty = dsel(pos, dy / Ls, cone);
+  D bx = ty, by = -tx;
+  // `ndf._strip_frame`: origin at vertex 0.
+  const V cx = fp[0][0], cy = fp[0][1];
+  V qx[4], qy[4];
+  for (int i = 0; i < 4; ++i) {
+    qx[i] = fp[i][0] - cx;
+    qy[i] = fp[i][1] - cy;
+  }
+  D cpx = cst<N>(cx) - p0x, cpy = cst<N>(cy) - p0y;
+  auto Lpos = L.v > 0;
+  D x_c = dsel(Lpos, cross_accurate<T>(cx, cy, p0x, p0y, p1x, p1y) / dsel(Lpos, L, cone),
+               cpx * bx + cpy * by);
+  D y_c = cpx * tx + cpy * ty;
+  D y[4], u[4];
+  for (int i = 0; i < 4; ++i) {
+    y[i] = scale(qx[i], tx) + scale(qy[i], ty);
+    u[i] = (scale(qx[i], bx) + scale(qy[i], by) + x_c) / w;
+  }
+  D y_lo = -y_c, y_hi = L - y_c;
+  // `ndf._groove`: orientation and groove half-width X = x_max / w.
+  V area2 = zero;
+  for (int i = 0; i < 4; ++i) area2 += qx[i] * qy[(i + 1) % 4] - qx[(i + 1) % 4] * qy[i];
+  V sign = sel<V>(area2 >= 0, one, -one);
+  D ratio = scale(splat<V>(-2), dep) / w;
+  D em;
+  for (int l = 0; l < Vec<T>::L; ++l) em.v[l] = std::expm1(ratio.v[l]);
+  for (int i = 0; i < N; ++i) em.d[i] = ratio.d[i] * (em.v + 1);
+  D X = (scale(half, w) * dsafe_sqrt<T>(-em)) / w;
+
+  // `ndf._strip_pieces`: the edges clipped to y_lo <= y <= y_hi and the two chains.
+  D e_ua[4], e_ub[4], e_ya[4], e_yb[4];
+  D lo_in = czero, lo_out = czero, hi_in = czero, hi_out = czero;
+  V sw = zero, swy = zero;
+  for (int i = 0; i < 4; ++i) {
+    const int j = (i + 1) % 4;
+    D du = u[j] - u[i], dyd = y[j] - y[i];
+    const V d0 = dyd.v, a = y[i].v, lo = y_lo.v, hi = y_hi.v;
+    V r_lo = ratio_clipped<T>(lo - a, d0), r_hi = ratio_clipped<T>(hi - a, d0);
+    auto inside = (a >= lo) & (a <= hi);
+    V tin = sel<V>(d0 > 0, r_lo, sel<V>(d0 < 0, r_hi, sel<V>(inside, -splat<V>(2), splat<V>(2))));
+    V tout = sel<V>(d0 > 0, r_hi, sel<V>(d0 < 0, r_lo, sel<V>(inside, splat<V>(2), -splat<V>(2))));
+    V t0 = vmax<T>(tin, zero), t1 = vmin<T>(tout, one);
+    auto empty = t1 <= t0;
+    t1 = vmax<T>(t1, t0);
+    auto vert0 = t0 <= 0, vert1 = t1 >= 1;
+    auto up = d0 > 0;
+    D bound0 = dsel(up, y_lo, y_hi), bound1 = dsel(up, y_hi, y_lo);
+    // `ndf._implicit`: the root of the constraint that sets each end.
+    const V slope = sel<V>(d0 == 0, one, d0);
+    D T0 = cst<N>(t0), T1 = cst<N>(t1);
+    D r0 = y[i] + scale(t0, dyd) - bound0, r1 = y[i] + scale(t1, dyd) - bound1;
+    for (int k = 0; k < N; ++k) {
+      T0.d[k] = sel<V>(vert0, zero, -r0.d[k] / slope);
+      T1.d[k] = sel<V>(vert1, zero, -r1.d[k] / slope);
+    }
+    e_ua[i] = dlerp(u[i], u[j], du, T0);
+    e_ya[i] = dsel(vert0, y[i], bound0);
+    e_ub[i] = dsel(empty, e_ua[i], dlerp(u[i], u[j], du, T1));
+    e_yb[i] = dsel(empty, e_ya[i], dsel(vert1, y[j], bound1));
+    const V yi = y[i].v, yj = y[j].v;
+    lo_in = lo_in + dsel((yi >= lo) & (yj < lo), e_ub[i], czero);
+    lo_out = lo_out + dsel((yi < lo) & (yj >= lo), e_ua[i], czero);
+    hi_in = hi_in + dsel((yi <= hi) & (yj > hi), e_ub[i], czero);
+    hi_out = hi_out + dsel((yi > hi) & (yj <= hi), e_ua[i], czero);
+    V wgt = vabs<T>(e_ub[i].v - e_ua[i].v) + vabs<T>(e_yb[i].v - e_ya[i].v);
+    sw += wgt;
+    swy += wgt * (e_ya[i].v + e_yb[i].v) / 2;
+  }
+  // y_ref carries no derivative.
+  const D y_ref = cst<N>(sel<V>(sw > 0, swy / sel<V>(sw > 0, sw, one), y_lo.v));
+  D pu[kPieces] = {e_ua[0], e_ua[1], e_ua[2], e_ua[3], lo_in, hi_in};
+  D pv[kPieces] = {e_ub[0], e_ub[1], e_ub[2], e_ub[3], lo_out, hi_out};
+  D pa[kPieces] = {e_ya[0] - y_ref, e_ya[1] - y_ref, e_ya[2] - y_ref, e_ya[3] - y_ref,
+                   y_lo - y_ref, y_hi - y_ref};
+  D pb[kPieces] = {e_yb[0] - y_ref, e_yb[1] - y_ref, e_yb[2] - y_ref, e_yb[3] - y_ref,
+                   y_lo - y_ref, y_hi - y_ref};
+
+  // `ndf._cut` to the groove [-X, X] (its forward mode is `_cut_transpose`'s transpose), then
+  // `_centre` (no derivative).
+  const D lo = -X, hi = X;
+  sw = zero;
+  swy = zero;
+  for (int i = 0; i < kPieces; ++i) {
+    D du = pv[i] - pu[i], dY = pb[i] - pa[i];
+    auto lo_a = pu[i].v < lo.v, hi_a = pu[i].v > hi.v;
+    auto lo_b = pv[i].v < lo.v, hi_b = pv[i].v > hi.v;
+    auto moved_a = lo_a | hi_a, moved_b = lo_b | hi_b;
+    D ca = dsel(lo_a, lo, dsel(hi_a, hi, pu[i]));
+    D cb = dsel(lo_b, lo, dsel(hi_b, hi, pv[i]));
+    auto nz = du.v != 0;
+    D inv = cone / dsel(nz, du, cone);
+    auto param = [&](const D& c, decltype(nz) moved, const D& dflt) {
+      D r = (c - pu[i]) * inv;
+      auto m = moved & nz;
+      return dsel(m, dsel(r.v <= 0, czero, dsel(r.v >= 1, cone, r)), dflt);
+    };
+    D ta = param(ca, moved_a, czero), tb = param(cb, moved_b, cone);
+    D Ya2 = dlerp(pa[i], pb[i], dY, ta), Yb2 = dlerp(pa[i], pb[i], dY, tb);
+    auto point = (nz & (ca.v == cb.v)) | (~nz & moved_a);
+    cb = dsel(point, ca, cb);
+    Yb2 = dsel(point, Ya2, Yb2);
+    g->ua[i] = ca;
+    g->ub[i] = cb;
+    g->Ya[i] = Ya2;
+    g->Yb[i] = Yb2;
+    V wgt = vabs<T>(cb.v - ca.v) + vabs<T>(Yb2.v - Ya2.v);
+    sw += wgt;
+    swy += wgt * (Ya2.v + Yb2.v) / 2;
+  }
+  const D ref = cst<N>(sel<V>(sw > 0, swy / sel<V>(sw > 0, sw, one), zero));
+  D sum = czero;
+  for (int i = 0; i < kPieces; ++i) {
+    g->Ya[i] = g->Ya[i] - ref;
+    g->Yb[i] = g->Yb[i] - ref;
+    sum = sum + scale(half, g->Ya[i] + g->Yb[i]) * (g->ub[i] - g->ua[i]);
+  }
+  g->scale = scale(sign, -w);
+  g->area = g->scale * sum;
+  g->X = X;
+  g->tx = tx;
+  g->ty = ty;
+  g->bx = bx;
+  g->by = by;
+}
+
+// The inputs and outputs of the pair kernels (flat, row-major). n pairs, nv views.
+template <typename T>
+struct PairArgs {
+  size_t n = 0, nv = 0;
+  const T *fp, *p0, *p1, *w, *d, *alpha, *h, *ctD = nullptr, *ctA = nullptr;
+  const bool* valid;
+  T *D = nullptr, *A = nullptr;                               // values
+  T *dp0 = nullptr, *dp1 = nullptr, *dw = nullptr, *dd = nullptr, *dalpha = nullptr,
+    *dh = nullptr;                                            // reverse pass
+};
+
+// Pairs [i0, i1), `L` at a time (a tail repeats its last pair in the spare lanes; padding slots
+// are evaluated as a benign dummy pair and give exact zeros). Values (`kGrad` false): D, A; the
+// reverse pass: the cotangents ctD, ctA times the pair's Jacobian.
+template <typename T, bool kGrad>
+void pairs_range(int n_gl, const double* xs, const double* ws, size_t i0, size_t i1,
+                 const PairArgs<T>& a) {
+  typedef typename Vec<T>::type V;
+  constexpr int L = Vec<T>::L;
+  constexpr int N = kGrad ? kGeo : 0;
+  typedef Dual<V, N> D;
+  const V zero = V{};
+  const T dummy_fp[8] = {0, 0, T(1e-3), 0, T(1e-3), T(1e-3), 0, T(1e-3)};
+  const T four_pi = static_cast<T>(4 * 3.14159265358979323846);
+  for (size_t b = i0; b < i1; b += L) {
+    const int lanes = static_cast<int>(std::min<size_t>(L, i1 - b));
+    V fp[4][2], p[6], al;
+    decltype(V{} < V{}) valid;
+    bool any = false;
+    for (int l = 0; l < L; ++l) {
+      const size_t i = b + std::min(l, lanes - 1);
+      const bool ok = a.valid[i];
+      any = any || ok;
+      valid[l] = ok ? -1 : 0;
+      for (int c = 0; c < 8; ++c) fp[c / 2][c % 2][l] = ok ? a.fp[i * 8 + c] : dummy_fp[c];
+      p[0][l] = ok ? a.p0[i * 2] : T(-1);
+      p[1][l] = ok ? a.p0[i * 2 + 1] : T(-1);
+      p[2][l] = ok ? a.p1[i * 2] : T(-0.99);
+      p[3][l] = ok ? a.p1[i * 2 + 1] : T(-1);
+      p[4][l] = ok ? a.w[i] : T(1e-4);
+      p[5][l] = ok ? a.d[i] : T(1e-4);
+      al[l] = ok ? a.alpha[i] : T(0.5);
+    }
+    if (!any) {  // padding only
+      for (int l = 0; l < lanes; ++l) {
+        const size_t i = b + l;
+        if constexpr (!kGrad) {
+          a.A[i] = 0;
+          for (size_t v = 0; v < a.nv; ++v) a.D[v * a.n + i] = 0;
+        } else {
+          a.dp0[2 * i] = a.dp0[2 * i + 1] = a.dp1[2 * i] = a.dp1[2 * i + 1] = 0;
+          a.dw[i] = a.dd[i] = a.dalpha[i] = 0;
+          for (size_t v = 0; v < a.nv; ++v)
+            for (int c = 0; c < 3; ++c) a.dh[(v * a.n + i) * 3 + c] = 0;
+        }
+      }
+      continue;
+    }
+    Geo<V, N> g;
+    geometry<T>(fp, var<N>(p[0], 0), var<N>(p[1], 1), var<N>(p[2], 2), var<N>(p[3], 3),
+                var<N>(p[4], 4), var<N>(p[5], 5), &g);
+    // The pieces that are not points, first, per lane (`ndf._compact`); k of them in all lanes.
+    int idx[L][kPieces], cnt[L], k = 0;
+    for (int l = 0; l < L; ++l) {
+      cnt[l] = 0;
+      for (int i = 0; i < kPieces; ++i)
+        if (!(g.ua[i].v[l] == g.ub[i].v[l] && g.Ya[i].v[l] == g.Yb[i].v[l])) idx[l][cnt[l]++] = i;
+      if (valid[l]) k = std::max(k, cnt[l]);
+    }
+    V cu[kPieces], cv[kPieces], cya[kPieces], cyb[kPieces];
+    for (int j = 0; j < k; ++j)
+      for (int l = 0; l < L; ++l) {
+        const bool in = j < cnt[l];
+        const int i = in ? idx[l][j] : 0;
+        cu[j][l] = in ? g.ua[i].v[l] : T(0);
+        cv[j][l] = in ? g.ub[i].v[l] : T(0);
+        cya[j][l] = in ? g.Ya[i].v[l] : T(0);
+        cyb[j][l] = in ? g.Yb[i].v[l] : T(0);
+      }
+    const V pref = al * al / four_pi, sp = g.scale.v * pref;
+    const V sv[kTan] = {g.X.v, zero, zero, zero, g.bx.v, g.by.v, g.tx.v, g.ty.v, al};
+    V gt[kGeo], ga = zero;
+    for (int t = 0; t < kGeo; ++t) gt[t] = zero;
+    for (size_t v = 0; v < a.nv; ++v) {
+      V hv[3], ct = zero;
+      for (int l = 0; l < L; ++l) {
+        const size_t i = b + std::min(l, lanes - 1);
+        for (int c = 0; c < 3; ++c) hv[c][l] = valid[l] ? a.h[(v * a.n + i) * 3 + c] : T(c == 2);
+        if constexpr (kGrad) ct[l] = valid[l] ? a.ctD[v * a.n + i] : T(0);
+      }
+      V s[kTan];
+      for (int c = 0; c < kTan; ++c) s[c] = sv[c];
+      for (int c = 0; c < 3; ++c) s[1 + c] = hv[c];
+      V lit = zero, gp[4][kMaxPieces], gs[kTan];
+      for (int c = 0; c < kTan; ++c) gs[c] = zero;
+      if (k > 0)
+        lit_lanes<T, V, kGrad>(n_gl, xs, ws, k, cu, cv, cya, cyb, s, &lit, gp[0], gp[1], gp[2],
+                               gp[3], gs);
+      if constexpr (!kGrad) {
+        V Dv = sel<V>(valid, sp * lit, zero);
+        for (int l = 0; l < lanes; ++l) a.D[v * a.n + b + l] = Dv[l];
+      } else {
+        // dD/d(geometry) through the pieces (back to their uncompacted slots), X and the frame.
+        V gpc[4][kPieces];
+        for (int f = 0; f < 4; ++f)
+          for (int i = 0; i < kPieces; ++i) gpc[f][i] = zero;
+        for (int l = 0; l < L; ++l)
+          for (int j = 0; j < cnt[l] && j < k; ++j)
+            for (int f = 0; f < 4; ++f) gpc[f][idx[l][j]][l] = gp[f][j][l];
+        const V cs = ct * sp;
+        for (int t = 0; t < kGeo; ++t) {
+          V sum = gs[0] * g.X.d[t] + gs[4] * g.bx.d[t] + gs[5] * g.by.d[t] + gs[6] * g.tx.d[t] +
+                  gs[7] * g.ty.d[t];
+          for (int i = 0; i < kPieces; ++i)
+            sum += gpc[0][i] * g.ua[i].d[t] + gpc[1][i] * g.ub[i].d[t] +
+                   gpc[2][i] * g.Ya[i].d[t] + gpc[3][i] * g.Yb[i].d[t];
+          gt[t] += cs * sum + ct * (g.scale.d[t] * pref * lit);
+        }
+        ga += ct * (g.scale.v * ((2 * al / four_pi) * lit) + sp * gs[8]);
+        for (int l = 0; l < lanes; ++l)
+          for (int c = 0; c < 3; ++c)
+            a.dh[(v * a.n + b + l) * 3 + c] = valid[l] ? cs[l] * gs[1 + c][l] : T(0);
+      }
+    }
+    if constexpr (!kGrad) {
+      for (int l = 0; l < lanes; ++l) a.A[b + l] = valid[l] ? g.area.v[l] : T(0);
+    } else {
+      V ctA;
+      for (int l = 0; l < L; ++l) {
+        const size_t i = b + std::min(l, lanes - 1);
+        ctA[l] = valid[l] ? a.ctA[i] : T(0);
+      }
+      for (int t = 0; t < kGeo; ++t) gt[t] += ctA * g.area.d[t];
+      for (int l = 0; l < lanes; ++l) {
+        const size_t i = b + l;
+        const bool ok = valid[l];
+        a.dp0[2 * i] = ok ? gt[0][l] : T(0);
+        a.dp0[2 * i + 1] = ok ? gt[1][l] : T(0);
+        a.dp1[2 * i] = ok ? gt[2][l] : T(0);
+        a.dp1[2 * i + 1] = ok ? gt[3][l] : T(0);
+        a.dw[i] = ok ? gt[4][l] : T(0);
+        a.dd[i] = ok ? gt[5][l] : T(0);
+        a.dalpha[i] = ok ? ga[l] : T(0);
+      }
+    }
+  }
+}
+
+// Pairs per chunk of work (a multiple of every vector width).
+constexpr size_t kPairChunk = 256;
+
+template <typename T, bool kGrad>
+ffi::Error run_pairs(ffi::ThreadPool& pool, int64_t n_gl, int64_t threads, size_t n_fp,
+                     size_t n_h, size_t n_ct, PairArgs<T>& a, const size_t* counts) {
+  // counts: p0, p1, w, d, alpha, valid (ctA for the reverse pass: counts[6]).
+  const size_t n = a.n;
+  if (n == 0) return ffi::Error::Success();
+  bool ok = n_fp == 8 * n && counts[0] == 2 * n && counts[1] == 2 * n && n_gl >= 1 &&
+            n_gl <= kMaxNodes && n_h % (3 * n) == 0;
+  for (int f = 2; f < (kGrad ? 7 : 6); ++f) ok = ok && counts[f] == n;
+  a.nv = n_h / (3 * n);
+  if (kGrad) ok = ok && n_ct == a.nv * n;
+  if (!ok)
+    return ffi::Error(ffi::ErrorCode::kInvalidArgument,
+                      "jscratch pairs: inputs must be (n, 4, 2) footprints, (n, 2) p0 and p1, "
+                      "(n,) width, depth, alpha and valid, (V, n, 3) h (and (V, n) ctD, (n,) ctA)");
+  double xs[kMaxNodes], ws[kMaxNodes];
+  gauss_legendre(static_cast<int>(n_gl), xs, ws);
+  parallel(pool, n, kPairChunk, threads, [&](size_t i0, size_t i1) {
+    pairs_range<T, kGrad>(static_cast<int>(n_gl), xs, ws, i0, i1, a);
+  });
+  return ffi::Error::Success();
+}
+
+template <ffi::DataType DT>
+ffi::Error PairsImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT> p0,
+                     ffi::Buffer<DT> p1, ffi::Buffer<DT> w, ffi::Buffer<DT> d,
+                     ffi::Buffer<DT> alpha, ffi::Buffer<ffi::DataType::PRED> valid,
+                     ffi::Buffer<DT> h, int64_t n_gl, int64_t threads, ffi::ResultBuffer<DT> D,
+                     ffi::ResultBuffer<DT> A) {
+  using T = ffi::NativeType<DT>;
+  PairArgs<T> a;
+  a.n = w.element_count();
+  a.fp = fp.typed_data(); a.p0 = p0.typed_data(); a.p1 = p1.typed_data();
+  a.w = w.typed_data(); a.d = d.typed_data(); a.alpha = alpha.typed_data();
+  a.valid = valid.typed_data(); a.h = h.typed_data();
+  a.D = D->typed_data(); a.A = A->typed_data();
+  const size_t counts[6] = {p0.element_count(), p1.element_count(), w.element_count(),
+                            d.element_count(), alpha.element_count(), valid.element_count()};
+  return run_pairs<T, false>(pool, n_gl, threads, fp.element_count(), h.element_count(), 0, a,
+                             counts);
+}
+
+template <ffi::DataType DT>
+ffi::Error PairsVjpImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT> p0,
+                        ffi::Buffer<DT> p1, ffi::Buffer<DT> w, ffi::Buffer<DT> d,
+                        ffi::Buffer<DT> alpha, ffi::Buffer<ffi::DataType::PRED> valid,
+                        ffi::Buffer<DT> h, ffi::Buffer<DT> ctD, ffi::Buffer<DT> ctA,
+                        int64_t n_gl, int64_t threads, ffi::ResultBuffer<DT> dp0,
+                        ffi::ResultBuffer<DT> dp1, ffi::ResultBuffer<DT> dw,
+                        ffi::ResultBuffer<DT> dd, ffi::ResultBuffer<DT> dalpha,
+                        ffi::ResultBuffer<DT> dh) {
+  using T = ffi::NativeType<DT>;
+  PairArgs<T> a;
+  a.n = w.element_count();
+  a.fp = fp.typed_data(); a.p0 = p0.typed_data(); a.p1 = p1.typed_data();
+  a.w = w.typed_data(); a.d = d.typed_data(); a.alpha = alpha.typed_data();
+  a.valid = valid.typed_data(); a.h = h.typed_data();
+  a.ctD = ctD.typed_data(); a.ctA = ctA.typed_data();
+  a.dp0 = dp0->typed_data(); a.dp1 = dp1->typed_data(); a.dw = dw->typed_data();
+  a.dd = dd->typed_data(); a.dalpha = dalpha->typed_data(); a.dh = dh->typed_data();
+  const size_t counts[7] = {p0.element_count(), p1.element_count(), w.element_count(),
+                            d.element_count(), alpha.element_count(), valid.element_count(),
+                            ctA.element_count()};
+  return run_pairs<T, true>(pool, n_gl, threads, fp.element_count(), h.element_count(),
+                            ctD.element_count(), a, counts);
+}
+
 }  // namespace
 
 #define JSCRATCH_LIT_ARGS(DT)                                                              \
@@ -642,3 +1090,31 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchLitValuesF32, LitValuesImpl<ffi::DataType:
 XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchLitValuesF64, LitValuesImpl<ffi::DataType::F64>,
                               JSCRATCH_LIT_ARGS(ffi::DataType::F64)
                                   .Ret<ffi::Buffer<ffi::DataType::F64>>());
+
+#define JSCRATCH_PAIRS_ARGS(DT)                                                            \
+  ffi::Ffi::Bind()                                                                         \
+      .Ctx<ffi::ThreadPool>()                                                              \
+      .Arg<ffi::Buffer<DT>>().Arg<ffi::Buffer<DT>>().Arg<ffi::Buffer<DT>>()                \
+      .Arg<ffi::Buffer<DT>>().Arg<ffi::Buffer<DT>>().Arg<ffi::Buffer<DT>>()                \
+      .Arg<ffi::Buffer<ffi::DataType::PRED>>().Arg<ffi::Buffer<DT>>()
+
+#define JSCRATCH_PAIRS_BIND(DT)                                                            \
+  JSCRATCH_PAIRS_ARGS(DT)                                                                  \
+      .Attr<int64_t>("n_gl").Attr<int64_t>("threads")                                      \
+      .Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()
+
+#define JSCRATCH_PAIRS_VJP_BIND(DT)                                                        \
+  JSCRATCH_PAIRS_ARGS(DT)                                                                  \
+      .Arg<ffi::Buffer<DT>>().Arg<ffi::Buffer<DT>>()                                       \
+      .Attr<int64_t>("n_gl").Attr<int64_t>("threads")                                      \
+      .Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()                \
+      .Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchPairsF32, PairsImpl<ffi::DataType::F32>,
+                              JSCRATCH_PAIRS_BIND(ffi::DataType::F32));
+XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchPairsF64, PairsImpl<ffi::DataType::F64>,
+                              JSCRATCH_PAIRS_BIND(ffi::DataType::F64));
+XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchPairsVjpF32, PairsVjpImpl<ffi::DataType::F32>,
+                              JSCRATCH_PAIRS_VJP_BIND(ffi::DataType::F32));
+XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchPairsVjpF64, PairsVjpImpl<ffi::DataType::F64>,
+                              JSCRATCH_PAIRS_VJP_BIND(ffi::DataType::F64));
