@@ -738,6 +738,8 @@ def scratch_contributions(scratches: Scratches, views: Views, board: Board, pair
     fps = pixel_footprints(board, dt)
     ones = jnp.ones((m, board.n_pixels), dt)
     k = shade(ones, ones, views, board) / board.pixel_area  # (M, P), board term is 0
+    if n > 0 and native.available(dt):
+        return _contributions_native(s, hs, k, fps, pairs, chunk)
     lists = pairs if isinstance(pairs, (list, tuple)) else [pairs] * m
     out = []
     for j, p in enumerate(lists):
@@ -754,6 +756,38 @@ def scratch_contributions(scratches: Scratches, views: Views, board: Board, pair
         d = jnp.where(p.valid, d * k[j, pix], 0)
         out.append(jax.ops.segment_sum(d, i, num_segments=n))
     return jnp.stack(out)
+
+
+def _contributions_native(s: Scratches, hs, k, fps, pairs, chunk: int):
+    """`scratch_contributions` by the native whole-pair kernel (`native.pair_values`): a shared
+    list is evaluated once for every view (the geometry once per pair), per-view lists each for
+    their view; chunks of ``chunk`` pairs in a `lax.scan`, summed per scratch."""
+    n, dt, P = s.n, s.dtype, fps.shape[0]
+    m = hs.shape[0]
+    groups = ([(list(range(m)), pairs)] if not isinstance(pairs, (list, tuple))
+              else [([j], p) for j, p in enumerate(pairs)])
+    out = jnp.zeros((m, n), dt)
+    for views_of, p in groups:
+        v = jnp.asarray(views_of)
+        pix, scr, val = (jnp.asarray(x).reshape(-1) for x in (p.pixel, p.scratch, p.valid))
+        c = int(min(chunk, _round_up(max(pix.shape[0], 1), 64)))
+        pad = _round_up(max(pix.shape[0], 1), c) - pix.shape[0]
+        pix = jnp.concatenate([pix, jnp.zeros((pad,), pix.dtype)])
+        scr = jnp.concatenate([scr, jnp.full((pad,), n, scr.dtype)])
+        val = jnp.concatenate([val.astype(bool), jnp.zeros((pad,), bool)])
+
+        def add(acc, xs, v=v):
+            px, sc, ok = xs
+            px = jnp.clip(px, 0, P - 1)
+            i = jnp.clip(sc, 0, n - 1)
+            D, _ = native.pairs(lobe.nodes(dt), fps[px], s.p0[i], s.p1[i], s.width[i],
+                                      s.depth[i], s.alpha[i], ok, hs[v][:, px])
+            return acc.at[:, sc].add(D * k[v][:, px], mode="drop"), None
+
+        acc, _ = jax.lax.scan(add, jnp.zeros((len(views_of), n), dt),
+                              (pix.reshape(-1, c), scr.reshape(-1, c), val.reshape(-1, c)))
+        out = out.at[v].add(acc)
+    return out
 
 
 def render_reference(scratches: Scratches, views: Views, board: Board, *,
