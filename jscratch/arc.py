@@ -252,8 +252,9 @@ def _piece_integrals(n_gl, ua, ub, Ya, Yb, p):
     dPi = jax.lax.complex(c21 - 2 * c11, 2 * c10).astype(cdt)
     F = wz * Pi
     G = q1_s * wpz * Pi + wz * dPi
-    al0, al1 = jnp.real(F), jnp.imag(F)
-    ga0, ga1 = jnp.imag(G) / 2, -(jnp.real(G) - al1) / 2
+    # H's coefficients; zero where nothing is subtracted (the rest below is then w F1).
+    al0, al1 = jnp.where(sub, jnp.real(F), 0), jnp.where(sub, jnp.imag(F), 0)
+    ga0, ga1 = jnp.where(sub, jnp.imag(G) / 2, 0), jnp.where(sub, -(jnp.real(G) - al1) / 2, 0)
     # ∫ H e^2 ds over the piece in closed form: the basis integrals of `lobe` (e, s e, e^2, s e^2).
     sb_s = sa_s + ds_s
     ea = 1 / (1 + sa_s * sa_s)
@@ -274,12 +275,11 @@ def _piece_integrals(n_gl, ua, ub, Ya, Yb, p):
     B = 1 + 4 * uu * uu
     wu = Yu * 4 * (1 - 4 * uu * uu) / (B * B)
     F2, e, s = _lobes(uu, p)
-    Ft = (c10 + c11 * s) * e + (c20 + c21 * s) * e * e  # F1 - c0
-    # The remainder (Φ - H) e^2 = (w P - H) e^2, written term by term of the basis.
+    # The remainder (Φ - H) e^2 = (w P - H) e^2, written term by term of the basis (w (F1 - c0)
+    # where nothing is subtracted).
     Rs = ((wu * c10 - ga0[..., None]) + (wu * c11 - ga1[..., None]) * s) * e + (
         (wu * c20 - al0[..., None]) + (wu * c21 - al1[..., None]) * s) * e * e
-    rest = wu * (c0 + F2) + jnp.where(sub[..., None], Rs, wu * Ft)
-    gl = half * jnp.sum(wq * rest, axis=-1)
+    gl = half * jnp.sum(wq * (wu * (c0 + F2) + Rs), axis=-1)
     return gl + jnp.where(sub, closed, 0)
 
 

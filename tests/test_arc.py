@@ -420,20 +420,19 @@ def test_values_and_gradients_finite_over_extreme_ranges(dtype, n):
 @pytest.mark.float64
 def test_shallow_cut_approaches_the_paper_profile():
     cases = [c for c in _generic(40) if c[6] > 0.05][:8]
+    paper = jax.jit(jax.vmap(ndf.pair_integral))
     errs = {}
     for rho in (1e-2, 1e-4):
-        out = []
-        for h, fp, p0, p1, _, r, alpha in cases:
-            p = rho * r
-            a = float(arc.arc_half_width(p, r))
-            w = 4 * r
-            d = -(w / 2) * np.log1p(-4 * a * a / (w * w))  # the paper groove of half-width a
-            assert float(ndf.groove_half_width(w, d)) == pytest.approx(a, rel=1e-12)
-            D1, A1 = arc.arc_pair_integral(h, fp, p0, p1, p, r, alpha)
-            D2, A2 = ndf.pair_integral(h, fp, p0, p1, w, d, alpha)
-            assert float(A1) == pytest.approx(float(A2), rel=1e-9, abs=1e-18)
-            out.append(abs(float(D1) - float(D2)) / (float(A1) / (np.pi * alpha) + 1e-300))
-        errs[rho] = max(out)
+        arcs = [(h, fp, p0, p1, rho * r, r, alpha) for h, fp, p0, p1, _, r, alpha in cases]
+        D1, A1 = _run(arcs, np.float64)
+        a = np.array([float(arc.arc_half_width(c[4], c[5])) for c in arcs])
+        w = 4 * np.array([c[5] for c in arcs])
+        d = -(w / 2) * np.log1p(-4 * a * a / (w * w))  # the paper groove of half-width a
+        np.testing.assert_allclose(np.asarray(ndf.groove_half_width(w, d)), a, rtol=1e-12)
+        args = _stack(arcs, np.float64)
+        D2, A2 = (np.asarray(t) for t in paper(*args[:4], w, d, args[6]))
+        np.testing.assert_allclose(A1, A2, rtol=1e-9, atol=1e-18)
+        errs[rho] = float(np.max(np.abs(D1 - D2) / (A1 / (np.pi * _alpha(arcs)) + 1e-300)))
     assert errs[1e-2] < 1e-2 and errs[1e-4] < 1e-5, errs
     assert errs[1e-4] < errs[1e-2] / 300, errs  # O(rho^1.5): 1000x for 100x shallower
 
