@@ -367,11 +367,12 @@ def _sweep(n, seed):
     x0 = y0 = 0.15
     rows = []
     for i in range(n):
-        rho = [0.0, 1e-9, 1e-6, 1e-3, rng.uniform(0, 1), 1 - 1e-7, 1.0, 1.5][i % 8]
+        rho = [0.0, 1e-9, 1e-6, 1e-3, rng.uniform(0, 1), 1 - 1e-7, 1.0, 1.5, -0.1][i % 9]
+        r = R * 10.0 ** rng.choice([-1, 0, 1])
         alpha = float(np.exp(rng.uniform(np.log(1e-4), np.log(0.9))))
         s = PIX * 10.0 ** rng.choice([-4, -2, 0, 2])
         fp = nc.square(x0, y0, s)
-        a = R * np.sqrt(max(min(rho, 1) * (2 - min(rho, 1)), 0))
+        a = r * np.sqrt(max(min(rho, 1) * (2 - min(rho, 1)), 0))
         mode = (i // 8) % 4
         if mode == 0:  # a vertex exactly on the groove's edge
             q = np.array([x0 - a, y0])
@@ -389,25 +390,26 @@ def _sweep(n, seed):
         rxy = np.sqrt(1 - hz * hz)
         h = np.array([rxy * np.cos(az), rxy * np.sin(az), hz])
         if i % 3 == 0:
-            h = _lit_h(rng.uniform(-1, 1) * a / R, np.clip(alpha * rng.normal(), -0.9, 0.9), p0,
+            h = _lit_h(rng.uniform(-1, 1) * a / r, np.clip(alpha * rng.normal(), -0.9, 0.9), p0,
                        p1) if length > 0 else h
-        rows.append((h, fp, p0, p1, rho * R, R, alpha))
+        rows.append((h, fp, p0, p1, rho * r, r, alpha))
     return rows
 
 
 @pytest.mark.parametrize("dtype, n", [(np.float32, 4096),
                                       pytest.param(np.float64, 512, marks=pytest.mark.float64)])
 def test_values_and_gradients_finite_over_extreme_ranges(dtype, n):
-    """Plunge 0 .. 1.5 R (through 0 and R exactly), alpha 1e-4 .. 0.9, h_z down to 1e-4,
-    footprints from 1e-4 to 100 pixels, vertices on the groove's edge, edges along the scratch,
-    zero-length scratches: no non-finite value or gradient, and no value below rounding."""
+    """Plunge -0.1 R .. 1.5 R (through 0 and R exactly), R from 12.5 µm to 1.25 mm, alpha
+    1e-4 .. 0.9, h_z down to 1e-4, footprints from 1e-4 to 100 pixels, vertices on the groove's
+    edge, edges along the scratch, zero-length scratches: no non-finite value or gradient, and no
+    value below rounding."""
     rows = _sweep(n, 7)
     (D, A), grads = _run_all(rows, dtype)
     assert np.all(np.isfinite(D)) and np.all(np.isfinite(A))
     for k, g in enumerate(grads):
         assert np.all(np.isfinite(np.asarray(g))), k
     assert np.all(D >= -1e-5 * A / (np.pi * _alpha(rows)) - 1e-30)
-    zero = np.array([r[4] == 0 or np.all(r[2] == r[3]) for r in rows])
+    zero = np.array([r[4] <= 0 or np.all(r[2] == r[3]) for r in rows])
     assert np.all(D[zero] == 0) and np.all(A[zero] == 0)
 
 
