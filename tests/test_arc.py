@@ -66,7 +66,8 @@ def reference(h, fp, p0, p1, plunge, radius, alpha, dps=30):
             if c <= 0:
                 return mpmath.mpf(0)
             den = c * c * (a2 - 1) + 1
-            return nr.section(poly, Rm * mpmath.sin(th)) * a2 / (mpmath.pi * den * den) * Rm * mpmath.cos(th)
+            chord = nr.section(poly, Rm * mpmath.sin(th))
+            return chord * a2 / (mpmath.pi * den * den) * Rm * mpmath.cos(th)
 
         width = mpmath.sqrt(abs(1 - (1 - a2) * r * r)) + mpmath.mpf(10) ** (-dps // 2)
         pts = {lo, hi}
@@ -345,10 +346,12 @@ def test_quadrature_error_decays_at_the_stated_rate():
                 v = 4 * u / (1 + 4 * u * u)
                 Y = Ya + (Yb - Ya) * (v - va) / (vb - va)
                 Y = abs(Y) if absolute else Y
-                return Y * 4 * (1 - 4 * u * u) / (1 + 4 * u * u) ** 2 * nr.point_ndf(u, *hm, _mpf(alpha))
+                vp = 4 * (1 - 4 * u * u) / (1 + 4 * u * u) ** 2
+                return Y * vp * nr.point_ndf(u, *hm, _mpf(alpha))
 
             u1, q1 = float(L.u1), float(L.q1)
-            pts = sorted({lo, hi, *(u1 + m * q1 for m in (-8, -1, 0, 1, 8) if lo < u1 + m * q1 < hi)})
+            near = (u1 + m * q1 for m in (-8, -1, 0, 1, 8))
+            pts = sorted({lo, hi, *(t for t in near if lo < t < hi)})
             J_ref = float(mpmath.quad(f, [_mpf(t) for t in pts]))
             J_abs = float(mpmath.quad(lambda u: f(u, True), [_mpf(t) for t in pts]))
         for n in (4, 6, 8, 12):
@@ -455,7 +458,8 @@ def test_building_blocks():
     n = np.asarray(arc.arc_normal(x, R))
     np.testing.assert_allclose(np.linalg.norm(n, axis=-1), 1.0, rtol=1e-14)
     eps = 1e-12
-    slope = (np.asarray(arc.arc_height(x + eps, p, R)) - np.asarray(arc.arc_height(x - eps, p, R))) / (2 * eps)
+    slope = (np.asarray(arc.arc_height(x + eps, p, R))
+             - np.asarray(arc.arc_height(x - eps, p, R))) / (2 * eps)
     np.testing.assert_allclose(n[:, 0] + n[:, 2] * slope, 0.0, atol=1e-5)
     # The identity the kernel rests on: the arc's normal at v = x / R is the paper's normal at
     # u = tan(theta / 2) / 2 (width 1), and v(u) = 4u / (1 + 4u^2) inverts u(v).
