@@ -1,0 +1,345 @@
+"""The circular-arc (ball-cutter) groove: its profile, normal and pair integral (docs/model.md §13).
+
+A ball-end cutter of radius ``R`` plunged to depth ``p`` cuts the groove
+
+    z(x) = R - p - sqrt(R^2 - x^2),   |x| < a = sqrt(2 R p - p^2),
+
+whose wall angle is ``theta(x) = asin(x / R)``. For one pixel footprint ``F`` and one such
+scratch under a half vector ``h`` the kernel returns, as `jscratch.ndf.pair_integral` does for the
+paper's profile,
+
+    D_hat = ∫∫_{F ∩ groove} D_x(h, n(x)) dx dy   (m^2),   A = area(F ∩ groove)   (m^2).
+
+**Public API:**
+
+- `arc_pair_integral(h, footprint, p0, p1, plunge, radius, alpha) -> (D_hat, A)`: pure,
+  jittable, vmappable, reverse-mode differentiable in every float argument (`plunge` and
+  `radius` included), float32 and float64 (it follows the dtype of its inputs).
+- Building blocks: `arc_height`, `arc_half_width` (``a``), `arc_normal`, `arc_point_ndf`,
+  `groove_coordinates` (``V = a / R`` and ``U``, below), `u_of_v`, `v_of_u`.
+
+**How it works** (derived in docs/model.md §13). With ``v = x / R = sin(theta)`` and
+``u = tan(theta / 2) / 2`` the normal is the paper's normal at ``u`` (`jscratch.ndf.normal` with
+``x / w = u``), so the GGX of the normal is the same rational function of ``u`` as in
+`jscratch.lobe` (``D = pref (F1 + F2)``, ``F1 = T1^2 + T1`` the sharp lobe, ``F2 = T2^2 + T2`` the
+smooth one). The groove is ``|u| <= U = sqrt(rho / (2 - rho)) / 2`` (``rho = p / R``; ``U <= 1/2``),
+and ``v = 4u / (1 + 4u^2)``. Green's theorem in ``v`` (docs/model.md §3) gives
+``D_hat = -R ∮ Y(v) D~ dv``; the boundary pieces of ``F ∩ groove`` are `jscratch.ndf.pair_geometry`'s
+(a paper groove of width ``2R`` and the depth whose half-width is ``a``: its pieces are in
+``x / (2R) = v / 2``). Along a piece ``Y`` is linear in ``v``, and in ``u`` each piece integral is
+
+    J = ∫ w(u) (F1 + F2) du,   w(u) = Y(v(u)) v'(u),   v'(u) = 4 (1 - 4u^2) / (1 + 4u^2)^2.
+
+``F1 - c0 = P(s) / (1 + s^2)^2`` (``s = (u - u1) / q1``, ``P`` a cubic) has double poles at
+``s = ±i``, a distance ``q1 ~ alpha / 4`` from the real axis. They are subtracted: the cubic
+``H`` that matches ``Φ(s) = w(u) P(s)`` and ``Φ'`` at ``s = ±i`` (Hermite) has
+``H / (1 + s^2)^2 = (α0 + α1 s) e^2 + (γ0 + γ1 s) e`` (``e = 1 / (1 + s^2)``), integrated in
+closed form (``arctan``, ``log``, rational), and the remainder ``(Φ - H) / (1 + s^2)^2``, analytic
+at ``s = ±i``, goes with ``w (c0 + F2)`` to an ``n``-point Gauss-Legendre rule in ``u``. Its
+nearest singularities are ``w``'s poles ``u = ±i/2`` and ``F2``'s, so on any piece inside
+``|u| <= 1/2`` the rule converges like ``ρ^(-2n)`` with a Bernstein ellipse ``ρ >= 1 + sqrt 2``
+(error bound in docs/model.md §13). Where the sharp lobe is broad (``q1 >= Q_SUB``) or the piece is
+short compared with its distance from the peak, nothing is subtracted: the rule integrates
+``w (F1 + F2)`` directly (ellipse ``ρ >= 2``). ``n`` is `nodes` (8 in float32, 24 in float64).
+
+Degenerate input (zero plunge, ``p >= R``, footprints that miss, edges parallel to the scratch,
+ends on groove edges) gives finite values and gradients: divisions and square roots that can meet
+zero go through guarded (double-``where``) forms. Reverse mode is plain autodiff; forward mode
+(`jax.jvp`) is not available (`jscratch.ndf.pair_geometry` has a custom VJP).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
+
+from jscratch import lobe, ndf
+
+__all__ = [
+    "arc_pair_integral",
+    "arc_height",
+    "arc_half_width",
+    "arc_normal",
+    "arc_point_ndf",
+    "groove_coordinates",
+    "u_of_v",
+    "v_of_u",
+    "nodes",
+    "Q_SUB",
+]
+
+#: Sharp-lobe half-width (in ``u``) below which its poles are subtracted: above it they lie at
+#: least this far from the real axis and the plain rule converges (ellipse ``ρ >= 2``); below it
+#: ``|1 + 4 z^2| >= 1 - 4 Q_SUB^2`` at the pole ``z = u1 + i q1`` keeps the subtraction's
+#: coefficients of the size of the weight.
+Q_SUB = 0.375
+#: ``rho = p / R`` is capped below 1 only where it sets `jscratch.ndf.pair_geometry`'s depth
+#: (``-2R log(1 - rho)``, infinite at 1); the half-width differs from ``R`` by ``R 2^-41``.
+_RHO_CAP = 1 - 2.0**-20
+
+
+def nodes(dtype) -> int:
+    """Gauss-Legendre nodes per boundary piece: 8 in float32, 24 in float64 (docs/model.md §13)."""
+    return 8 if dtype == jnp.float32 else 24
+
+
+def _safe_sqrt(x):
+    """sqrt with a finite gradient at 0 (where it returns 0 and gradient 0)."""
+    pos = x > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, x, 1)), 0)
+
+
+def _safe_div(a, b):
+    """`a / b`, 0 where `b == 0` (finite gradients)."""
+    ok = b != 0
+    return jnp.where(ok, a / jnp.where(ok, b, 1), 0)
+
+
+def _rho(plunge, radius):
+    return jnp.clip(_safe_div(plunge, radius), 0, 1)
+
+
+def arc_half_width(plunge: ArrayLike, radius: ArrayLike) -> Array:
+    """Half-width ``a = sqrt(2 R p - p^2)`` (m) of the groove a ball of radius `radius` cuts at
+    plunge `plunge` (m); the plunge is taken in ``[0, R]`` (``a = R`` from ``p = R`` on)."""
+    plunge, radius = jnp.asarray(plunge), jnp.asarray(radius)
+    rho = _rho(plunge, radius)
+    return radius * _safe_sqrt(rho * (2 - rho))
+
+
+def groove_coordinates(plunge: ArrayLike, radius: ArrayLike):
+    """``(V, U)``: the groove's half-width in ``v = x / R`` (``V = a / R``) and in
+    ``u = tan(theta / 2) / 2`` (``U = sqrt(rho / (2 - rho)) / 2``, ``rho = p / R`` in [0, 1])."""
+    rho = _rho(jnp.asarray(plunge), jnp.asarray(radius))
+    return _safe_sqrt(rho * (2 - rho)), 0.5 * _safe_sqrt(rho / (2 - rho))
+
+
+def arc_height(x: ArrayLike, plunge: ArrayLike, radius: ArrayLike) -> Array:
+    """Groove height ``z(x) = R - p - sqrt(R^2 - x^2)`` (m, <= 0) at the across-scratch
+    coordinate `x` (m, any shape), 0 outside the groove (``|x| >= a``)."""
+    x, plunge, radius = jnp.asarray(x), jnp.asarray(plunge), jnp.asarray(radius)
+    a = arc_half_width(plunge, radius)
+    p = radius * _rho(plunge, radius)
+    inside = jnp.abs(x) < a
+    z = radius - p - _safe_sqrt(radius * radius - jnp.where(inside, x * x, 0))
+    return jnp.where(inside, jnp.minimum(z, 0), 0)
+
+
+def arc_normal(x: ArrayLike, radius: ArrayLike) -> Array:
+    """Groove normal ``(-x/R, 0, sqrt(1 - x^2/R^2)) = (-sin theta, 0, cos theta)`` in the
+    scratch-local frame, `(..., 3)` (``|x| <= R``)."""
+    v = jnp.asarray(x) / jnp.asarray(radius)
+    return jnp.stack([-v, jnp.zeros_like(v), _safe_sqrt((1 - v) * (1 + v))], axis=-1)
+
+
+def arc_point_ndf(h_local: ArrayLike, x: ArrayLike, radius: ArrayLike,
+                  alpha: ArrayLike) -> Array:
+    """``D_x(h, n(x))`` on the arc: the GGX of `arc_normal` for the local half vector `h_local`
+    (``(..., 3)``, normalised here), 1/sr."""
+    h = jnp.asarray(h_local)
+    h = h / jnp.linalg.norm(h, axis=-1, keepdims=True)
+    return ndf.ggx(jnp.sum(arc_normal(x, radius) * h, axis=-1), alpha)
+
+
+def v_of_u(u):
+    """``v = sin(theta) = 4u / (1 + 4u^2)`` for ``u = tan(theta / 2) / 2`` (monotone on
+    ``|u| <= 1/2``)."""
+    return 4 * u / (1 + 4 * u * u)
+
+
+def u_of_v(v):
+    """The inverse of `v_of_u` on ``|v| <= 1``: ``u = v / (2 (1 + sqrt(1 - v^2)))``."""
+    return v / (2 * (1 + _safe_sqrt((1 - v) * (1 + v))))
+
+
+def _vdd(x, y):
+    """Divided difference ``(v(x) - v(y)) / (x - y) = 4 (1 - 4xy) / ((1 + 4x^2)(1 + 4y^2))``
+    (any dtype, complex included)."""
+    return 4 * (1 - 4 * x * y) / ((1 + 4 * x * x) * (1 + 4 * y * y))
+
+
+# ---------------------------------------------------------------------------------------------
+# The lit slab.
+
+
+def _cut_to_slab(ua, ub, Ya, Yb, lo, hi):
+    """Pieces `(ua, ub, Ya, Yb)` (`(6,)` each, any coordinate in which `Y` is linear) cut to the
+    slab `lo <= u <= hi`: ends clamped into it, `Y` at a clamped end where the piece crosses the
+    bound (a piece outside has zero length and contributes nothing). Then `Y` is re-centred on the
+    cut region (a constant shift on a closed boundary) so that a slab that nicks `F ∩ groove`
+    keeps `Y` of its own size. Returns the cut pieces and the flags `(lo_a, hi_a, lo_b, hi_b)`
+    of clamped ends."""
+    du, dY = ub - ua, Yb - Ya
+    lo_a, hi_a, lo_b, hi_b = ua < lo, ua > hi, ub < lo, ub > hi
+    ca = jnp.where(lo_a, lo, jnp.where(hi_a, hi, ua))
+    cb = jnp.where(lo_b, lo, jnp.where(hi_b, hi, ub))
+    ta = jnp.clip(_safe_div(ca - ua, du), 0, 1)
+    tb = jnp.where(du != 0, jnp.clip(_safe_div(cb - ua, du), 0, 1), 1)
+    Ya2 = Ya + ta * dY
+    Yb2 = jnp.where(tb >= 1, Yb, Ya + tb * dY)
+    sg = jax.lax.stop_gradient
+    wgt = sg(jnp.abs(cb - ca))
+    sw = jnp.sum(wgt)
+    ref = sg(jnp.where(sw > 0, jnp.sum(wgt * (Ya2 + Yb2) / 2) / jnp.where(sw > 0, sw, 1), 0))
+    return (ca, cb, Ya2 - ref, Yb2 - ref), (lo_a, hi_a, lo_b, hi_b)
+
+
+# ---------------------------------------------------------------------------------------------
+# Piece integrals.
+
+
+def _lobes(u, p):
+    """``(F2, e, s)`` at `u`: the smooth lobe ``T2^2 + T2``, ``e = 1 / (1 + s^2)`` and ``s``."""
+    c0, c10, c11, c20, c21, u1, q1, g, k, hx, hz = p
+    B = 1 + 4 * u * u
+    N = hz * (1 - 4 * u * u) - 4 * hx * u
+    T2 = B / (B + k * N)
+    s = (u - u1) / q1
+    return T2 * T2 + T2, 1 / (1 + s * s), s
+
+
+def _basis(sa, ds, ea, eb):
+    """``(∫ e, ∫ s e, ∫ e^2, ∫ s e^2)`` over ``s in [sa, sa + ds]`` (``e = 1 / (1 + s^2)``;
+    `ea`, `eb` its end values), written without cancellation for ``|ds| >= 1``: the ``arctan``
+    difference as one ``atan2``, the ``log`` ratio as ``log1p`` of a non-negative argument."""
+    sb = sa + ds
+    I0 = jnp.arctan2(ds, 1 + sa * sb)
+    ps = ds * (sa + sb)  # sb^2 - sa^2
+    up = ps >= 0
+    I1 = 0.5 * jnp.where(up, 1, -1) * jnp.log1p(jnp.where(up, ps * ea, -ps * eb))
+    # ∫ e^2 = (atan s + s e) / 2 and ∫ s e^2 = -e / 2, differences taken in product form.
+    K0 = 0.5 * I0 + 0.5 * (ds * ea) * ((1 - sa * sb) * eb)
+    K1 = 0.5 * (ds * ea) * ((sa + sb) * eb)
+    return I0, I1, K0, K1
+
+
+def _piece_integrals(n_gl, ua, ub, Ya, Yb, p):
+    """``J = ∫_{ua}^{ub} Y(v(u)) v'(u) (F1 + F2) du`` for each piece (`(6,)` arrays in ``u``,
+    inside the lit slab; `Y` linear in ``v`` from `Ya` to `Yb`), lobe parameters `p`
+    (`lobe.lobe_params`). Module docstring: subtraction of the sharp lobe's poles, closed form of
+    the subtracted part, Gauss-Legendre on the rest."""
+    c0, c10, c11, c20, c21, u1, q1, g, k, hx, hz = p
+    du = ub - ua
+    half = du / 2
+    um = ua + half
+    dY = Yb - Ya
+    den = _vdd(ub, ua)  # (v(ub) - v(ua)) / du, > 0 unless the piece is the point u = ±1/2
+    # Where the subtraction is used: a sharp lobe, and a piece long compared with its distance
+    # from the peak (elsewhere the poles s = ±i are far outside the piece's ellipse).
+    ds = du / q1
+    sa = (ua - u1) / q1
+    sm = sa + ds / 2
+    sub = (q1 < Q_SUB) & (jnp.abs(ds) >= jnp.maximum(1, 0.5 * jnp.abs(sm)))
+    ds_s = jnp.where(sub, ds, 1)
+    sa_s = jnp.where(sub, sa, 0)
+    q1_s = jnp.where(sub, q1, Q_SUB / 2)
+    du_s = jnp.where(sub, du, 1)
+    den_s = jnp.where(sub & (den > 0), den, 1)
+
+    # Hermite data of Φ(s) = w(u) P(s) at s = i, u = z = u1 + i q1 (complex arithmetic).
+    cdt = jnp.result_type(du.dtype, jnp.complex64)
+    z = jax.lax.complex(jnp.broadcast_to(u1, du.shape), jnp.broadcast_to(q1_s, du.shape))
+    z = z.astype(cdt)
+    Bz = 1 + 4 * z * z
+    vp = 4 * (1 - 4 * z * z) / (Bz * Bz)
+    vpp = -32 * z * (3 - 4 * z * z) / (Bz * Bz * Bz)
+    dYdv = dY / (du_s * den_s)
+    Yz = Ya + dYdv * ((z - ua) * _vdd(z, ua))
+    wz = Yz * vp
+    wpz = dYdv * vp * vp + Yz * vpp
+    Pi = jax.lax.complex(c20, c21).astype(cdt)
+    dPi = jax.lax.complex(c21 - 2 * c11, 2 * c10).astype(cdt)
+    F = wz * Pi
+    G = q1_s * wpz * Pi + wz * dPi
+    # H's coefficients; zero where nothing is subtracted (the rest below is then w F1).
+    al0, al1 = jnp.where(sub, jnp.real(F), 0), jnp.where(sub, jnp.imag(F), 0)
+    ga0, ga1 = jnp.where(sub, jnp.imag(G) / 2, 0), jnp.where(sub, -(jnp.real(G) - al1) / 2, 0)
+    # ∫ H e^2 ds over the piece in closed form: the basis integrals of `lobe` (e, s e, e^2, s e^2).
+    sb_s = sa_s + ds_s
+    ea = 1 / (1 + sa_s * sa_s)
+    eb = 1 / (1 + sb_s * sb_s)
+    I0, I1, K0, K1 = _basis(sa_s, ds_s, ea, eb)
+    closed = q1_s * (al0 * K0 + al1 * K1 + ga0 * I0 + ga1 * I1)
+
+    # Gauss-Legendre in u on the rest.
+    xs, ws = lobe.gauss_legendre(n_gl)
+    x = jnp.asarray(xs, du.dtype)
+    wq = jnp.asarray(ws, du.dtype)
+    uu = um[..., None] + half[..., None] * x
+    tau = (1 + x) / 2
+    # Y at the nodes: v(u) - v(ua) = (u - ua) v[u, ua] (no cancellation, no division by du).
+    frac = jnp.where((den > 0)[..., None],
+                     tau * _vdd(uu, ua[..., None]) / jnp.where(den > 0, den, 1)[..., None], tau)
+    Yu = Ya[..., None] + dY[..., None] * frac
+    B = 1 + 4 * uu * uu
+    wu = Yu * 4 * (1 - 4 * uu * uu) / (B * B)
+    F2, e, s = _lobes(uu, p)
+    # The remainder (Φ - H) e^2 = (w P - H) e^2, written term by term of the basis (w (F1 - c0)
+    # where nothing is subtracted).
+    Rs = ((wu * c10 - ga0[..., None]) + (wu * c11 - ga1[..., None]) * s) * e + (
+        (wu * c20 - al0[..., None]) + (wu * c21 - al1[..., None]) * s) * e * e
+    gl = half * jnp.sum(wq * (wu * (c0 + F2) + Rs), axis=-1)
+    return gl + jnp.where(sub, closed, 0)
+
+
+# ---------------------------------------------------------------------------------------------
+# The pair integral.
+
+
+def _as_inputs(*xs):
+    dt = jnp.result_type(*[jnp.asarray(x) for x in xs], jnp.float32)
+    return tuple(jnp.asarray(v, dt) for v in xs)
+
+
+def arc_pair_integral(
+    h: Float[ArrayLike, "3"],
+    footprint: Float[ArrayLike, "4 2"],
+    p0: Float[ArrayLike, "2"],
+    p1: Float[ArrayLike, "2"],
+    plunge: Float[ArrayLike, ""],
+    radius: Float[ArrayLike, ""],
+    alpha: Float[ArrayLike, ""],
+) -> tuple[Float[Array, ""], Float[Array, ""]]:
+    """The pair integral of docs/model.md §3 for a ball-cutter groove (docs/model.md §13).
+
+    **Arguments:**
+
+    - `h`: `(3,)` board-frame half vector, `h_z > 0` (normalised here).
+    - `footprint`: `(4, 2)` convex quad, board metres (either orientation).
+    - `p0, p1`: `(2,)` scratch endpoints (m).
+    - `plunge`: the cutter's plunge ``p`` below the board surface (m; taken in ``[0, R]``);
+      `radius`: the ball's radius ``R`` (m, > 0); `alpha`: GGX roughness in (0, 1).
+
+    **Returns:** `(D_hat, A)`: ``∫∫_{F ∩ groove} D_x dx dy`` and ``area(F ∩ groove)``, both m^2,
+    in the dtype of the inputs.
+    """
+    h, footprint, p0, p1, plunge, radius, alpha = _as_inputs(h, footprint, p0, p1, plunge,
+                                                             radius, alpha)
+    V, U = groove_coordinates(plunge, radius)
+    rho = jnp.minimum(_rho(plunge, radius), _RHO_CAP)
+    # A paper groove of width 2R and half-width a has the same F ∩ groove: ndf's pieces, in
+    # x / (2R) = v / 2.
+    G = ndf.pair_geometry(footprint, p0, p1, 2 * radius, -2 * radius * jnp.log1p(-rho))
+    ua2, ub2, Ya, Yb = G.pieces
+    hn = h / jnp.sqrt(h[0] * h[0] + h[1] * h[1] + h[2] * h[2])
+    hx = hn[0] * G.b[0] + hn[1] * G.b[1]
+    hy = hn[0] * G.t[0] + hn[1] * G.t[1]
+    hz = hn[2]
+    u_m, u_p = ndf.lit_interval(hx, hz)
+    u_lo = jnp.maximum(-U, u_m)
+    u_hi = jnp.maximum(jnp.minimum(U, u_p), u_lo)
+    (ca, cb, Ya2, Yb2), (lo_a, hi_a, lo_b, hi_b) = _cut_to_slab(
+        ua2, ub2, Ya, Yb, v_of_u(u_lo) / 2, v_of_u(u_hi) / 2)
+
+    def to_u(c, lo, hi):
+        # Slab bounds and groove edges are known in u exactly; other ends are mapped.
+        mapped = jnp.where(c == -G.X, -U, jnp.where(c == G.X, U, u_of_v(2 * c)))
+        return jnp.where(lo, u_lo, jnp.where(hi, u_hi, mapped))
+
+    ua, ub = to_u(ca, lo_a, hi_a), to_u(cb, lo_b, hi_b)
+    ub = jnp.where(ca == cb, ua, ub)
+    L = lobe.lobe(hx, hy, hz, alpha)
+    J = _piece_integrals(nodes(h.dtype), ua, ub, Ya2, Yb2, lobe.lobe_params(L))
+    # -R ∮ Y D dv, with G.scale = -2R (orientation sign).
+    return G.scale / 2 * L.pref * jnp.sum(J), G.area
