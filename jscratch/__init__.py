@@ -47,8 +47,8 @@ from jscratch.bvh import (
 from jscratch.render import (
     render_pairs as render_pairs,
     render_reference as render_reference,
-    scratch_contributions as scratch_contributions,
 )
+from jscratch.contributions import scratch_contributions as scratch_contributions
 from jscratch.loss import LossConfig as LossConfig, make_loss as make_loss
 from jscratch.design import (
     DesignConfig as DesignConfig,

@@ -212,10 +212,7 @@ def ghost_loss(render: Float[Array, "M H W"], target: Float[Array, "M H W"],
     m = render.shape[0]
     if baseline is None:
         baseline = cross_ssim(target, target)
-    if m == 1:
-        return jnp.zeros((), render.dtype)
-    # Only the off-diagonal pairs (j != k) of `cross_ssim`: the diagonal does not enter.
-    j, k = np.nonzero(~np.eye(m, dtype=bool))
+    j, k = np.nonzero(~np.eye(m, dtype=bool))  # only the pairs j != k of `cross_ssim`
     s = ssim_mean(blur3(render)[j], blur3(target)[k])
     return jnp.sum(jax.nn.relu(s - baseline.astype(render.dtype)[j, k]))
 

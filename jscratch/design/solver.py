@@ -16,7 +16,8 @@ from jaxtyping import Array
 
 from jscratch import bvh
 from jscratch import loss as loss_mod
-from jscratch.render import grad_compiler_options, render_pairs, scratch_contributions
+from jscratch.contributions import scratch_contributions
+from jscratch.render import grad_compiler_options, render_pairs
 from jscratch.scene import SCRATCH_RULES, Board, Views
 from jscratch.shading import display
 from jscratch.design.config import GROUPS
@@ -170,7 +171,7 @@ def physical(params: DesignParams):
 
 @eqx.filter_jit
 def contributions(params: DesignParams, lists: bvh.PairLists, ctx: Context) -> Array:
-    """`render.scratch_contributions` of the design's scene, ``(M, N)``, from `view_lists`'
+    """`contributions.scratch_contributions` of the design's scene, ``(M, N)``, from `view_lists`'
     culled lists."""
     views = Views(ctx.camera, ctx.light, params.intensity())
     return scratch_contributions(params.scratches(), views, ctx.board, lists.for_render()[0],
