@@ -126,13 +126,23 @@ def _rep(mesh: Mesh) -> NamedSharding:
     return NamedSharding(mesh, PartitionSpec())
 
 
+def _put(x, sharding: NamedSharding):
+    """``x`` as a global array with `sharding`, built from this process's host copy
+    (`jax.make_array_from_callback`: no collective, unlike `jax.device_put`, which checks that
+    every process passed the same value and so must not run beside another thread's collective)."""
+    if isinstance(x, jax.Array) and x.sharding == sharding:
+        return x
+    host = np.asarray(x)
+    return jax.make_array_from_callback(host.shape, sharding, lambda idx: host[idx])
+
+
 def place(tree, mesh: Mesh | None):
     """`tree`'s array leaves replicated on every device of `mesh` (unchanged without a mesh):
     per-design constants are put there once instead of at every call."""
     if mesh is None:
         return tree
     return jax.tree_util.tree_map(
-        lambda x: jax.device_put(x, _rep(mesh)) if isinstance(x, (jax.Array, np.ndarray)) else x,
+        lambda x: _put(x, _rep(mesh)) if isinstance(x, (jax.Array, np.ndarray)) else x,
         tree)
 
 
@@ -170,9 +180,8 @@ def shard_lists(lists: bvh.PairLists, mesh: Mesh | None, board, chunk: int,
                                chunk)
     split = NamedSharding(mesh, PartitionSpec(AXIS))
     record = place(dataclasses.replace(shared, pixel=None, scratch=None, valid=None), mesh)
-    laid = dataclasses.replace(record, pixel=jax.device_put(pix[0], split),
-                               scratch=jax.device_put(scr[0], split),
-                               valid=jax.device_put(val[0], split))
+    laid = dataclasses.replace(record, pixel=_put(pix[0], split), scratch=_put(scr[0], split),
+                               valid=_put(val[0], split))
     out = dataclasses.replace(lists, shared=laid, counts=place(lists.counts, mesh))
     _LAST[:] = [shared, (mesh, board, chunk, n), out]
     return out

@@ -119,6 +119,8 @@ def design(
         "kernel": native.status(),
         "mesh": mesh_mod.describe(mesh),
     })
+    if mesh is not None:  # host copies: what follows (saving, metrics) may run on process 0 alone
+        result = dataclasses.replace(result, params=jax.device_get(result.params))
     return result
 
 
@@ -174,7 +176,7 @@ def setup(tnp, views, board, config, mesh=None):
     bound = loss_mod.make_loss(config.loss).bind(jnp.asarray(tnp, dt))
     ndf_max = jnp.max(board_ndf(Views(cam, lig), board, dt), axis=0)  # (P,)
     ctx = Context(cam, lig, hs, ndf_max, bound, lrs, board, int(config.chunk), mesh)
-    return params, optimizer, mesh_mod.place(ctx, mesh)
+    return mesh_mod.place(params, mesh), optimizer, mesh_mod.place(ctx, mesh)
 
 
 def _scratches(params) -> Scratches:

@@ -69,8 +69,10 @@ def view_lists(params: DesignParams, lists: bvh.PairLists, ctx: Context) -> bvh.
 def radiance(params: DesignParams, lists: bvh.PairLists, ctx: Context) -> Array:
     """Radiance ``(M, H, W)`` from `view_lists`' culled lists."""
     views = Views(ctx.camera, ctx.light, params.intensity())
-    return render_pairs(params.scratches(), views, ctx.board, *lists.for_render(), chunk=ctx.chunk,
-                        mesh=ctx.mesh)
+    rad = render_pairs(params.scratches(), views, ctx.board, *lists.for_render(), chunk=ctx.chunk,
+                       mesh=ctx.mesh)
+    # (on a mesh: the small images gathered, so the loss runs replicated, not split into strips)
+    return mesh_mod.replicated(rad, ctx.mesh)
 
 
 def _masked(lists: bvh.PairLists, keep_ext: Array) -> bvh.PairLists:
@@ -83,7 +85,9 @@ def _masked(lists: bvh.PairLists, keep_ext: Array) -> bvh.PairLists:
 
 
 def _on_mesh(params: DesignParams, lists: bvh.PairLists, ctx: Context) -> bvh.PairLists:
-    """`lists` laid out for ``ctx.mesh`` (`mesh.shard_lists`; as they are without a mesh)."""
+    """`lists` laid out for ``ctx.mesh`` (`mesh.shard_lists`; as they are without a mesh). On a
+    mesh every argument of the jitted functions is put there (`mesh.place`) so that one
+    compilation serves every call."""
     return mesh_mod.shard_lists(lists, ctx.mesh, ctx.board, ctx.chunk, params.log_width.shape[0])
 
 
@@ -91,6 +95,7 @@ def evaluate(params: DesignParams, lists: bvh.PairLists, keep: Array, ctx: Conte
     """Forward only: ``(radiance (M,H,W), loss terms, per-list counts)`` with scratches outside
     ``keep`` removed (their pairs masked, so they neither shine nor cover). On a mesh the lists
     are laid out for it first and the results are replicated."""
+    params, keep = mesh_mod.place((params, keep), ctx.mesh)
     return _evaluate(params, _on_mesh(params, lists, ctx), keep, ctx)
 
 
@@ -124,6 +129,7 @@ def _health(loss, grads: DesignParams, new: DesignParams) -> dict[str, Array]:
 
 def step(params: DesignParams, opt_state, lists: bvh.PairLists, ctx: Context, adam):
     """`_step_impl`, jitted with `render.grad_compiler_options` (faster compile and step)."""
+    params, opt_state = mesh_mod.place((params, opt_state), ctx.mesh)  # (once: then in place)
     return _jitted_step()(params, opt_state, _on_mesh(params, lists, ctx), ctx, adam)
 
 
@@ -131,6 +137,7 @@ def compile_step(params: DesignParams, opt_state, lists: bvh.PairLists, ctx: Con
     """Compile `step` for these arguments' shapes without running it: the jit cache is then warm
     and the first `step` call only runs. The design calls it on a second thread while the setup
     renders (XLA compiles without holding the GIL), so the two compilations overlap."""
+    params, opt_state = mesh_mod.place((params, opt_state), ctx.mesh)
     _jitted_step().lower(params, opt_state, _on_mesh(params, lists, ctx), ctx, adam).compile()
 
 
