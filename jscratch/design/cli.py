@@ -55,8 +55,9 @@ class RunOptions:
         "ball's real arc, in metrics.json and view<j>_carved.png (0: skip it; 32 is what the "
         "maker's path uses, about 35-50 s more at 256 px and 20k scratches)")
     # --- where the design runs (jscratch.design.mesh); not part of the design or its config.json
-    devices: int = option(0, "devices the image rows are split over: 0 every device JAX sees "
-                          "(every process's, with --coordinator), k the first k, 1 one device")
+    devices: int = option(0, "devices the image rows are split over: k the first k JAX sees "
+                          "(1: one device); 0 every device (every process's) with several "
+                          "processes or on GPUs/TPUs, one device for one process on the CPU")
     coordinator: str | None = option(
         None, "HOST:PORT of process 0 (jax.distributed): run the same command on every host with "
         "--num-processes and --process-id; process 0 writes the outputs. Without it, "

@@ -20,6 +20,7 @@ it resumes on any mesh.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
@@ -33,7 +34,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jscratch import bvh
 from jscratch.errors import DesignFileError, InputError
 
-__all__ = ["AXIS", "agree", "describe", "initialize", "is_writer", "place", "read_on_zero",
+__all__ = ["AXIS", "agree", "default_mesh", "sub_mesh", "describe", "initialize", "is_writer", "place", "read_on_zero",
            "replicated", "resolve", "shard_lists"]
 
 #: The mesh axis the pixels (rows of the image) are split over.
@@ -65,25 +66,69 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
         if not host or not port.isdigit():
             raise InputError(f"--coordinator must be HOST:PORT, got {coordinator!r}")
     try:
-        jax.distributed.initialize(coordinator, num_processes, process_id,
-                                   initialization_timeout=int(timeout))
+        with _join_errors_raise():
+            jax.distributed.initialize(coordinator, num_processes, process_id,
+                                       initialization_timeout=int(timeout))
     except Exception as exc:  # XLA's errors are long; the one line names what happened
         where = coordinator or os.environ.get("JAX_COORDINATOR_ADDRESS")
-        first = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else type(exc).__name__
+        first = (str(exc).strip().splitlines() or [""])[0][:200]
+        first = "" if "bad_cast" in first else f": {first}"  # (the callback's own failure)
         raise InputError(f"jax.distributed: process {process_id} of {num_processes} could not "
                          f"join the run at {where} within {timeout} s (is every process started,"
-                         f" with the same --coordinator and --num-processes?): {first}") from None
+                         f" with the same --coordinator and --num-processes?){first}") from None
     return True
 
 
+def default_mesh() -> Mesh | None:
+    """The mesh a design runs on when none is given: every device JAX sees (all processes'),
+    axis `AXIS`, when several processes are joined or the devices are accelerators; `None` (one
+    device) for one process on the CPU, whose one device already runs on every core (forced
+    host devices, ``--xla_force_host_platform_device_count``, split the same cores: a test
+    setting, asked for with an explicit mesh or ``--devices``)."""
+    devs = jax.devices()
+    if jax.process_count() > 1 or devs[0].platform != "cpu":
+        return Mesh(np.asarray(devs), (AXIS,))
+    return None
+
+
+@contextlib.contextmanager
+def _join_errors_raise():
+    """While joining: XLA's distributed client given a callback for the service's fatal errors,
+    so that a process that does not join within the timeout makes `connect` raise (caught and
+    reported in one line) instead of the client's default, aborting the process with a C++ log.
+    Where this JAX's private client factory differs, nothing is changed (JAX then aborts)."""
+    try:
+        from jax._src.lib import _jax
+        factory = _jax.get_distributed_runtime_client
+        if "missed_heartbeat_callback" not in (factory.__doc__ or ""):
+            raise AttributeError
+    except (ImportError, AttributeError):
+        yield
+        return
+
+    def failed(*_):
+        raise RuntimeError("a process of the run failed or did not join")
+
+    def client(*args, **kw):
+        kw.setdefault("missed_heartbeat_callback", failed)
+        return factory(*args, **kw)
+
+    _jax.get_distributed_runtime_client = client
+    try:
+        yield
+    finally:
+        _jax.get_distributed_runtime_client = factory
+
+
 def resolve(mesh: Mesh | None, board, config) -> Mesh | None:
-    """The mesh a design runs on: `mesh`, or one over every device JAX sees (all processes'),
-    with the single axis `AXIS`; `None` (the single-device path, no `shard_map`) when that is
-    one device. Raises `InputError` when the mesh does not divide the work: its rows must split
+    """The mesh a design runs on: `mesh`, or `default_mesh`; `None` (the single-device path, no
+    `shard_map`) when that is one device. Raises `InputError` when the mesh does not divide the work: its rows must split
     the image's ``H`` rows evenly, and per-view culled lists (``cull_eps > 0``) are laid out on
     one device only."""
     if mesh is None:
-        mesh = Mesh(np.asarray(jax.devices()), (AXIS,))
+        mesh = default_mesh()
+        if mesh is None:
+            return None
     if not isinstance(mesh, Mesh):
         raise InputError(f"mesh must be a jax.sharding.Mesh, got {type(mesh).__name__}")
     n = int(mesh.size)
@@ -100,12 +145,14 @@ def resolve(mesh: Mesh | None, board, config) -> Mesh | None:
 
 
 def sub_mesh(devices: int) -> Mesh | None:
-    """A mesh over the first `devices` devices JAX sees (0: all of them)."""
+    """A mesh over the first `devices` devices JAX sees (0: `default_mesh`)."""
     devs = jax.devices()
     if not (isinstance(devices, int) and 0 <= devices <= len(devs)):
         raise InputError(f"--devices must be an int in [0, {len(devs)}] (the devices JAX sees), "
                          f"got {devices!r}")
-    return Mesh(np.asarray(devs[:devices or len(devs)]), (AXIS,))
+    if devices == 0:
+        return default_mesh()
+    return Mesh(np.asarray(devs[:devices]), (AXIS,))
 
 
 def describe(mesh: Mesh | None) -> dict[str, Any]:

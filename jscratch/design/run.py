@@ -69,8 +69,9 @@ def design(
     - `stop_after`: stop after this many iterations in total (for tests of resuming); the
       checkpoint is written and the result describes the state at that point.
     - `mesh`: the `jax.sharding.Mesh` the image work is split over (`jscratch.design.mesh`);
-      default: every device JAX sees (all processes' after `jax.distributed.initialize`), one
-      device being the single-device path. Every process calls `design` with the same
+      default `jscratch.design.mesh.default_mesh`: every device JAX sees (all processes' after
+      `jax.distributed.initialize`) on accelerators or with several processes, else one device
+      (the single-device path, no `shard_map`). Every process calls `design` with the same
       arguments; process 0 writes the checkpoint. The result equals the one-device result to
       float rounding (the sums run in another order).
 
