@@ -219,3 +219,12 @@ def test_a_missing_process_is_one_line(tmp_path):
     assert p.returncode == 2
     assert "error: jax.distributed: process 0 of 2 could not join the run" in p.stderr
     assert not (tmp_path / "a").exists()
+
+
+def test_a_refusal_on_one_process_stops_every_process(tmp_path):
+    # 33 rows do not split over the 2 devices: process 1 refuses, process 0 (32 rows) would not
+    (_, e0, r0), (_, e1, r1) = _two(tmp_path / "a", tmp_path / "b", extra1=("--size", "33"))
+    assert (r0, r1) == (2, 2)
+    assert "error: mesh of 2 devices does not divide the image's 33 rows" in e1
+    assert "error: process 1 refused: mesh of 2 devices does not divide the image's 33 rows" in e0
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()

@@ -160,15 +160,21 @@ def _run(argv) -> int:
     native.prepare()  # the native kernel builds (first run only) while the inputs load
     if config.dtype == "float64":
         jax.config.update("jax_enable_x64", True)
-    targets, names, views, board = load_scene(scene)
     checkpoint = os.path.join(run.out, "checkpoint.npz")
     writer = mesh_mod.is_writer()
-    if run.resume and writer and not os.path.isfile(checkpoint):
-        raise DesignFileError(f"--resume: no checkpoint {checkpoint!r} (run without --resume first)")
-    check_inputs(targets, views, board, config, checkpoint, run.resume)
-    # --- the mesh and the processes' agreement, checked before anything is written
-    mesh = mesh_mod.sub_mesh(run.devices)
-    mesh_mod.resolve(mesh, board, config)
+
+    def checks():  # every refusal before any work (with several processes: all refuse together)
+        targets, names, views, board = load_scene(scene)
+        if run.resume and writer and not os.path.isfile(checkpoint):
+            raise DesignFileError(f"--resume: no checkpoint {checkpoint!r} (run without --resume "
+                                  "first)")
+        check_inputs(targets, views, board, config, checkpoint, run.resume)
+        mesh = mesh_mod.sub_mesh(run.devices)
+        mesh_mod.resolve(mesh, board, config)  # the mesh divides the work
+        return targets, names, views, board, mesh
+
+    targets, names, views, board, mesh = mesh_mod.all_or_none(checks)
+    # --- the processes' agreement, checked before anything is written
     mesh_mod.agree({"targets": targets_hash(targets), "design options": config.to_dict(),
                     "scene options": scene.to_dict(),
                     "run options (--resume, --devices)": [run.resume, run.devices],

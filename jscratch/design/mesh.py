@@ -260,6 +260,38 @@ def agree(items: dict[str, Any]) -> None:
                                  "command, inputs and jscratch/JAX versions on every process")
 
 
+def all_or_none(checks):
+    """``checks()`` (a function that raises a `JscratchError` to refuse) on every process, and its
+    verdict shared: when it refused on any process, every process raises the refusal of the
+    first that refused (its one line, prefixed with the process), so no process is left waiting
+    in a collective for one that stopped. Returns ``checks()``'s value. One process: just
+    ``checks()``."""
+    from jscratch.errors import JscratchError
+
+    if jax.process_count() == 1:
+        return checks()
+    from jax.experimental import multihost_utils
+
+    try:
+        value, refusal = checks(), None
+    except JscratchError as exc:
+        value, refusal = None, exc
+    failed = np.asarray(multihost_utils.process_allgather(np.int32(refusal is not None)))
+    if not failed.any():
+        return value
+    first = int(np.argmax(failed))
+    me = jax.process_index() == first
+    text = np.zeros(400, np.uint8)
+    if me:
+        raw = str(refusal).encode()[:400]
+        text[:len(raw)] = np.frombuffer(raw, np.uint8)
+    text = bytes(np.asarray(multihost_utils.broadcast_one_to_all(text, is_source=me)))
+    if me:
+        raise refusal
+    cls = type(refusal) if refusal is not None else InputError
+    raise cls(f"process {first} refused: {text.rstrip(bytes(1)).decode(errors='replace')}")
+
+
 def versions() -> dict[str, str]:
     """The versions every process must share (jscratch, JAX, jaxlib)."""
     import jaxlib
