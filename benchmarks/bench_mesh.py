@@ -58,10 +58,8 @@ def main():
         mesh = mesh_mod.resolve(mesh_mod.sub_mesh(d), board, config)
         params, optimizer, ctx = setup(tnp, views, board, config, mesh)
         lists = pair_lists(params, ctx, config)
-        opt = optimizer.init(params)
-        p, o = mesh_mod.place((params, opt), mesh)
-        laid = mesh_mod.shard_lists(lists, mesh, board, ctx.chunk, n)
-        hlo = solver._jitted_step().lower(p, o, laid, ctx, optimizer).compile().as_text()
+        p, o = mesh_mod.place((params, optimizer.init(params)), mesh)
+        hlo = solver.lower_step(p, o, lists, ctx, optimizer).compile().as_text()
         coll = collective_bytes(hlo) if mesh is not None else {}
         times = []
         for i in range(6):

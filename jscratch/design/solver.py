@@ -137,8 +137,14 @@ def compile_step(params: DesignParams, opt_state, lists: bvh.PairLists, ctx: Con
     """Compile `step` for these arguments' shapes without running it: the jit cache is then warm
     and the first `step` call only runs. The design calls it on a second thread while the setup
     renders (XLA compiles without holding the GIL), so the two compilations overlap."""
+    lower_step(params, opt_state, lists, ctx, adam).compile()
+
+
+def lower_step(params: DesignParams, opt_state, lists: bvh.PairLists, ctx: Context, adam):
+    """`step` lowered for these arguments (on ``ctx.mesh`` as `step` runs it): ``.compile()``
+    gives the executable, whose ``as_text()`` shows the collectives of a step on a mesh."""
     params, opt_state = mesh_mod.place((params, opt_state), ctx.mesh)
-    _jitted_step().lower(params, opt_state, _on_mesh(params, lists, ctx), ctx, adam).compile()
+    return _jitted_step().lower(params, opt_state, _on_mesh(params, lists, ctx), ctx, adam)
 
 
 @functools.lru_cache(maxsize=None)
