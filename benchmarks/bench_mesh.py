@@ -27,19 +27,48 @@ from jscratch.design import mesh as mesh_mod  # noqa: E402
 from jscratch.design.run import check_inputs, pair_lists, setup  # noqa: E402
 
 _BYTES = {"f32": 4, "s32": 4, "u32": 4, "pred": 1, "s8": 1, "u8": 1, "f64": 8, "s64": 8}
-_COLL = re.compile(r"=\s*(\(?[^=]*?\)?)\s+(all-reduce|all-gather|reduce-scatter|all-to-all|"
+_COLL = re.compile(r"=\s+(.+?)\s+(all-reduce|all-gather|reduce-scatter|all-to-all|"
                    r"collective-permute)(?:-start)?\(")
+_HEAD = re.compile(r"^(?:ENTRY\s+)?%([\w.\-]+)\s.*\{\s*$")
+_CALLS = re.compile(r"(?:calls|to_apply|body|condition|true_computation|false_computation)"
+                    r"=%([\w.\-]+)")
 
 
 def collective_bytes(hlo: str) -> dict[str, int]:
-    """Result bytes of each kind of collective in an HLO module's text (``-start`` ops counted
-    once, ``-done`` ignored)."""
+    """Result bytes of each kind of collective a step runs, from its HLO module's text: those of
+    the computations reachable from the entry, leaving out the branches of ``error_if`` checks
+    (they run only when a check fails). Counted once each (a collective inside a loop body would
+    run once per trip: the step has none)."""
+    comps: dict[str, list[str]] = {}
+    entry, name = None, None
+    for line in hlo.splitlines():
+        m = _HEAD.match(line)
+        if m:
+            name = m.group(1)
+            comps[name] = []
+            if line.startswith("ENTRY"):
+                entry = name
+        elif name is not None:
+            comps[name].append(line)
+    seen, todo = set(), [entry]
+    while todo:
+        c = todo.pop()
+        if c in seen or c not in comps:
+            continue
+        seen.add(c)
+        for line in comps[c]:
+            if "conditional(" in line and "error_if" in line:
+                continue  # a failed check's branch
+            todo.extend(_CALLS.findall(line))
     out: dict[str, int] = {}
-    for shapes, kind in _COLL.findall(hlo):
-        size = 0
-        for dt, dims in re.findall(r"(\w+)\[([\d,]*)\]", shapes):
-            size += _BYTES.get(dt, 4) * int(np.prod([int(d) for d in dims.split(",") if d]))
-        out[kind] = out.get(kind, 0) + size
+    for c in seen:
+        for line in comps[c]:
+            for shapes, kind in _COLL.findall(line.split(", metadata=")[0]):
+                size = 0
+                for dt, dims in re.findall(r"(\w+)\[([\d,]*)\]", shapes):
+                    size += _BYTES.get(dt, 4) * int(np.prod([int(d) for d in dims.split(",")
+                                                             if d]))
+                out[kind] = out.get(kind, 0) + size
     return out
 
 
@@ -59,7 +88,7 @@ def main():
         params, optimizer, ctx = setup(tnp, views, board, config, mesh)
         lists = pair_lists(params, ctx, config)
         p, o = mesh_mod.place((params, optimizer.init(params)), mesh)
-        hlo = solver.lower_step(p, o, lists, ctx, optimizer).compile().as_text()
+        hlo = solver.lower_step(p, o, lists, ctx, optimizer).compile().compiled.as_text()
         coll = collective_bytes(hlo) if mesh is not None else {}
         times = []
         for i in range(6):
