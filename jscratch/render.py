@@ -461,11 +461,13 @@ def _run_pair_sums(scratches: Scratches, board: Board, h_views, out, scr, valid,
         klass = _pair_classes(cfg, params, out, scr, valid)
         return _sort_pairs(out, scr, valid, klass, k)
 
-    # With a mesh each device pads and sorts its own segment (inside `shard_map`): outside it,
-    # XLA would gather the whole pair list to every device at every call.
-    out, scr, valid = _maybe_shard(cfg, functools.partial(order, k=1 if mesh else shards),
-                                   (_REP, _PAIRS, _PAIRS, _PAIRS), (_PAIRS,) * 3)(
-        jax.lax.stop_gradient(params), out, scr, valid)
+    if mesh is None:
+        out, scr, valid = order(params, out, scr, valid, shards)
+    else:  # each device pads and sorts its own segment: outside `shard_map`, XLA would gather
+        # the whole pair list to every device at every call
+        out, scr, valid = _maybe_shard(cfg, functools.partial(order, k=1),
+                                       (_REP, _PAIRS, _PAIRS, _PAIRS), (_PAIRS,) * 3)(
+            jax.lax.stop_gradient(params), out, scr, valid)
     Ds, As = _pair_sums(cfg, params, h_views, out, scr, valid)
     return Ds[:, :P], As[:, :P]
 
