@@ -58,8 +58,9 @@ _SCRIPT = textwrap.dedent("""
     res = {}
     for name, run in runs.items():
         r = run()
+        leaves = jax.tree_util.tree_leaves(r.params)
         np.savez(os.path.join(out, name + ".npz"), keep=r.keep,
-                 **{f"p{i}": np.asarray(x) for i, x in enumerate(jax.tree_util.tree_leaves(r.params))})
+                 **{f"p{i}": np.asarray(x) for i, x in enumerate(leaves)})
         res[name] = {"mesh": r.metrics["mesh"], "loss": r.metrics["loss"],
                      "iterations": r.metrics["iterations"], "prune": r.metrics["prune"]}
     try:  # 30 rows do not split over 4 devices
@@ -197,7 +198,8 @@ def test_two_processes_equal_one(tmp_path):
     m2 = json.loads((tmp_path / "two" / "metrics.json").read_text())
     assert m2["mesh"]["processes"] == 2 and m2["mesh"]["devices"] == 2
     assert m2["prune"] == m1["prune"] and m2["kept"] == m1["kept"]
-    with np.load(tmp_path / "one" / "result.npz") as a, np.load(tmp_path / "two" / "result.npz") as b:
+    one, two = tmp_path / "one" / "result.npz", tmp_path / "two" / "result.npz"
+    with np.load(one) as a, np.load(two) as b:
         assert np.array_equal(a["keep"], b["keep"])
         for k in ("geom", "log_width", "log_depth", "logit_alpha", "log_intensity"):
             np.testing.assert_allclose(a[k], b[k], rtol=0, atol=TOL)

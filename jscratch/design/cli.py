@@ -61,7 +61,8 @@ class RunOptions:
     coordinator: str | None = option(
         None, "HOST:PORT of process 0 (jax.distributed): run the same command on every host with "
         "--num-processes and --process-id; process 0 writes the outputs. Without it, "
-        "JAX_COORDINATOR_ADDRESS (or a cluster JAX detects) joins the processes", metavar="HOST:PORT")
+        "JAX_COORDINATOR_ADDRESS (or a cluster JAX detects) joins the processes",
+        metavar="HOST:PORT")
     num_processes: int | None = option(None, "processes of the run (with --coordinator)")
     process_id: int | None = option(None, "this process's index in [0, --num-processes)")
     join_timeout: int = option(300, "how long the processes wait for each other to join",

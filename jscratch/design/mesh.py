@@ -34,8 +34,9 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jscratch import bvh
 from jscratch.errors import DesignFileError, InputError
 
-__all__ = ["AXIS", "agree", "default_mesh", "sub_mesh", "describe", "initialize", "is_writer", "place", "read_on_zero",
-           "replicated", "resolve", "shard_lists"]
+__all__ = ["AXIS", "agree", "all_or_none", "checkpoint_bytes", "default_mesh", "describe",
+           "initialize", "is_writer", "place", "read_on_zero", "replicated", "resolve",
+           "shard_lists", "sub_mesh", "versions"]
 
 #: The mesh axis the pixels (rows of the image) are split over.
 AXIS = "pixels"
@@ -122,9 +123,9 @@ def _join_errors_raise():
 
 def resolve(mesh: Mesh | None, board, config) -> Mesh | None:
     """The mesh a design runs on: `mesh`, or `default_mesh`; `None` (the single-device path, no
-    `shard_map`) when that is one device. Raises `InputError` when the mesh does not divide the work: its rows must split
-    the image's ``H`` rows evenly, and per-view culled lists (``cull_eps > 0``) are laid out on
-    one device only."""
+    `shard_map`) when that is one device. Raises `InputError` when the mesh does not divide the
+    work: its devices must split the image's ``H`` rows evenly, and per-view culled lists
+    (``cull_eps > 0``) are laid out for one device only."""
     if mesh is None:
         mesh = default_mesh()
         if mesh is None:
@@ -261,11 +262,11 @@ def agree(items: dict[str, Any]) -> None:
 
 
 def all_or_none(checks):
-    """``checks()`` (a function that raises a `JscratchError` to refuse) on every process, and its
-    verdict shared: when it refused on any process, every process raises the refusal of the
-    first that refused (its one line, prefixed with the process), so no process is left waiting
-    in a collective for one that stopped. Returns ``checks()``'s value. One process: just
-    ``checks()``."""
+    """``checks()`` (a function that raises a `JscratchError` or `OSError` to refuse) on every
+    process, and its verdict shared: when it refused on any process, every process raises the
+    refusal of the first that refused (its one line, prefixed with the process on the others),
+    so no process is left waiting in a collective for one that stopped. Returns ``checks()``'s
+    value. One process: just ``checks()``."""
     from jscratch.errors import JscratchError
 
     if jax.process_count() == 1:
@@ -274,7 +275,7 @@ def all_or_none(checks):
 
     try:
         value, refusal = checks(), None
-    except JscratchError as exc:
+    except (JscratchError, OSError) as exc:  # (an unreadable input file: OSError)
         value, refusal = None, exc
     failed = np.asarray(multihost_utils.process_allgather(np.int32(refusal is not None)))
     if not failed.any():

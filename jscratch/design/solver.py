@@ -142,7 +142,7 @@ def compile_step(params: DesignParams, opt_state, lists: bvh.PairLists, ctx: Con
 
 def lower_step(params: DesignParams, opt_state, lists: bvh.PairLists, ctx: Context, adam):
     """`step` lowered for these arguments (on ``ctx.mesh`` as `step` runs it): ``.compile()``
-    gives the executable (equinox's; its ``.compiled.as_text()`` shows the collectives of a step on a mesh)."""
+    gives equinox's executable, whose ``.compiled.as_text()`` shows the collectives of a step."""
     params, opt_state = mesh_mod.place((params, opt_state), ctx.mesh)
     return _jitted_step().lower(params, opt_state, _on_mesh(params, lists, ctx), ctx, adam)
 
