@@ -126,6 +126,12 @@ def test_one_device_is_the_single_device_path():
     one = jax.sharding.Mesh(np.asarray(jax.devices()[:1]), (mesh.AXIS,))
     assert mesh.resolve(one, board, DesignConfig()) is None
     assert mesh.describe(None)["devices"] == 1
+    # one process on the CPU: forced host devices split the same cores, so not used unasked
+    assert mesh.default_mesh() is None and mesh.sub_mesh(0) is None
+    n = len(jax.devices())
+    assert mesh.sub_mesh(n).size == n
+    with pytest.raises(InputError, match=rf"--devices must be an int in \[0, {n}\]"):
+        mesh.sub_mesh(n + 1)
     with pytest.raises(InputError, match="mesh must be a jax.sharding.Mesh"):
         mesh.resolve("cpu", board, DesignConfig())
 
