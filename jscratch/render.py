@@ -462,23 +462,33 @@ def _run_pair_sums(scratches: Scratches, board: Board, h_views, out, scr, valid,
     Ls_pad = _round_up(max(Ls, 1), chunk)
     n = scratches.n
 
-    def pad(x, fill):
-        x = x.reshape(shards, Ls)
-        x = jnp.concatenate([x, jnp.full((shards, Ls_pad - Ls), fill, x.dtype)], 1)
+    def pad(x, fill, k):
+        x = x.reshape(k, Ls)
+        x = jnp.concatenate([x, jnp.full((k, Ls_pad - Ls), fill, x.dtype)], 1)
         return x.reshape(-1)
 
-    if Ls_pad != Ls:
-        out, scr, valid = pad(out, 0), pad(scr, n), pad(valid, False)
     if Pb * shards != P:
         fill = jnp.zeros(h_views.shape[:1] + (Pb * shards - P, 3), h_views.dtype).at[..., 2].set(1)
         h_views = jnp.concatenate([h_views, fill], 1)
     cfg = _Cfg(board.H, board.W, board.Sx, board.Sy, chunk, mesh, axes, Pb, per_view, need_D,
                need_A)
     params = (scratches.p0, scratches.p1, scratches.width, scratches.depth, scratches.alpha)
-    # (the native kernel integrates each pair's own pieces: only padding is put last)
-    klass = (valid.astype(jnp.int8) if native.available(scratches.dtype)
-             else _pair_classes(cfg, params, out, scr, valid))
-    out, scr, valid = _sort_pairs(out, scr, valid, klass, shards)
+
+    def order(params, out, scr, valid, k):  # pad and sort ``k`` segments
+        if Ls_pad != Ls:
+            out, scr, valid = pad(out, 0, k), pad(scr, n, k), pad(valid, False, k)
+        # (the native kernel integrates each pair's own pieces: only padding is put last)
+        klass = (valid.astype(jnp.int8) if native.available(params[2].dtype)
+                 else _pair_classes(cfg, params, out, scr, valid))
+        return _sort_pairs(out, scr, valid, klass, k)
+
+    if mesh is None:
+        out, scr, valid = order(params, out, scr, valid, shards)
+    else:  # each device pads and sorts its own segment: outside `shard_map`, XLA would gather
+        # the whole pair list to every device at every call
+        out, scr, valid = _maybe_shard(cfg, functools.partial(order, k=1),
+                                       (_REP, _PAIRS, _PAIRS, _PAIRS), (_PAIRS,) * 3)(
+            jax.lax.stop_gradient(params), out, scr, valid)
     Ds, As = _pair_sums(cfg, params, h_views, out, scr, valid)
     return Ds[:, :P], As[:, :P]
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
 import os
 import tempfile
@@ -74,11 +75,14 @@ def save_checkpoint(path: str, state: State, config: DesignConfig, thash: str) -
     save_npz(path, arrays)
 
 
-def load_checkpoint(path: str, like: State, config: DesignConfig, thash: str) -> State:
-    if not os.path.isfile(path):
+def load_checkpoint(path: str, like: State, config: DesignConfig, thash: str,
+                    raw: bytes | None = None) -> State:
+    """The `State` saved at `path` (its contents `raw` when given: the bytes process 0 read, on
+    a mesh of several processes), checked against this design (`like`, `config`, `thash`)."""
+    if raw is None and not os.path.isfile(path):
         raise DesignFileError(f"--resume: no checkpoint at {path!r}")
     try:
-        with np.load(path, allow_pickle=False) as z:
+        with np.load(path if raw is None else io.BytesIO(raw), allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
         meta = json.loads(bytes(data["meta"]).decode())
         absent = [k for k in ("targets_hash", "config", "spec", "caps") if k not in meta]

@@ -30,7 +30,8 @@ from jscratch.errors import EXIT_STATUS_HELP, DesignFileError, InputError, Jscra
 from jscratch.options import add_arguments, given, option, overlay
 from jscratch.designfile import DesignError
 from jscratch.design.config import DEFAULT_IMAGES, DesignConfig, SceneConfig
-from jscratch.design.io import load_scene, save_result
+from jscratch.design import mesh as mesh_mod
+from jscratch.design.io import load_scene, save_result, targets_hash
 from jscratch.design.run import check_inputs, design
 
 __all__ = ["RunOptions", "main", "parser", "configs"]
@@ -53,6 +54,19 @@ class RunOptions:
         0, "strata per pixel side of the brute-force 'as carved' render, the design with the "
         "ball's real arc, in metrics.json and view<j>_carved.png (0: skip it; 32 is what the "
         "maker's path uses, about 35-50 s more at 256 px and 20k scratches)")
+    # --- where the design runs (jscratch.design.mesh); not part of the design or its config.json
+    devices: int = option(0, "devices the image rows are split over: k the first k JAX sees "
+                          "(1: one device); 0 every device (every process's) with several "
+                          "processes or on GPUs/TPUs, one device for one process on the CPU")
+    coordinator: str | None = option(
+        None, "HOST:PORT of process 0 (jax.distributed): run the same command on every host with "
+        "--num-processes and --process-id; process 0 writes the outputs. Without it, "
+        "JAX_COORDINATOR_ADDRESS (or a cluster JAX detects) joins the processes",
+        metavar="HOST:PORT")
+    num_processes: int | None = option(None, "processes of the run (with --coordinator)")
+    process_id: int | None = option(None, "this process's index in [0, --num-processes)")
+    join_timeout: int = option(300, "how long the processes wait for each other to join",
+                               unit="s")
 
     def __post_init__(self):
         if not (isinstance(self.out, str) and self.out):
@@ -60,6 +74,10 @@ class RunOptions:
         n = self.as_carved_samples
         if not (isinstance(n, int) and not isinstance(n, bool) and n >= 0):
             raise DesignError(f"--as-carved-samples must be an int >= 0, got {n!r}")
+        for name in ("devices", "join_timeout"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and not isinstance(v, bool) and v >= 0):
+                raise DesignError(f"--{name.replace('_', '-')} must be an int >= 0, got {v!r}")
         if self.resume and self.config is not None:
             raise DesignError("--resume reads OUT/config.json: do not give --config with it")
 
@@ -136,22 +154,44 @@ def configs(argv: Sequence[str] | None = None) -> tuple[RunOptions, SceneConfig,
 
 
 def _run(argv) -> int:
-    native.prepare()  # the native kernel builds (first run only) while the inputs load
     run, scene, config = configs(argv)
+    # --- several processes: joined before any JAX work (jax.distributed)
+    mesh_mod.initialize(run.coordinator, run.num_processes, run.process_id, run.join_timeout)
+    # ---
+    native.prepare()  # the native kernel builds (first run only) while the inputs load
     if config.dtype == "float64":
         jax.config.update("jax_enable_x64", True)
-    targets, names, views, board = load_scene(scene)
     checkpoint = os.path.join(run.out, "checkpoint.npz")
-    if run.resume and not os.path.isfile(checkpoint):
-        raise DesignFileError(f"--resume: no checkpoint {checkpoint!r} (run without --resume first)")
-    check_inputs(targets, views, board, config, checkpoint, run.resume)
+    writer = mesh_mod.is_writer()
+
+    def checks():  # every refusal before any work (with several processes: all refuse together)
+        targets, names, views, board = load_scene(scene)
+        if run.resume and writer and not os.path.isfile(checkpoint):
+            raise DesignFileError(f"--resume: no checkpoint {checkpoint!r} (run without --resume "
+                                  "first)")
+        check_inputs(targets, views, board, config, checkpoint, run.resume)
+        mesh = mesh_mod.sub_mesh(run.devices)
+        mesh_mod.resolve(mesh, board, config)  # the mesh divides the work
+        return targets, names, views, board, mesh
+
+    targets, names, views, board, mesh = mesh_mod.all_or_none(checks)
+    # --- the processes' agreement, checked before anything is written
+    mesh_mod.agree({"targets": targets_hash(targets), "design options": config.to_dict(),
+                    "scene options": scene.to_dict(),
+                    "run options (--resume, --devices)": [run.resume, run.devices],
+                    "versions": mesh_mod.versions()})
+    if not writer:  # process 0 writes the outputs and the checkpoint
+        design(targets, views, board, config, checkpoint=checkpoint, resume=run.resume,
+               progress=False, mesh=mesh)
+        return 0
+    # ---
     os.makedirs(run.out, exist_ok=True)
     if not run.resume:  # the settings first, so that an interrupted run can be resumed
         with open(os.path.join(run.out, "config.json"), "w") as f:
             json.dump({"design": config.to_dict(), "scene": scene.to_dict(), "targets": names},
                       f, indent=2)
     result = design(targets, views, board, config, checkpoint=checkpoint, resume=run.resume,
-                    progress=not run.quiet)
+                    progress=not run.quiet, mesh=mesh)
     save_result(result, run.out, scene=scene, names=names,
                 as_carved_samples=run.as_carved_samples)
     if not run.quiet:

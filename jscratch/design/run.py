@@ -22,6 +22,7 @@ from jscratch.shading import DISPLAY_GAMMA, board_ndf, display, half_vectors
 from jscratch.design.checkpoint import State, load_checkpoint, save_checkpoint
 from jscratch.design.config import DesignConfig, NonFiniteError, SceneConfig
 from jscratch.design.discard import discard, fewest_for_ssim
+from jscratch.design import mesh as mesh_mod
 from jscratch.design import prune as prune_mod
 from jscratch.design.io import check_design_views, check_targets, targets_hash
 from jscratch.design.params import DesignParams, group_tree
@@ -46,6 +47,7 @@ def design(
     resume: bool = False,
     progress: bool = False,
     stop_after: int | None = None,
+    mesh: jax.sharding.Mesh | None = None,
 ) -> DesignResult:
     """Optimise scratches and light intensities so that view ``j`` shows ``targets[j]``.
 
@@ -66,6 +68,12 @@ def design(
     - `progress`: show a tqdm progress bar with the loss.
     - `stop_after`: stop after this many iterations in total (for tests of resuming); the
       checkpoint is written and the result describes the state at that point.
+    - `mesh`: the `jax.sharding.Mesh` the image work is split over (`jscratch.design.mesh`);
+      default `jscratch.design.mesh.default_mesh`: every device JAX sees (all processes' after
+      `jax.distributed.initialize`) on accelerators or with several processes, else one device
+      (the single-device path, no `shard_map`). Every process calls `design` with the same
+      arguments; process 0 writes the checkpoint. The result equals the one-device result to
+      float rounding (the sums run in another order).
 
     **Returns:** a `DesignResult`.
 
@@ -80,13 +88,23 @@ def design(
     tnp, views, board = check_inputs(targets, views, board, config, checkpoint, resume)
     checkpoint = None if checkpoint is None else os.fspath(checkpoint)
     thash = targets_hash(tnp)
-    params, optimizer, ctx = setup(tnp, views, board, config)
+    # --- mesh: the devices the design runs on, and every process running the same design
+    mesh = mesh_mod.resolve(mesh, board, config)
+    mesh_mod.agree({"target images": thash, "design config": config.to_dict(),
+                    "views": [np.asarray(views.camera).tolist(), np.asarray(views.light).tolist(),
+                              np.asarray(views.intensity).tolist()],
+                    "board": [board.Sx, board.Sy, list(board.shape)],
+                    "run (resume, stop_after)": [bool(resume), stop_after],
+                    "versions": mesh_mod.versions()})
+    raw = mesh_mod.checkpoint_bytes(checkpoint) if resume and mesh is not None else None
+    # ---
+    params, optimizer, ctx = setup(tnp, views, board, config, mesh)
     t = time.perf_counter()
     parts["setup"] = t - t_start
     warm = None
     if resume:
         like = State(0, params, optimizer.init(params), None, {}, 0)
-        state = load_checkpoint(checkpoint, like, config, thash)
+        state = load_checkpoint(checkpoint, like, config, thash, raw)
     else:
         state, warm = initial_state(params, optimizer, ctx, tnp, config)
     compile_seconds = None
@@ -110,7 +128,10 @@ def design(
         "time_compile_step": compile_seconds,
         "time_parts": {k: v for k, v in parts.items() if k != "pair_views"},
         "kernel": native.status(),
+        "mesh": mesh_mod.describe(mesh),
     })
+    if mesh is not None:  # host copies: what follows (saving, metrics) may run on process 0 alone
+        result = dataclasses.replace(result, params=jax.device_get(result.params))
     return result
 
 
@@ -141,9 +162,9 @@ def check_inputs(targets, views, board, config, checkpoint=None, resume=False):
     return tnp, views, board
 
 
-def setup(tnp, views, board, config):
+def setup(tnp, views, board, config, mesh=None):
     """The initial parameters (the structure a checkpoint is restored into), the optimiser and the
-    step's `Context`."""
+    step's `Context` (on `mesh`, its arrays replicated there: `jscratch.design.mesh`)."""
     dt = jnp.dtype(config.dtype)
     scratches = Scratches.random(
         jax.random.PRNGKey(config.seed), config.n_scratches, board, length=config.init_length,
@@ -165,8 +186,8 @@ def setup(tnp, views, board, config):
     hs = half_vectors(Views(cam, lig), board, dt)
     bound = loss_mod.make_loss(config.loss).bind(jnp.asarray(tnp, dt))
     ndf_max = jnp.max(board_ndf(Views(cam, lig), board, dt), axis=0)  # (P,)
-    ctx = Context(cam, lig, hs, ndf_max, bound, lrs, board, int(config.chunk))
-    return params, optimizer, ctx
+    ctx = Context(cam, lig, hs, ndf_max, bound, lrs, board, int(config.chunk), mesh)
+    return mesh_mod.place(params, mesh), optimizer, mesh_mod.place(ctx, mesh)
 
 
 def _scratches(params) -> Scratches:
@@ -232,12 +253,18 @@ def _compile_step_meanwhile(params, optimizer, lists, ctx) -> threading.Thread:
     return thread
 
 
+def _save(checkpoint, state, config, thash):
+    """`save_checkpoint`, on process 0 only (every process holds the same replicated state)."""
+    if mesh_mod.is_writer():
+        save_checkpoint(checkpoint, state, config, thash)
+
+
 def _check_health(health, state, config, checkpoint, thash):
     """Raise `NonFiniteError` (after saving ``state``, the last good one) when a check failed."""
     for what, (ok, idx) in health.items():
         if not bool(ok):
             if checkpoint is not None:
-                save_checkpoint(checkpoint, state, config, thash)
+                _save(checkpoint, state, config, thash)
             unit = "view" if what.endswith("intensity") else "scratch"
             where = "" if what == "loss" else f" (first bad {unit}: {int(idx)})"
             saved = f"; the last good state is in {checkpoint!r}" if checkpoint else ""
@@ -285,7 +312,10 @@ def _iterate(state, optimizer, ctx, config, n_iter, checkpoint, thash, progress)
                 if k != "total":
                     hist["terms"].setdefault(k, []).append(float(v))
             parts["pair_views"] += int(counts[:m].sum())
-            lists, rebins = new_lists, state.rebins + int(rebinned)
+            rebins = state.rebins + int(rebinned)
+            if new_lists is None:  # on a mesh: rebuilt (and laid out per shard) by the host
+                new_lists = rebin(state.lists, new, ctx) if bool(rebinned) else state.lists
+            lists = new_lists
             if bool(lists.shared.overflow):  # rebuilt in the step, but the capacities were short
                 t1 = time.perf_counter()
                 lists = rebin(state.lists, new, ctx)
@@ -298,7 +328,7 @@ def _iterate(state, optimizer, ctx, config, n_iter, checkpoint, thash, progress)
             if checkpoint is not None and (state.iteration % config.checkpoint_every == 0
                                            or state.iteration == n_iter):
                 t1 = time.perf_counter()
-                save_checkpoint(checkpoint, state, config, thash)
+                _save(checkpoint, state, config, thash)
                 parts["checkpoint"] += time.perf_counter() - t1
     finally:
         if bar is not None:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -22,6 +23,7 @@ from jscratch.scene import SCRATCH_RULES, Board, Views
 from jscratch.shading import display
 from jscratch.design.config import GROUPS
 from jscratch.design.params import DesignParams
+from jscratch.design import mesh as mesh_mod
 
 
 class Context(eqx.Module):
@@ -35,6 +37,8 @@ class Context(eqx.Module):
     lrs: DesignParams  # per-group learning rate (0 = frozen), scalar leaves
     board: Board = eqx.field(static=True)
     chunk: int = eqx.field(static=True)
+    # The `jax.sharding.Mesh` the image work is split over (`jscratch.design.mesh`), or None.
+    mesh: Any = eqx.field(static=True, default=None)
 
 
 @functools.lru_cache(maxsize=None)
@@ -66,7 +70,10 @@ def view_lists(params: DesignParams, lists: bvh.PairLists, ctx: Context) -> bvh.
 def radiance(params: DesignParams, lists: bvh.PairLists, ctx: Context) -> Array:
     """Radiance ``(M, H, W)`` from `view_lists`' culled lists."""
     views = Views(ctx.camera, ctx.light, params.intensity())
-    return render_pairs(params.scratches(), views, ctx.board, *lists.for_render(), chunk=ctx.chunk)
+    rad = render_pairs(params.scratches(), views, ctx.board, *lists.for_render(), chunk=ctx.chunk,
+                       mesh=ctx.mesh)
+    # (on a mesh: the small images gathered, so the loss runs replicated, not split into strips)
+    return mesh_mod.replicated(rad, ctx.mesh)
 
 
 def _masked(lists: bvh.PairLists, keep_ext: Array) -> bvh.PairLists:
@@ -78,14 +85,27 @@ def _masked(lists: bvh.PairLists, keep_ext: Array) -> bvh.PairLists:
         coverage=None if lists.coverage is None else mask(lists.coverage))
 
 
-@eqx.filter_jit
+def _on_mesh(params: DesignParams, lists: bvh.PairLists, ctx: Context) -> bvh.PairLists:
+    """`lists` laid out for ``ctx.mesh`` (`mesh.shard_lists`; as they are without a mesh). On a
+    mesh every argument of the jitted functions is put there (`mesh.place`) so that one
+    compilation serves every call."""
+    return mesh_mod.shard_lists(lists, ctx.mesh, ctx.board, ctx.chunk, params.log_width.shape[0])
+
+
 def evaluate(params: DesignParams, lists: bvh.PairLists, keep: Array, ctx: Context):
     """Forward only: ``(radiance (M,H,W), loss terms, per-list counts)`` with scratches outside
-    ``keep`` removed (their pairs masked, so they neither shine nor cover)."""
+    ``keep`` removed (their pairs masked, so they neither shine nor cover). On a mesh the lists
+    are laid out for it first and the results are replicated."""
+    params, keep = mesh_mod.place((params, keep), ctx.mesh)
+    return _evaluate(params, _on_mesh(params, lists, ctx), keep, ctx)
+
+
+@eqx.filter_jit
+def _evaluate(params: DesignParams, lists: bvh.PairLists, keep: Array, ctx: Context):
     keep_ext = jnp.concatenate([keep, jnp.zeros((1,), bool)])
     culled = view_lists(params, lists, ctx)
     rad = radiance(params, _masked(culled, keep_ext), ctx)
-    return rad, ctx.loss.terms(display(rad)), culled.counts
+    return mesh_mod.replicated((rad, ctx.loss.terms(display(rad)), culled.counts), ctx.mesh)
 
 
 def _health(loss, grads: DesignParams, new: DesignParams) -> dict[str, Array]:
@@ -110,14 +130,22 @@ def _health(loss, grads: DesignParams, new: DesignParams) -> dict[str, Array]:
 
 def step(params: DesignParams, opt_state, lists: bvh.PairLists, ctx: Context, adam):
     """`_step_impl`, jitted with `render.grad_compiler_options` (faster compile and step)."""
-    return _jitted_step()(params, opt_state, lists, ctx, adam)
+    params, opt_state = mesh_mod.place((params, opt_state), ctx.mesh)  # (once: then in place)
+    return _jitted_step()(params, opt_state, _on_mesh(params, lists, ctx), ctx, adam)
 
 
 def compile_step(params: DesignParams, opt_state, lists: bvh.PairLists, ctx: Context, adam):
     """Compile `step` for these arguments' shapes without running it: the jit cache is then warm
     and the first `step` call only runs. The design calls it on a second thread while the setup
     renders (XLA compiles without holding the GIL), so the two compilations overlap."""
-    _jitted_step().lower(params, opt_state, lists, ctx, adam).compile()
+    lower_step(params, opt_state, lists, ctx, adam).compile()
+
+
+def lower_step(params: DesignParams, opt_state, lists: bvh.PairLists, ctx: Context, adam):
+    """`step` lowered for these arguments (on ``ctx.mesh`` as `step` runs it): ``.compile()``
+    gives equinox's executable, whose ``.compiled.as_text()`` shows the collectives of a step."""
+    params, opt_state = mesh_mod.place((params, opt_state), ctx.mesh)
+    return _jitted_step().lower(params, opt_state, _on_mesh(params, lists, ctx), ctx, adam)
 
 
 @functools.lru_cache(maxsize=None)
@@ -157,10 +185,13 @@ def _step_impl(params: DesignParams, opt_state, lists: bvh.PairLists, ctx: Conte
     w = jnp.where(ok(s.width), s.width, 1e-4)
     d = jnp.where(ok(s.depth), s.depth, 1e-4)
     rebin = bvh.needs_rebin(lists.shared, p0, p1, w, d)
-    shared = jax.lax.cond(rebin, lambda: bvh.update(lists.spec, p0, p1, w, d),
-                          lambda: lists.shared)
-    new_lists = dataclasses.replace(lists, shared=shared, views=None, coverage=None)
-    return new, opt_state, terms, new_lists, rebin, culled.counts, _health(value, grads, new)
+    new_lists = None  # on a mesh the host rebuilds and lays out the list (`mesh.shard_lists`)
+    if ctx.mesh is None:
+        shared = jax.lax.cond(rebin, lambda: bvh.update(lists.spec, p0, p1, w, d),
+                              lambda: lists.shared)
+        new_lists = dataclasses.replace(lists, shared=shared, views=None, coverage=None)
+    return mesh_mod.replicated((new, opt_state, terms, new_lists, rebin, culled.counts,
+                                _health(value, grads, new)), ctx.mesh)
 
 
 @eqx.filter_jit
@@ -174,5 +205,6 @@ def contributions(params: DesignParams, lists: bvh.PairLists, ctx: Context) -> A
     """`contributions.scratch_contributions` of the design's scene, ``(M, N)``, from `view_lists`'
     culled lists."""
     views = Views(ctx.camera, ctx.light, params.intensity())
-    return scratch_contributions(params.scratches(), views, ctx.board, lists.for_render()[0],
-                                 chunk=ctx.chunk, h=ctx.hs)
+    return mesh_mod.replicated(
+        scratch_contributions(params.scratches(), views, ctx.board, lists.for_render()[0],
+                              chunk=ctx.chunk, h=ctx.hs), ctx.mesh)

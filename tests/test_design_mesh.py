@@ -1,0 +1,238 @@
+"""jscratch.design.mesh: a design on several devices (4 forced CPU devices) and on several
+processes (2 on localhost, joined by jax.distributed) equals the one-device design.
+
+The multi-device runs are subprocesses: the forced device count must be set before JAX starts,
+and a process joins at most one distributed run. Tolerance: the parameters agree to 1e-5 (absolute
+on the unconstrained parameters, which are O(1)): on a mesh every pixel strip sums its own pairs
+and the gradients are summed over the strips (a psum), so float32 sums run in another order than
+on one device; three Adam steps of that rounding (~1e-7 relative per sum) stay far below 1e-5,
+while a wrong shard (a missing or doubled strip) changes the loss and the parameters at 1e-2.
+"""
+
+import json
+import os
+import socket
+import subprocess
+import sys
+import textwrap
+
+import jax
+import numpy as np
+import pytest
+
+from jscratch.design import DesignConfig, mesh
+from jscratch.errors import InputError
+from jscratch.scene import Board
+
+pytestmark = pytest.mark.slow
+
+TOL = 1e-5
+
+_SCRIPT = textwrap.dedent("""
+    import os, sys, json
+    os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=4"
+    import jax, numpy as np
+    jax.config.update("jax_platforms", "cpu")
+    from jscratch.design import design, DesignConfig
+    from jscratch.design.mesh import sub_mesh
+    from jscratch.errors import InputError
+
+    out = sys.argv[1]
+    rng = np.random.default_rng(0)
+    t = rng.uniform(0.2, 0.8, (2, 32, 32)).astype(np.float32)
+    cfg = DesignConfig(n_scratches=200, iterations=3, prune_every=2)
+    ck4, ck1 = os.path.join(out, "c4.npz"), os.path.join(out, "c1.npz")
+    runs = {
+        "one": lambda: design(t, config=cfg, mesh=sub_mesh(1)),
+        "four": lambda: design(t, config=cfg, mesh=sub_mesh(4)),
+        # interrupted on 4 devices, resumed on 1; and the other way round
+        "four_to_one": lambda: (design(t, config=cfg, mesh=sub_mesh(4), checkpoint=ck4,
+                                       stop_after=2),
+                                design(t, config=cfg, mesh=sub_mesh(1), checkpoint=ck4,
+                                       resume=True))[1],
+        "one_to_four": lambda: (design(t, config=cfg, mesh=sub_mesh(1), checkpoint=ck1,
+                                       stop_after=2),
+                                design(t, config=cfg, mesh=sub_mesh(4), checkpoint=ck1,
+                                       resume=True))[1],
+    }
+    res = {}
+    for name, run in runs.items():
+        r = run()
+        leaves = jax.tree_util.tree_leaves(r.params)
+        np.savez(os.path.join(out, name + ".npz"), keep=r.keep,
+                 **{f"p{i}": np.asarray(x) for i, x in enumerate(leaves)})
+        res[name] = {"mesh": r.metrics["mesh"], "loss": r.metrics["loss"],
+                     "iterations": r.metrics["iterations"], "prune": r.metrics["prune"]}
+    try:  # 30 rows do not split over 4 devices
+        design(t[:, :30], config=cfg, mesh=sub_mesh(4))
+    except InputError as e:
+        res["error"] = str(e)
+    json.dump(res, open(os.path.join(out, "res.json"), "w"))
+""")
+
+
+def _env():
+    env = dict(os.environ)
+    env.pop("XLA_FLAGS", None)
+    return env
+
+
+@pytest.fixture(scope="module")
+def four_devices(tmp_path_factory):
+    out = tmp_path_factory.mktemp("mesh4")
+    p = subprocess.run([sys.executable, "-c", _SCRIPT, str(out)], capture_output=True, text=True,
+                       timeout=900, env=_env())
+    assert p.returncode == 0, p.stderr[-3000:]
+    res = json.loads((out / "res.json").read_text())
+    return out, res
+
+
+def _params(path):
+    with np.load(path) as z:
+        return z["keep"], [z[f"p{i}"] for i in range(len(z.files) - 1)]
+
+
+def _same(a, b):
+    (ka, pa), (kb, pb) = _params(a), _params(b)
+    assert np.array_equal(ka, kb)  # the same scratches kept by the discard
+    for x, y in zip(pa, pb):
+        np.testing.assert_allclose(x, y, rtol=0, atol=TOL)
+
+
+def test_four_devices_equal_one(four_devices):
+    out, res = four_devices
+    assert res["one"]["mesh"] == {"devices": 1, "processes": 1, "axes": {"pixels": 1},
+                                  "platform": "cpu", "device_kind": "cpu"}
+    assert res["four"]["mesh"]["devices"] == 4 and res["four"]["mesh"]["axes"] == {"pixels": 4}
+    assert res["four"]["prune"] == res["one"]["prune"]  # the same prune rounds, same moves
+    assert res["four"]["loss"] == pytest.approx(res["one"]["loss"], rel=1e-4)
+    _same(out / "one.npz", out / "four.npz")
+
+
+@pytest.mark.parametrize("name", ["four_to_one", "one_to_four"])
+def test_resume_across_device_counts(four_devices, name):
+    out, res = four_devices
+    assert res[name]["iterations"] == 3
+    _same(out / "one.npz", out / f"{name}.npz")
+
+
+def test_mesh_must_divide_the_rows(four_devices):
+    _, res = four_devices
+    assert "does not divide the image's 30 rows" in res["error"]
+
+
+def test_one_device_is_the_single_device_path():
+    board = Board(shape=(32, 32))
+    one = jax.sharding.Mesh(np.asarray(jax.devices()[:1]), (mesh.AXIS,))
+    assert mesh.resolve(one, board, DesignConfig()) is None
+    assert mesh.describe(None)["devices"] == 1
+    # one process on the CPU: forced host devices split the same cores, so not used unasked
+    assert mesh.default_mesh() is None and mesh.sub_mesh(0) is None
+    n = len(jax.devices())
+    assert mesh.sub_mesh(n).size == n
+    with pytest.raises(InputError, match=rf"--devices must be an int in \[0, {n}\]"):
+        mesh.sub_mesh(n + 1)
+    with pytest.raises(InputError, match="mesh must be a jax.sharding.Mesh"):
+        mesh.resolve("cpu", board, DesignConfig())
+
+
+def test_culled_lists_refused_on_a_mesh():
+    devs = jax.devices()
+    if len(devs) < 2:
+        pytest.skip("needs the suite's forced CPU devices")
+    two = jax.sharding.Mesh(np.asarray(devs[:2]), (mesh.AXIS,))
+    with pytest.raises(InputError, match="cull_eps > 0 .* not on a mesh of 2"):
+        mesh.resolve(two, Board(shape=(32, 32)), DesignConfig(cull_eps=1e-3))
+
+
+@pytest.mark.parametrize("args, match", [
+    ((None, 2, 0), "need --coordinator"),
+    (("localhost:1234", None, 0), "needs --num-processes N and --process-id I"),
+    (("localhost:1234", 2, 2), r"--process-id must be an int in \[0, 2\)"),
+    (("localhost", 2, 0), "--coordinator must be HOST:PORT"),
+])
+def test_initialize_refuses_bad_values(args, match):
+    with pytest.raises(InputError, match=match):
+        mesh.initialize(*args)
+
+
+def test_one_process_needs_no_agreement():
+    mesh.agree({"config": {"a": 1}})  # one process: nothing to compare, no collective
+    assert mesh.is_writer()
+
+
+# --------------------------------------------------------------------------------------------
+# Two processes on localhost (jax.distributed, gloo CPU collectives)
+
+_ARGS = ["--size", "32", "--scratches", "200", "--iterations", "3", "--prune-every", "2",
+         "--views", "2", "--quiet"]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        return s.getsockname()[1]
+
+
+def _cli(args):
+    return [sys.executable, "-m", "jscratch.design", *_ARGS, *args]
+
+
+def _two(out0, out1, extra0=(), extra1=(), timeout=600):
+    port = _free_port()
+    common = ["--coordinator", f"localhost:{port}", "--num-processes", "2", "--join-timeout", "60"]
+    procs = [subprocess.Popen(_cli(["--out", str(o), *common, "--process-id", str(i), *extra]),
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                              env=_env())
+             for i, (o, extra) in enumerate([(out0, extra0), (out1, extra1)])]
+    try:
+        return [p.communicate(timeout=timeout) + (p.returncode,) for p in procs]
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+
+
+def test_two_processes_equal_one(tmp_path):
+    ref = subprocess.run(_cli(["--out", str(tmp_path / "one")]), capture_output=True, text=True,
+                         timeout=600, env=_env())
+    assert ref.returncode == 0, ref.stderr[-3000:]
+    (_, e0, r0), (_, e1, r1) = _two(tmp_path / "two", tmp_path / "other")
+    assert (r0, r1) == (0, 0), (e0[-3000:], e1[-3000:])
+    assert not (tmp_path / "other").exists()  # process 0 writes the outputs
+    m1 = json.loads((tmp_path / "one" / "metrics.json").read_text())
+    m2 = json.loads((tmp_path / "two" / "metrics.json").read_text())
+    assert m2["mesh"]["processes"] == 2 and m2["mesh"]["devices"] == 2
+    assert m2["prune"] == m1["prune"] and m2["kept"] == m1["kept"]
+    one, two = tmp_path / "one" / "result.npz", tmp_path / "two" / "result.npz"
+    with np.load(one) as a, np.load(two) as b:
+        assert np.array_equal(a["keep"], b["keep"])
+        for k in ("geom", "log_width", "log_depth", "logit_alpha", "log_intensity"):
+            np.testing.assert_allclose(a[k], b[k], rtol=0, atol=TOL)
+
+
+def test_two_processes_that_disagree_refuse(tmp_path):
+    (_, e0, r0), (_, e1, r1) = _two(tmp_path / "a", tmp_path / "b", extra1=("--seed", "1"))
+    assert (r0, r1) == (2, 2)
+    for err in (e0, e1):
+        assert "error: process 1 and process 0 disagree on the design options" in err
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()  # nothing written
+
+
+def test_a_missing_process_is_one_line(tmp_path):
+    port = _free_port()
+    p = subprocess.run(_cli(["--out", str(tmp_path / "a"), "--coordinator", f"localhost:{port}",
+                             "--num-processes", "2", "--process-id", "0", "--join-timeout", "3"]),
+                       capture_output=True, text=True, timeout=300, env=_env())
+    assert p.returncode == 2
+    assert "error: jax.distributed: process 0 of 2 could not join the run" in p.stderr
+    assert not (tmp_path / "a").exists()
+
+
+def test_a_refusal_on_one_process_stops_every_process(tmp_path):
+    # 33 rows do not split over the 2 devices: process 1 refuses, process 0 (32 rows) would not
+    (_, e0, r0), (_, e1, r1) = _two(tmp_path / "a", tmp_path / "b", extra1=("--size", "33"))
+    assert (r0, r1) == (2, 2)
+    assert "error: mesh of 2 devices does not divide the image's 33 rows" in e1
+    assert "error: process 1 refused: mesh of 2 devices does not divide the image's 33 rows" in e0
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
