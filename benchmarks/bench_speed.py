@@ -267,6 +267,9 @@ def main(argv=None) -> int:
             for name, code in codes.items():
                 print(f"{section}: {name} ...", file=sys.stderr, flush=True)
                 res[section][name] = _run_worker(code, args)
+                # (the worker reports which package it imported: checked, then named by its role)
+                got = res[section][name].pop("code")
+                assert (code is None) != got.startswith(tmp), (name, got)
             if section == "design":
                 res["design"].update(iterations=a.iterations,
                                      args=f" `{a.design_args}`" if a.design_args else "")

@@ -19,45 +19,27 @@ both are re-exported here.
 - `render_reference(scratches, views, board)`: float64 all-pairs reference (every scratch against
   every pixel, dense sum, plain autodiff), for small scenes and tests.
 
-**Memory design.** `render_pairs` evaluates the pairs in fixed-size chunks inside a `lax.scan`
-and segment-sums each chunk into per-pixel accumulators, so the forward pass holds
-``O(M H W + N + chunk)`` floats whatever the number of pairs ``L``. Its reverse pass is a
-`jax.custom_vjp`: the residuals are the inputs only (parameters, half vectors and the integer pair
-list); the backward pass walks the same chunks again, recomputes each chunk's per-pair VJP and
-scatter-adds it into the per-scratch parameter gradients (and the per-pixel half-vector
-gradients), so a gradient step also holds ``O(M H W + N + chunk)`` floats beyond the pair list.
-Cost: the backward pass re-evaluates the forward kernel once (as `jax.checkpoint` would).
-Consequence: forward-mode autodiff (``jax.jvp``) is not available through `render_pairs`.
+**Memory and the reverse pass.** Pairs are evaluated in chunks inside a `lax.scan` and
+segment-summed per pixel: a forward pass holds ``O(M H W + N + chunk)`` floats for any number of
+pairs. The reverse pass (a `jax.custom_vjp`) walks the same chunks and scatter-adds each pair's
+derivatives into the gradients. On one device with the native kernel, the forward pass of a
+gradient keeps every pair's Jacobian (`native.pair_jacobian`: ``10 M + 6`` floats a pair, ~70 MB
+for the default design) and nothing is evaluated twice; otherwise each chunk is re-evaluated
+(`native.pair_vjp` or the jnp path's VJP). No forward-mode autodiff (``jax.jvp``).
 
-**The pair kernel.** Per chunk the pairs' parameters and half vectors are gathered, the pairs
-evaluated, and the results segment-added into the per-pixel sums (forward) or scatter-added
-into the gradients (reverse). With the native kernel (`jscratch.native`: CPU) a chunk is one
-call, `native.pair_values` forward and `native.pair_vjp` in reverse: each pair's geometry and
-its Jacobian once, then every view over that pair's own pieces that are not points
-(docs/model.md §12). Elsewhere (another backend, ``JSCRATCH_NATIVE=0``) the jnp path runs:
-`ndf.pair_geometry` vmapped over the chunk, then per view `ndf.lit_integral(..., pieces=k)`,
-`k` the smallest of `PIECE_BUDGETS` that holds every `ndf.PairGeometry.count` of the chunk
-(one `lax.switch` branch per budget; most pairs have two pieces, the footprint edges the
-groove crosses, of six).
+**The pair kernel.** With the native kernel (`jscratch.native`: CPU) a chunk is one call: each
+pair's geometry and its Jacobian once, then every view over that pair's own pieces that are not
+points (docs/model.md §12). Elsewhere (another backend, ``JSCRATCH_NATIVE=0``) the jnp path runs
+`ndf.pair_geometry` vmapped over the chunk, then per view `ndf.lit_integral(..., pieces=k)`, `k`
+the smallest of `PIECE_BUDGETS` that holds every `ndf.PairGeometry.count` of the chunk.
+Each shard's pairs are sorted (stably) padding last, and chunks of padding are skipped; on the
+jnp path also by the budget a pair needs (`_pair_classes`).
 
-**Work skipped.** Before the scans each shard's pairs are sorted (stably, O(L)) by class,
-padding last; chunks of padding only are not evaluated. On the jnp path the class is the budget
-a pair needs (`_pair_classes`), so most chunks need the smallest; the kernel picks each chunk's
-budget from the counts it computes, so the sorting decides only the speed. On the native path
-the class is only valid or padding.
-
-**Multiple devices.** Given a `jax.sharding.Mesh`, `render_pairs` shards the *pixel* axis
-over the mesh axes with `jax.shard_map`: the ``H*W`` pixels (row-major) are split into
-``n_shards`` contiguous blocks of ``Pb = ceil(H / n_shards) W`` pixels (strips of rows), device
-``s`` owns block ``s``: its half vectors, its accumulators and its slice of the output, which
-comes back sharded over image rows (when ``n_shards`` divides ``H``; else XLA reshards it).
-Parameters (scratches, views) are replicated; in the backward pass each device's parameter
-gradients are ``psum``-ed, pixel-side gradients stay on their device. The pair list must be laid
-out by block (``n_shards`` equal segments, segment ``s`` holding only pixels of block ``s``):
-`bin_pairs` and `cull_pairs` build that with ``shards=n_shards`` and `render` does it from the
-mesh; `render_pairs` checks it (see its "Errors").
-The call and its result are the same as on one device (up to summation order). Each segment is
-padded to the fullest block, so a board whose scratches crowd into few blocks balances poorly.
+**Multiple devices.** Given a `jax.sharding.Mesh`, the pixel axis is split into strips of rows
+over the mesh axes (`jax.shard_map`); parameters are replicated and their gradients ``psum``-ed;
+the pair lists must be laid out per strip (`bin_pairs` / `cull_pairs` with ``shards=``, which
+`render` does from the mesh, and `render_pairs` checks). The result is the one-device result up
+to summation order. Details: docs/architecture.md, "Several devices".
 
 Computation follows the dtype of ``scratches`` (float32 for users, float64 for references);
 ``views`` are cast to it.
@@ -252,6 +234,14 @@ def _flat_h(cfg: _Cfg, h_loc):
     return h_loc.reshape(1, -1, 3) if cfg.per_view else h_loc
 
 
+def _scan_chunks(add_chunk, init, xs, idle=None):
+    """`lax.scan` of ``add_chunk`` over chunks ``xs`` skipping those of padding only (``xs[2]``:
+    valid); with `idle` (a skipped chunk's output) it returns ``(carry, output)``, else a carry."""
+    step = add_chunk if idle is not None else lambda c, x: (add_chunk(c, x), None)
+    return jax.lax.scan(lambda c, x: jax.lax.cond(jnp.any(x[2]), step,
+                                                  lambda c, _: (c, idle), c, x), init, xs)
+
+
 def _fwd_local(cfg: _Cfg, params, h_loc, out, scr, valid):
     """This shard's sums: ``D`` ``(M, Pb)`` and ``A`` ``(1 or M, Pb)`` over its pairs."""
     dt = params[2].dtype
@@ -277,12 +267,8 @@ def _fwd_local(cfg: _Cfg, params, h_loc, out, scr, valid):
             As = As.at[local].add(jnp.where(vc, geometry.area, 0), mode="drop")
         return Ds, As
 
-    def body(carry, xs):
-        # Chunks of padding only (`_sort_pairs` puts them last) are skipped.
-        return jax.lax.cond(jnp.any(xs[2]), add_chunk, lambda c, _: c, carry, xs), None
-
     init = _varying(cfg, (jnp.zeros((V, n_loc), dt), jnp.zeros((n_loc,), dt)))
-    (Ds, As), _ = jax.lax.scan(body, init, _chunks(cfg, out, scr, valid))
+    (Ds, As), _ = _scan_chunks(add_chunk, init, _chunks(cfg, out, scr, valid))
     return Ds.reshape(-1, cfg.Pb), As.reshape(-1, cfg.Pb)
 
 
@@ -330,12 +316,9 @@ def _bwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, gD, gA):
         out = tuple(g.at[sc].add(x, mode="drop") for g, x in zip(per_scratch, parts))
         return out + (gh.at[:, local].add(parts[-1], mode="drop"),)
 
-    def body(carry, xs):
-        return jax.lax.cond(jnp.any(xs[2]), add_chunk, lambda c, _: c, carry, xs), None
-
     # (zeros_like of the device-local half vectors is already device-varying)
     init = _varying(cfg, tuple(jnp.zeros_like(x) for x in params)) + (jnp.zeros_like(h_rows),)
-    grads, _ = jax.lax.scan(body, init, _chunks(cfg, out, scr, valid))
+    grads, _ = _scan_chunks(add_chunk, init, _chunks(cfg, out, scr, valid))
     dparams = grads[:5]
     if cfg.mesh is not None:  # parameters are replicated: their gradient sums over all shards
         dparams = jax.lax.psum(dparams, cfg.axes)
@@ -369,14 +352,66 @@ def _pair_sums(cfg: _Cfg, params, h_views, out, scr, valid):
     return fn(params, h_views, out, scr, valid)
 
 
+def _jac_fwd(cfg: _Cfg, params, h_loc, out, scr, valid):
+    """`_fwd_local`'s sums by `native.pair_jacobian`, and each chunk's Jacobians."""
+    dt = params[2].dtype
+    (xe, ye), h_rows = _edges_in(cfg, dt), _flat_h(cfg, h_loc)
+    V, n_loc = h_rows.shape[:2]
+
+    def add_chunk(carry, xs):
+        Ds, As = carry
+        pix, local = _split_index(cfg, xs[0])
+        p0, p1, w, d, a, h = _gather(params, h_rows, xs[1], local)
+        D, A, *J = native.pair_jacobian(lobe.nodes(dt), *_chunk_native(cfg, xe, ye, pix, xs[2],
+                                                                       p0, p1, w, d, a, h))
+        Ds = Ds.at[:, local].add(D, mode="drop") if cfg.need_D else Ds
+        return (Ds, As.at[local].add(A, mode="drop") if cfg.need_A else As), tuple(J)
+
+    Vd = V if cfg.need_D else 0
+    zeros = tuple(jnp.zeros(sh, dt) for sh in ((Vd, cfg.chunk, 7), (Vd, cfg.chunk, 3),
+                                                (cfg.chunk, 6)))
+    init = (jnp.zeros((V, n_loc), dt), jnp.zeros((n_loc,), dt))  # (padding chunks: J zeros)
+    (Ds, As), J = _scan_chunks(add_chunk, init, _chunks(cfg, out, scr, valid), zeros)
+    return (Ds.reshape(-1, cfg.Pb), As.reshape(-1, cfg.Pb)), J
+
+
+def _jac_bwd(cfg: _Cfg, params, h_loc, out, scr, valid, J, gD, gA):
+    """The reverse pass from `_jac_fwd`'s Jacobians (cotangents times Jacobians, scatter-added)."""
+    h_rows = _flat_h(cfg, h_loc)
+    gD, gA = gD.reshape(h_rows.shape[:2]), gA.reshape(-1)
+
+    def add_chunk(carry, xs):
+        oc, sc, vc, JD, Jh, JA = xs
+        _, local = _split_index(cfg, oc)
+        ctD = gD.at[:, local].get(mode="clip") if cfg.need_D else jnp.zeros(JD.shape[:2], gD.dtype)
+        g = jnp.einsum("vc,vck->ck", ctD, JD)
+        if cfg.need_A:
+            g = g.at[:, :6].add(jnp.where(vc, gA.at[local].get(mode="clip"), 0)[:, None] * JA)
+        out = tuple(x.at[sc].add(y, mode="drop") for x, y in zip(
+            carry[:5], (g[:, 0:2], g[:, 2:4], g[:, 4], g[:, 5], g[:, 6])))
+        gh = carry[5].at[:, local].add(ctD[..., None] * Jh, mode="drop") if cfg.need_D else carry[5]
+        return out + (gh,)
+
+    init = tuple(jnp.zeros_like(x) for x in params) + (jnp.zeros_like(h_rows),)
+    grads, _ = _scan_chunks(add_chunk, init, _chunks(cfg, out, scr, valid) + tuple(J))
+    return grads[:5], grads[5].reshape(h_loc.shape)
+
+
 def _pair_sums_fwd(cfg, params, h_views, out, scr, valid):
     res = (params, h_views, out, scr, valid)
-    return _pair_sums(cfg, *res), res
+    # One device with the native kernel: keep the pairs' Jacobians (the module docstring)
+    if cfg.mesh is None and native.available(params[2].dtype):
+        sums, J = _jac_fwd(cfg, *res)
+        return sums, res + (J,)
+    return _pair_sums(cfg, *res), res + (None,)
 
 
 def _pair_sums_bwd(cfg, res, g):
-    params, h_views, out, scr, valid = res
+    params, h_views, out, scr, valid, J = res
     gD, gA = g
+    if J is not None:
+        dparams, dh = _jac_bwd(cfg, params, h_views, out, scr, valid, J, gD, gA)
+        return dparams, dh, None, None, None
     fn = _maybe_shard(cfg, functools.partial(_bwd_local, cfg),
                       (_REP, _HV, _PAIRS, _PAIRS, _PAIRS, _PIX, _PIX), (_REP, _HV))
     dparams, dh = fn(params, h_views, out, scr, valid, gD, gA)
@@ -405,11 +440,9 @@ def _round_up(x: int, m: int) -> int:
 
 
 def _pair_classes(cfg: _Cfg, params, out, scr, valid):
-    """Per pair, 1 + the index of the smallest of `PIECE_BUDGETS` that holds its
-    `ndf.piece_count_estimate` (its `ndf.PairGeometry.count` but for ties, for a tenth of the
-    cost), 0 for padding; int8. Only the order of the evaluation depends on it (`_sort_pairs`),
-    not the results: each chunk's budget is chosen by the kernel from the counts it computes
-    itself (`_chunk_geometry`)."""
+    """Per pair (int8), 1 + the index of the smallest of `PIECE_BUDGETS` that holds its
+    `ndf.piece_count_estimate` (a tenth of the geometry's cost), 0 for padding: only the order of
+    the evaluation depends on it (each chunk's budget comes from the counts it computes)."""
     p0, p1, w, d = params[:4]
     xe, ye = _edges_in(cfg, p0.dtype)
     P_pad = cfg.Pb * _n_shards(cfg.mesh, cfg.axes)
@@ -428,12 +461,9 @@ def _pair_classes(cfg: _Cfg, params, out, scr, valid):
 
 
 def _sort_pairs(out, scr, valid, klass, shards: int):
-    """Each shard's segment of the pair list grouped by class (`_pair_classes`: 1, 2, ..., then
-    0, the padding), each group in its own order (a stable partition, O(L)). Chunks then mostly
-    hold one class: chunks of padding are skipped and the others integrate only as many pieces
-    as their pairs have (`PIECE_BUDGETS`). A pair list built with spare capacity
-    (`bvh.build_pairs`, per-view culled lists) otherwise costs a full kernel evaluation per
-    padding slot, and every pair the six pieces that few pairs have."""
+    """Each shard's segment of the pair list grouped by class (1, 2, ..., then 0, the padding),
+    each group in its own order (a stable partition, O(L)): chunks of padding are skipped and the
+    others mostly hold one piece budget."""
     L = out.shape[0]
     Ls = L // shards
     # (a barrier: a pair list closed over as a constant would otherwise be folded at compile time)
@@ -610,7 +640,7 @@ def render_pairs(scratches: Scratches, views: Views, board: Board, pairs,
     Called eagerly: `ValueError`. Under jit on one device: `eqx.error_if` (a runtime error).
     Under jit with a mesh: NaN radiance (a runtime error on one device of a multi-device program
     would leave the others stuck in a collective; `render` checks the scene before it renders).
-    Gradients: reverse mode only (a `jax.custom_vjp` recomputes the pairs chunk by chunk).
+    Gradients: reverse mode only (a `jax.custom_vjp`; see the module docstring).
     """
     dtype = scratches.dtype
     if not jnp.issubdtype(dtype, jnp.floating):

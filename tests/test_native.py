@@ -509,3 +509,38 @@ def test_pair_kernel_gradients_match_finite_differences_float64():
         fd = float(at(step) - at(-step)) / (2 * step)
         ad = float(jnp.sum(g[k] * u))
         assert abs(ad - fd) <= 1e-6 * abs(fd) + 1e-12, (k, ad, fd)
+
+
+@needs_native
+@pytest.mark.float64
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_pair_jacobian_contracts_to_the_reverse_pass(dtype):
+    """`pair_jacobian`'s values are `pair_values`' bit for bit, and its Jacobians contracted with
+    random cotangents give `pair_vjp` (summed in another order: 1e-13 / 1e-5 of each gradient's
+    scale); padding slots are exact zeros even when they hold NaN."""
+    fp, p0, p1, w, d, a, valid, H = _pair_population(dtype)
+    bad = np.asarray(~valid)
+    H = jnp.where(jnp.asarray(bad)[None, :, None], jnp.nan, H)
+    args = (fp, p0, p1, w, d, a, valid, H)
+    ng = lobe.nodes(dtype)
+    D, A, JD, Jh, JA = native.pair_jacobian(ng, *args)
+    D0, A0 = native.pair_values(ng, *args)
+    np.testing.assert_array_equal(np.asarray(D), np.asarray(D0))
+    np.testing.assert_array_equal(np.asarray(A), np.asarray(A0))
+    rng = np.random.default_rng(3)
+    ctD = jnp.asarray(rng.normal(size=D.shape), dtype)
+    ctA = jnp.asarray(rng.normal(size=A.shape), dtype)
+    d0, d1, dw, dd, da, dh = native.pair_vjp(ng, *args, ctD, ctA)
+    g = np.einsum("vn,vnk->nk", np.asarray(ctD, np.float64), np.asarray(JD, np.float64))
+    g[:, :6] += np.asarray(ctA, np.float64)[:, None] * np.asarray(JA, np.float64)
+    ref = np.concatenate([np.asarray(x, np.float64).reshape(len(bad), -1)
+                          for x in (d0, d1, dw, dd, da)], 1)
+    tol = 1e-13 if dtype == jnp.float64 else 1e-5
+    assert np.all(np.max(np.abs(ref), 0) > 0)
+    assert np.all(np.abs(g - ref) <= tol * np.max(np.abs(ref), 0))
+    gh = np.asarray(ctD, np.float64)[..., None] * np.asarray(Jh, np.float64)
+    np.testing.assert_allclose(gh, np.asarray(dh, np.float64), rtol=0,
+                               atol=tol * np.max(np.abs(np.asarray(dh, np.float64))))
+    for x in (JD, Jh):
+        assert np.all(np.asarray(x)[:, bad] == 0)
+    assert np.all(np.asarray(JA)[bad] == 0) and np.all(np.isfinite(np.asarray(JD)))

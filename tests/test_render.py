@@ -370,10 +370,13 @@ def test_gradients_f32_finite_on_stress_scene():
 
 
 def test_gradient_memory_does_not_grow_with_pairs(monkeypatch):
-    """Compiled temp memory of a gradient step at fixed chunk: 16x the pairs may add only the
-    integer pair list (a few bytes per pair), where plain autodiff of an all-pairs vmap keeps the
-    kernel's intermediates for every pair. The kernel is swapped for a cheap stand-in with many
-    intermediates so the two compilations stay fast; the memory design does not depend on it."""
+    """Compiled temp memory of a gradient step at fixed chunk, on the path that re-evaluates
+    pairs in the reverse pass (the jnp path; the native kernel does the same on a mesh): 16x the
+    pairs may add only the integer pair list (a few bytes per pair), where plain autodiff of an
+    all-pairs vmap keeps the kernel's intermediates for every pair. The kernel is swapped for a
+    cheap stand-in with many intermediates so the two compilations stay fast; the memory design
+    does not depend on it. With the native kernel on one device the step keeps each pair's
+    Jacobians instead: ``(10 M + 6)`` floats a pair, and not more."""
 
     def kernel(cfg, xe, ye, p0, p1, w, d, a, h, pix):
         z = jnp.sum(p1 - p0) * h[2] + w * d / a + xe[pix % 3]
@@ -410,7 +413,7 @@ def test_gradient_memory_does_not_grow_with_pairs(monkeypatch):
             jnp.ones((pix.shape[0], 3)), pix)
         return jnp.sum(jax.ops.segment_sum(D + A, pix, 100) ** 2)
 
-    def temp_bytes(L):
+    def temp_bytes(L, use_native=False):
         rng = np.random.default_rng(L)
         pix = jnp.asarray(rng.integers(0, 100, L), jnp.int32)
         scr = jnp.asarray(rng.integers(0, 12, L), jnp.int32)
@@ -418,13 +421,18 @@ def test_gradient_memory_does_not_grow_with_pairs(monkeypatch):
         ours = jax.jit(jax.grad(lambda sv: _objective(sv, pairs, wts)[0]), compiler_options=FAST)
         base = jax.jit(jax.grad(naive), compiler_options=FAST)
         mem = lambda f, *a: f.lower(*a).compile().memory_analysis().temp_size_in_bytes
-        return mem(ours, (s, v)), mem(base, (s, v), pix, scr)
+        with native.override(enabled=use_native):
+            return mem(ours, (s, v)), mem(base, (s, v), pix, scr)
 
     L1, L2 = 2048, 32768
     (o1, n1), (o2, n2) = temp_bytes(L1), temp_bytes(L2)
     per_pair_ours, per_pair_naive = (o2 - o1) / (L2 - L1), (n2 - n1) / (L2 - L1)
     assert per_pair_naive > 100  # the measurement sees per-pair residuals when there are any
     assert per_pair_ours < 40, per_pair_ours
+    if native.available(jnp.float32):
+        (j1, _), (j2, _) = temp_bytes(L1, True), temp_bytes(L2, True)
+        jac = (10 * v.m + 6) * 4
+        assert jac <= (j2 - j1) / (L2 - L1) < jac + 40
 
 
 # --------------------------------------------------------------------------------------------

@@ -94,6 +94,9 @@ _PAIR_TARGETS = {(jnp.dtype(dt), vjp): (f"jscratch_pairs{'_vjp' if vjp else ''}_
                                         f"JscratchPairs{'Vjp' if vjp else ''}{name.upper()}")
                  for dt, name in ((jnp.float32, "f32"), (jnp.float64, "f64"))
                  for vjp in (True, False)}
+#: dtype -> (FFI target name, symbol) of the whole-pair kernel's Jacobian mode.
+_JAC_TARGETS = {jnp.dtype(dt): (f"jscratch_pairs_jac_{name}", f"JscratchPairsJac{name.upper()}")
+                for dt, name in ((jnp.float32, "f32"), (jnp.float64, "f64"))}
 _FLAGS = ("-O3", "-march=native", "-fno-math-errno", "-ffp-contract=off", "-std=c++17", "-shared",
           "-fPIC", "-pthread", "-w")
 #: What the jnp path costs, in the fallback warning (`benchmarks/RESULTS.md`).
@@ -324,7 +327,8 @@ def _load_once() -> bool:
         if "error" in _build:
             raise RuntimeError(_build["error"])
         handle = _build["info"]["handle"]
-        for target, symbol in (*_TARGETS.values(), *_PAIR_TARGETS.values()):
+        for target, symbol in (*_TARGETS.values(), *_PAIR_TARGETS.values(),
+                               *_JAC_TARGETS.values()):
             jax.ffi.register_ffi_target(target, jax.ffi.pycapsule(getattr(handle, symbol)),
                                         platform="cpu")
     except Exception as e:  # no compiler, a failed build, an FFI this jaxlib lacks: jnp path
@@ -459,6 +463,23 @@ def pair_vjp(n_gl: int, footprint, p0, p1, width, depth, alpha, valid, h, ct_D, 
     out = tuple(jax.ShapeDtypeStruct(x.shape, dt) for x in (p0, p1, width, depth, alpha, h))
     call = jax.ffi.ffi_call(_PAIR_TARGETS[dt, True][0], out)
     res = call(*args, n_gl=int(n_gl), threads=threads())
+    return tuple(functools.reduce(_varying_like, args, r) for r in res)
+
+
+def pair_jacobian(n_gl: int, footprint, p0, p1, width, depth, alpha, valid, h):
+    """`pair_values` and the pairs' Jacobians, natively, in one pass: ``(D_hat (V, n), A (n),
+    J_D (V, n, 7), J_h (V, n, 3), J_A (n, 6))``, ``J_D`` the derivatives of each view's
+    ``D_hat`` with respect to ``(p0x, p0y, p1x, p1y, width, depth, alpha)``, ``J_h`` with respect
+    to that view's ``h``, ``J_A`` those of ``A`` with respect to the first six (zeros on padding
+    slots). `pair_vjp` at cotangents ``(ct_D, ct_A)`` is ``sum_v ct_D[v] J_D[v] + ct_A J_A`` (and
+    ``ct_D[v] J_h[v]``): a reverse pass that keeps these needs no second evaluation."""
+    dt = jnp.dtype(width.dtype)
+    args = (footprint, p0, p1, width, depth, alpha, valid, h)
+    V, n = h.shape[0], width.shape[0]
+    out = (jax.ShapeDtypeStruct((V, n), dt), jax.ShapeDtypeStruct((n,), dt),
+           jax.ShapeDtypeStruct((V, n, 7), dt), jax.ShapeDtypeStruct((V, n, 3), dt),
+           jax.ShapeDtypeStruct((n, 6), dt))
+    res = jax.ffi.ffi_call(_JAC_TARGETS[dt][0], out)(*args, n_gl=int(n_gl), threads=threads())
     return tuple(functools.reduce(_varying_like, args, r) for r in res)
 
 

@@ -854,12 +854,15 @@ struct PairArgs {
   T *D = nullptr, *A = nullptr;                               // values
   T *dp0 = nullptr, *dp1 = nullptr, *dw = nullptr, *dd = nullptr, *dalpha = nullptr,
     *dh = nullptr;                                            // reverse pass
+  T *JD = nullptr, *JA = nullptr;                             // Jacobians (kJac)
 };
 
 // Pairs [i0, i1), `L` at a time (a tail repeats its last pair in the spare lanes; padding slots
 // are evaluated as a benign dummy pair and give exact zeros). Values (`kGrad` false): D, A; the
-// reverse pass: the cotangents ctD, ctA times the pair's Jacobian.
-template <typename T, bool kGrad>
+// reverse pass: the cotangents ctD, ctA times the pair's Jacobian; `kJac` (with `kGrad`): the
+// values and the Jacobian itself, per view JD (V, n, 7) = dD/d(p0x, p0y, p1x, p1y, w, d, alpha)
+// and dh (V, n, 3) = dD/dh, and JA (n, 6) = dA/d(p0x, p0y, p1x, p1y, w, d).
+template <typename T, bool kGrad, bool kJac = false>
 void pairs_range(int n_gl, const double* xs, const double* ws, size_t i0, size_t i1,
                  const PairArgs<T>& a) {
   typedef typename Vec<T>::type V;
@@ -891,10 +894,17 @@ void pairs_range(int n_gl, const double* xs, const double* ws, size_t i0, size_t
     if (!any) {  // padding only
       for (int l = 0; l < lanes; ++l) {
         const size_t i = b + l;
-        if constexpr (!kGrad) {
+        if constexpr (!kGrad || kJac) {
           a.A[i] = 0;
           for (size_t v = 0; v < a.nv; ++v) a.D[v * a.n + i] = 0;
-        } else {
+        }
+        if constexpr (kJac) {
+          for (int t = 0; t < kGeo; ++t) a.JA[i * kGeo + t] = 0;
+          for (size_t v = 0; v < a.nv; ++v) {
+            for (int t = 0; t <= kGeo; ++t) a.JD[(v * a.n + i) * (kGeo + 1) + t] = 0;
+            for (int c = 0; c < 3; ++c) a.dh[(v * a.n + i) * 3 + c] = 0;
+          }
+        } else if constexpr (kGrad) {
           a.dp0[2 * i] = a.dp0[2 * i + 1] = a.dp1[2 * i] = a.dp1[2 * i + 1] = 0;
           a.dw[i] = a.dd[i] = a.dalpha[i] = 0;
           for (size_t v = 0; v < a.nv; ++v)
@@ -933,7 +943,8 @@ void pairs_range(int n_gl, const double* xs, const double* ws, size_t i0, size_t
       for (int l = 0; l < L; ++l) {
         const size_t i = b + std::min(l, lanes - 1);
         for (int c = 0; c < 3; ++c) hv[c][l] = valid[l] ? a.h[(v * a.n + i) * 3 + c] : T(c == 2);
-        if constexpr (kGrad) ct[l] = valid[l] ? a.ctD[v * a.n + i] : T(0);
+        if constexpr (kJac) ct[l] = valid[l] ? T(1) : T(0);
+        else if constexpr (kGrad) ct[l] = valid[l] ? a.ctD[v * a.n + i] : T(0);
       }
       V s[kTan];
       for (int c = 0; c < kTan; ++c) s[c] = sv[c];
@@ -955,15 +966,30 @@ void pairs_range(int n_gl, const double* xs, const double* ws, size_t i0, size_t
           for (int j = 0; j < cnt[l] && j < k; ++j)
             for (int f = 0; f < 4; ++f) gpc[f][idx[l][j]][l] = gp[f][j][l];
         const V cs = ct * sp;
+        const size_t row = v * a.n + b;
         for (int t = 0; t < kGeo; ++t) {
           V sum = gs[0] * g.X.d[t] + gs[4] * g.bx.d[t] + gs[5] * g.by.d[t] + gs[6] * g.tx.d[t] +
                   gs[7] * g.ty.d[t];
           for (int i = 0; i < kPieces; ++i)
             sum += gpc[0][i] * g.ua[i].d[t] + gpc[1][i] * g.ub[i].d[t] +
                    gpc[2][i] * g.Ya[i].d[t] + gpc[3][i] * g.Yb[i].d[t];
-          gt[t] += cs * sum + ct * (g.scale.d[t] * pref * lit);
+          const V jt = cs * sum + ct * (g.scale.d[t] * pref * lit);
+          if constexpr (kJac) {
+            for (int l = 0; l < lanes; ++l) a.JD[(row + l) * (kGeo + 1) + t] = valid[l] ? jt[l] : T(0);
+          } else {
+            gt[t] += jt;
+          }
         }
-        ga += ct * (g.scale.v * ((2 * al / four_pi) * lit) + sp * gs[8]);
+        const V jal = ct * (g.scale.v * ((2 * al / four_pi) * lit) + sp * gs[8]);
+        if constexpr (kJac) {
+          const V Dv = sel<V>(valid, sp * lit, zero);
+          for (int l = 0; l < lanes; ++l) {
+            a.JD[(row + l) * (kGeo + 1) + kGeo] = valid[l] ? jal[l] : T(0);
+            a.D[row + l] = Dv[l];
+          }
+        } else {
+          ga += jal;
+        }
         for (int l = 0; l < lanes; ++l)
           for (int c = 0; c < 3; ++c)
             a.dh[(v * a.n + b + l) * 3 + c] = valid[l] ? cs[l] * gs[1 + c][l] : T(0);
@@ -971,6 +997,11 @@ void pairs_range(int n_gl, const double* xs, const double* ws, size_t i0, size_t
     }
     if constexpr (!kGrad) {
       for (int l = 0; l < lanes; ++l) a.A[b + l] = valid[l] ? g.area.v[l] : T(0);
+    } else if constexpr (kJac) {
+      for (int l = 0; l < lanes; ++l) {
+        a.A[b + l] = valid[l] ? g.area.v[l] : T(0);
+        for (int t = 0; t < kGeo; ++t) a.JA[(b + l) * kGeo + t] = valid[l] ? g.area.d[t][l] : T(0);
+      }
     } else {
       V ctA;
       for (int l = 0; l < L; ++l) {
@@ -996,7 +1027,7 @@ void pairs_range(int n_gl, const double* xs, const double* ws, size_t i0, size_t
 // Pairs per chunk of work (a multiple of every vector width).
 constexpr size_t kPairChunk = 256;
 
-template <typename T, bool kGrad>
+template <typename T, bool kGrad, bool kJac = false>
 ffi::Error run_pairs(ffi::ThreadPool& pool, int64_t n_gl, int64_t threads, size_t n_fp,
                      size_t n_h, size_t n_ct, PairArgs<T>& a, const size_t* counts) {
   // counts: p0, p1, w, d, alpha, valid (ctA for the reverse pass: counts[6]).
@@ -1004,9 +1035,9 @@ ffi::Error run_pairs(ffi::ThreadPool& pool, int64_t n_gl, int64_t threads, size_
   if (n == 0) return ffi::Error::Success();
   bool ok = n_fp == 8 * n && counts[0] == 2 * n && counts[1] == 2 * n && n_gl >= 1 &&
             n_gl <= kMaxNodes && n_h % (3 * n) == 0;
-  for (int f = 2; f < (kGrad ? 7 : 6); ++f) ok = ok && counts[f] == n;
+  for (int f = 2; f < (kGrad && !kJac ? 7 : 6); ++f) ok = ok && counts[f] == n;
   a.nv = n_h / (3 * n);
-  if (kGrad) ok = ok && n_ct == a.nv * n;
+  if (kGrad && !kJac) ok = ok && n_ct == a.nv * n;
   if (!ok)
     return ffi::Error(ffi::ErrorCode::kInvalidArgument,
                       "jscratch pairs: inputs must be (n, 4, 2) footprints, (n, 2) p0 and p1, "
@@ -1014,7 +1045,7 @@ ffi::Error run_pairs(ffi::ThreadPool& pool, int64_t n_gl, int64_t threads, size_
   double xs[kMaxNodes], ws[kMaxNodes];
   gauss_legendre(static_cast<int>(n_gl), xs, ws);
   parallel(pool, n, kPairChunk, threads, [&](size_t i0, size_t i1) {
-    pairs_range<T, kGrad>(static_cast<int>(n_gl), xs, ws, i0, i1, a);
+    pairs_range<T, kGrad, kJac>(static_cast<int>(n_gl), xs, ws, i0, i1, a);
   });
   return ffi::Error::Success();
 }
@@ -1061,6 +1092,28 @@ ffi::Error PairsVjpImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT
                             ctA.element_count()};
   return run_pairs<T, true>(pool, n_gl, threads, fp.element_count(), h.element_count(),
                             ctD.element_count(), a, counts);
+}
+
+template <ffi::DataType DT>
+ffi::Error PairsJacImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT> p0,
+                        ffi::Buffer<DT> p1, ffi::Buffer<DT> w, ffi::Buffer<DT> d,
+                        ffi::Buffer<DT> alpha, ffi::Buffer<ffi::DataType::PRED> valid,
+                        ffi::Buffer<DT> h, int64_t n_gl, int64_t threads,
+                        ffi::ResultBuffer<DT> D, ffi::ResultBuffer<DT> A,
+                        ffi::ResultBuffer<DT> JD, ffi::ResultBuffer<DT> dh,
+                        ffi::ResultBuffer<DT> JA) {
+  using T = ffi::NativeType<DT>;
+  PairArgs<T> a;
+  a.n = w.element_count();
+  a.fp = fp.typed_data(); a.p0 = p0.typed_data(); a.p1 = p1.typed_data();
+  a.w = w.typed_data(); a.d = d.typed_data(); a.alpha = alpha.typed_data();
+  a.valid = valid.typed_data(); a.h = h.typed_data();
+  a.D = D->typed_data(); a.A = A->typed_data(); a.JD = JD->typed_data();
+  a.dh = dh->typed_data(); a.JA = JA->typed_data();
+  const size_t counts[6] = {p0.element_count(), p1.element_count(), w.element_count(),
+                            d.element_count(), alpha.element_count(), valid.element_count()};
+  return run_pairs<T, true, true>(pool, n_gl, threads, fp.element_count(), h.element_count(), 0,
+                                  a, counts);
 }
 
 }  // namespace
@@ -1118,3 +1171,14 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchPairsVjpF32, PairsVjpImpl<ffi::DataType::F
                               JSCRATCH_PAIRS_VJP_BIND(ffi::DataType::F32));
 XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchPairsVjpF64, PairsVjpImpl<ffi::DataType::F64>,
                               JSCRATCH_PAIRS_VJP_BIND(ffi::DataType::F64));
+
+#define JSCRATCH_PAIRS_JAC_BIND(DT)                                                        \
+  JSCRATCH_PAIRS_ARGS(DT)                                                                  \
+      .Attr<int64_t>("n_gl").Attr<int64_t>("threads")                                      \
+      .Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()                \
+      .Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchPairsJacF32, PairsJacImpl<ffi::DataType::F32>,
+                              JSCRATCH_PAIRS_JAC_BIND(ffi::DataType::F32));
+XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchPairsJacF64, PairsJacImpl<ffi::DataType::F64>,
+                              JSCRATCH_PAIRS_JAC_BIND(ffi::DataType::F64));
