@@ -50,7 +50,7 @@ for what is traced inside it (tests and benchmarks that compare the two paths in
 
 Fallback. Where the native kernel is enabled and the backend is the CPU but the kernel cannot be
 built or loaded (no compiler, a failed build, an FFI this jaxlib lacks), jscratch runs the jnp
-path, about 4x slower per design step, and warns once per process (`NativeKernelWarning`).
+path, about 5x slower per design step, and warns once per process (`NativeKernelWarning`).
 Disabled, or another backend: the jnp path without a warning; `status()` says why in each case.
 """
 
@@ -100,7 +100,7 @@ _JAC_TARGETS = {jnp.dtype(dt): (f"jscratch_pairs_jac_{name}", f"JscratchPairsJac
 _FLAGS = ("-O3", "-march=native", "-fno-math-errno", "-ffp-contract=off", "-std=c++17", "-shared",
           "-fPIC", "-pthread", "-w")
 #: What the jnp path costs, in the fallback warning (`benchmarks/RESULTS.md`).
-_COST = "the jnp path runs instead, about 4x slower per design step"
+_COST = "the jnp path runs instead, about 5x slower per design step"
 
 # The settings, read once (module docstring); validated on first use by `_settings`.
 _ENV = {k: os.environ.get(k) for k in ("JSCRATCH_NATIVE", "JSCRATCH_NATIVE_THREADS")}
