@@ -24,7 +24,8 @@ and float32).
 - `lit_partials(n_gl, ua, ub, Ya, Yb, X, h, b, t, alpha)`: the lit integral and its partials
   (`native_lit.cc` says which); `lit_values(...)`: the integral alone.
 - `pair_values(n_gl, footprint, p0, p1, width, depth, alpha, valid, h) -> (D, A)`,
-  `pair_vjp(..., ct_D, ct_A)`, `pairs(...)`: the whole pair.
+  `pair_vjp(..., ct_D, ct_A)`, `pairs(...)`: the whole pair; `pair_jacobian(...)`: its values
+  and Jacobians in one pass (the renderer's gradient on one device keeps them).
 - `status()`: what runs and why, a JSON-friendly dict (the design writes it to metrics.json);
   ``python -m jscratch.native [--json]`` prints it (and builds the kernel if needed).
 
@@ -80,7 +81,7 @@ import jaxlib
 from jscratch.errors import InputError, error_line
 
 __all__ = ["NativeKernelWarning", "available", "enabled", "lit", "lit_partials", "lit_values",
-           "main", "override", "pair_values", "pair_vjp", "pairs", "prepare", "status",
+           "main", "override", "pair_jacobian", "pair_values", "pair_vjp", "pairs", "prepare", "status",
            "threads"]
 
 _SOURCE = Path(__file__).with_name("native_lit.cc")
