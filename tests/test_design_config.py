@@ -46,6 +46,9 @@ _SPECIAL = {
     "camera_theta_deg": (["40"], 40.0),
     "offset_deg": (["10"], 10.0),
     "loss.lambda_g": (["3"], 3.0),
+    "coordinator": (["localhost:1234"], "localhost:1234"),
+    "num_processes": (["2"], 2),
+    "process_id": (["1"], 1),
     "config": None,  # covered by the --config tests
     "resume": None,  # covered by the resume tests
 }
