@@ -1050,6 +1050,18 @@ ffi::Error run_pairs(ffi::ThreadPool& pool, int64_t n_gl, int64_t threads, size_
   return ffi::Error::Success();
 }
 
+// The whole-pair kernels' common inputs into `a`.
+template <ffi::DataType DT>
+void pair_inputs(ffi::Buffer<DT>& fp, ffi::Buffer<DT>& p0, ffi::Buffer<DT>& p1,
+                 ffi::Buffer<DT>& w, ffi::Buffer<DT>& d, ffi::Buffer<DT>& alpha,
+                 ffi::Buffer<ffi::DataType::PRED>& valid, ffi::Buffer<DT>& h,
+                 PairArgs<ffi::NativeType<DT>>* a) {
+  a->n = w.element_count();
+  a->fp = fp.typed_data(); a->p0 = p0.typed_data(); a->p1 = p1.typed_data();
+  a->w = w.typed_data(); a->d = d.typed_data(); a->alpha = alpha.typed_data();
+  a->valid = valid.typed_data(); a->h = h.typed_data();
+}
+
 template <ffi::DataType DT>
 ffi::Error PairsImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT> p0,
                      ffi::Buffer<DT> p1, ffi::Buffer<DT> w, ffi::Buffer<DT> d,
@@ -1058,10 +1070,7 @@ ffi::Error PairsImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT> p
                      ffi::ResultBuffer<DT> A) {
   using T = ffi::NativeType<DT>;
   PairArgs<T> a;
-  a.n = w.element_count();
-  a.fp = fp.typed_data(); a.p0 = p0.typed_data(); a.p1 = p1.typed_data();
-  a.w = w.typed_data(); a.d = d.typed_data(); a.alpha = alpha.typed_data();
-  a.valid = valid.typed_data(); a.h = h.typed_data();
+  pair_inputs(fp, p0, p1, w, d, alpha, valid, h, &a);
   a.D = D->typed_data(); a.A = A->typed_data();
   const size_t counts[6] = {p0.element_count(), p1.element_count(), w.element_count(),
                             d.element_count(), alpha.element_count(), valid.element_count()};
@@ -1080,10 +1089,7 @@ ffi::Error PairsVjpImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT
                         ffi::ResultBuffer<DT> dh) {
   using T = ffi::NativeType<DT>;
   PairArgs<T> a;
-  a.n = w.element_count();
-  a.fp = fp.typed_data(); a.p0 = p0.typed_data(); a.p1 = p1.typed_data();
-  a.w = w.typed_data(); a.d = d.typed_data(); a.alpha = alpha.typed_data();
-  a.valid = valid.typed_data(); a.h = h.typed_data();
+  pair_inputs(fp, p0, p1, w, d, alpha, valid, h, &a);
   a.ctD = ctD.typed_data(); a.ctA = ctA.typed_data();
   a.dp0 = dp0->typed_data(); a.dp1 = dp1->typed_data(); a.dw = dw->typed_data();
   a.dd = dd->typed_data(); a.dalpha = dalpha->typed_data(); a.dh = dh->typed_data();
@@ -1104,10 +1110,7 @@ ffi::Error PairsJacImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT
                         ffi::ResultBuffer<DT> JA) {
   using T = ffi::NativeType<DT>;
   PairArgs<T> a;
-  a.n = w.element_count();
-  a.fp = fp.typed_data(); a.p0 = p0.typed_data(); a.p1 = p1.typed_data();
-  a.w = w.typed_data(); a.d = d.typed_data(); a.alpha = alpha.typed_data();
-  a.valid = valid.typed_data(); a.h = h.typed_data();
+  pair_inputs(fp, p0, p1, w, d, alpha, valid, h, &a);
   a.D = D->typed_data(); a.A = A->typed_data(); a.JD = JD->typed_data();
   a.dh = dh->typed_data(); a.JA = JA->typed_data();
   const size_t counts[6] = {p0.element_count(), p1.element_count(), w.element_count(),
