@@ -130,7 +130,7 @@ def run_one(spec: dict) -> dict:
                           np.asarray(s.width, np.float64), np.asarray(s.depth, np.float64),
                           np.asarray(s.alpha, np.float64), np.array([board.Sx, board.Sy]),
                           np.asarray(v.camera), np.asarray(v.light), np.asarray(v.intensity),
-                          plunge=plunge)
+                          plunge=plunge, profile=s.profile)
     carve = carving_estimate(d, cfg.machine_profile(), time_limit=1.0, plunge=plunge)
     return {
         "ssim": m["ssim"], "psnr": m["psnr"], "ghosting": m["ghosting"],

@@ -55,11 +55,13 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from jscratch import lobe, ndf
+from jscratch.errors import InputError
 
 __all__ = [
     "arc_pair_integral",
     "arc_lit_integral",
     "arc_groove",
+    "pair_integral_of",
     "arc_height",
     "arc_half_width",
     "arc_normal",
@@ -340,3 +342,20 @@ def arc_pair_integral(
                                                              radius, alpha)
     G = ndf.pair_geometry(footprint, p0, p1, *arc_groove(plunge, radius))
     return arc_lit_integral(G, h, alpha), G.area
+
+
+def pair_integral_of(profile: str):
+    """The pair integral ``(h, footprint, p0, p1, width, depth, alpha) -> (D_hat, A)`` of a
+    `jscratch.scene.Scratches.profile`: `jscratch.ndf.pair_integral` for ``"paper"``; for
+    ``"arc"`` (``width = 2R``, ``depth`` from `arc_groove`) `arc_lit_integral` on that groove's
+    `jscratch.ndf.pair_geometry`, which equals `arc_pair_integral` at the plunge."""
+    if profile == "paper":
+        return ndf.pair_integral
+    if profile != "arc":
+        raise InputError(f"pair_integral_of: profile must be 'paper' or 'arc'; got {profile!r}")
+
+    def arc_pair(h, footprint, p0, p1, width, depth, alpha):
+        G = ndf.pair_geometry(footprint, p0, p1, width, depth)
+        return arc_lit_integral(G, h, alpha), G.area
+
+    return arc_pair

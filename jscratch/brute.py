@@ -21,6 +21,9 @@ so that it checks `render.shade` too. Nothing here imports `jscratch.ndf`.
 cutter of radius ``R`` cuts at plunge ``p``, the scratch's ``depth`` field (``z(x) = R - p -
 sqrt(R^2 - x^2)`` over ``|x| < sqrt(2Rp - p^2)``, normal ``(-x, 0, sqrt(R^2 - x^2)) / R``);
 ``width`` is then unused. Used by `jscratch.design.maker` to render what the machine will carve.
+Scratches whose `jscratch.scene.Scratches.profile` is ``"arc"`` are such cuts too, each with its
+own ``R = w / 2`` and plunge ``p = R (1 - exp(-d / w))`` (the inverse of the ``depth`` the arc
+profile stores).
 
 Cost: ``M * n^2`` point evaluations per (pixel, scratch) pair. The unbiased estimate's error falls
 like ``n^-1.5`` for a smooth groove edge crossing a pixel (stratified sampling of a discontinuous
@@ -75,8 +78,9 @@ def _ggx_cos(c, a):
     return jnp.where(c > 0, a * a / (jnp.pi * den * den), 0.0)
 
 
-def _pair_samples(key, n, xe, ye, W, P, ball_radius, pixel, p0, p1, width, depth, alpha, h_views):
-    """Sample-mean ``D`` per view ``(M,)`` and coverage of one scratch over one pixel footprint."""
+def _pair_samples(key, n, xe, ye, W, P, ball, pixel, p0, p1, width, depth, alpha, h_views):
+    """Sample-mean ``D`` per view ``(M,)`` and coverage of one scratch over one pixel footprint;
+    with `ball` the groove is a ball's cut: `width` is then the ball's radius, `depth` the plunge."""
     dt = width.dtype
     q_pix = pixel % P
     r, c = q_pix // W, q_pix % W
@@ -94,14 +98,14 @@ def _pair_samples(key, n, xe, ye, W, P, ball_radius, pixel, p0, p1, width, depth
     b = jnp.stack([t[1], -t[0]])
     lx = (qx - p0[0]) * b[0] + (qy - p0[1]) * b[1]
     ly = (qx - p0[0]) * t[0] + (qy - p0[1]) * t[1]
-    if ball_radius is None:
+    if not ball:
         xm = groove_half_width(width, depth)
     else:  # the ball's cut at plunge `depth`
-        R = jnp.asarray(ball_radius, dt)
+        R = width
         xm = jnp.sqrt(jnp.maximum(2.0 * R * depth - depth * depth, 0.0))
     inside = ok & (jnp.abs(lx) < xm) & (ly >= 0) & (ly <= length)
     lx_safe = jnp.where(inside, lx, 0.0)
-    if ball_radius is None:
+    if not ball:
         slope = height_profile_slope(lx_safe, width, depth)
     else:
         slope = lx_safe / jnp.sqrt(R * R - lx_safe * lx_safe)
@@ -139,7 +143,7 @@ def brute_sums(scratches, views, board, *, n: int = 16, key=None, pairs=None,
     - `pairs`: optional `bvh.Pairs` ``(L,)`` restricting which scratches are tested against which
       pixel (for speed); default: every scratch against every pixel (fully independent of binning).
     - `batch`: pairs per `lax.map` step (memory ``batch * n^2 * M``).
-    - `ball_radius`: None (the profile of docs/model.md §2) or ``R`` (m): the grooves are a ball's cut
+    - `ball_radius`: None (the scratches' own profile) or ``R`` (m): the grooves are a ball's cut
       at plunge ``depth`` (module docstring).
     """
     dt = scratches.dtype
@@ -156,12 +160,18 @@ def brute_sums(scratches, views, board, *, n: int = 16, key=None, pairs=None,
         valid = jnp.asarray(pairs.valid).reshape(-1)
     h = jnp.swapaxes(_half_vectors(views, board, dt)[2], 0, 1)  # (P, M, 3)
     s = scratches
-    one = functools.partial(_pair_samples, key, n, xe, ye, board.W, P, ball_radius)
+    ball = ball_radius is not None or s.profile == "arc"
+    one = functools.partial(_pair_samples, key, n, xe, ye, board.W, P, ball)
 
     def pair(args):
         p, i, ok = args
         g = lambda a: a.at[i].get(mode="clip")
-        D, c = one(p, g(s.p0), g(s.p1), g(s.width), g(s.depth), g(s.alpha), h[p])
+        w, d = g(s.width), g(s.depth)
+        if ball_radius is not None:
+            w = jnp.asarray(ball_radius, dt)
+        elif ball:  # the arc profile's (2R, -2R log(1 - p/R)) back to (R, p)
+            w, d = 0.5 * w, -0.5 * w * jnp.expm1(-d / w)
+        D, c = one(p, g(s.p0), g(s.p1), w, d, g(s.alpha), h[p])
         return jnp.where(ok, D, 0.0), jnp.where(ok, c, 0.0)
 
     if N == 0 or pix.shape[0] == 0:

@@ -1,9 +1,9 @@
 """Per scratch and view, how much light a scratch sends to the camera: `scratch_contributions`
 (the score of the design's discard and prune rounds, docs/model.md §6). On the CPU the pairs are
 evaluated by the native whole-pair kernel (`jscratch.native.pairs`; a shared list's geometry once
-for every view), elsewhere by `ndf.pair_integral`.
+for every view), elsewhere by `arc.pair_integral_of` the scratches' profile.
 
-Imports: `jscratch.bvh` (the chunk size), `jscratch.lobe`, `jscratch.native`, `jscratch.ndf`, `jscratch.scene`, `jscratch.shading`.
+Imports: `jscratch.arc`, `jscratch.bvh` (the chunk size), `jscratch.lobe`, `jscratch.native`, `jscratch.ndf`, `jscratch.scene`, `jscratch.shading`.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from jscratch import lobe, native, ndf
+from jscratch import arc, lobe, native
 from jscratch.bvh import DEFAULT_CHUNK
 from jscratch.scene import Board, Scratches, Views
 from jscratch.shading import half_vectors, pixel_footprints, shade
@@ -52,8 +52,8 @@ def scratch_contributions(scratches: Scratches, views: Views, board: Board, pair
 
         def one(args, j=j):
             ii, px = args
-            d, _ = ndf.pair_integral(hs[j, px], fps[px], s.p0[ii], s.p1[ii], s.width[ii],
-                                     s.depth[ii], s.alpha[ii])
+            d, _ = arc.pair_integral_of(s.profile)(hs[j, px], fps[px], s.p0[ii], s.p1[ii],
+                                                   s.width[ii], s.depth[ii], s.alpha[ii])
             return d
 
         d = jax.lax.map(one, (i, pix), batch_size=chunk)
@@ -84,8 +84,9 @@ def _contributions_native(s: Scratches, hs, k, fps, pairs, chunk: int):
             px, sc, ok = xs
             px = jnp.clip(px, 0, P - 1)
             i = jnp.clip(sc, 0, n - 1)
-            D, _ = native.pairs(lobe.nodes(dt), fps[px], s.p0[i], s.p1[i], s.width[i],
-                                      s.depth[i], s.alpha[i], ok, hs[v][:, px])
+            nodes = (arc.nodes if s.profile == "arc" else lobe.nodes)(dt)
+            D, _ = native.pairs(nodes, fps[px], s.p0[i], s.p1[i], s.width[i], s.depth[i],
+                                s.alpha[i], ok, hs[v][:, px], profile=s.profile)
             return acc.at[:, sc].add(D * k[v][:, px], mode="drop"), None
 
         acc, _ = jax.lax.scan(add, jnp.zeros((len(views_of), n), dt),

@@ -9,7 +9,10 @@ A design is one ``.npz`` file holding
   when the design came from an optimisation;
 - optionally ``machine``: the machine profile it was designed for (`jscratch.machine`), a 0-d
   string array holding its JSON, and ``plunge`` (``(N,)``, metres): the cutter plunge of each
-  scratch of a carvable design (within the profile's ``[plunge_min_mm, plunge_max_mm]``).
+  scratch of a carvable design (within the profile's ``[plunge_min_mm, plunge_max_mm]``);
+- optionally ``profile``: a 0-d string array, the grooves' cross-section
+  (`jscratch.scene.PROFILES`): ``"paper"`` (also when absent) or ``"arc"``, the ball's circular arc
+  of docs/model.md §13 stored as ``width = 2R``, ``depth = -2R log(1 - p/R)``.
 
 The ``.npz`` is the source of truth; `write_svg` exports the same scratches for people and plotter
 tools. Loading checks shapes, finiteness, ranges and that every endpoint lies on the board, and names
@@ -27,7 +30,7 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from jscratch.errors import DesignFileError, InputError, error_line
-from jscratch.scene import check_scratches, check_views
+from jscratch.scene import PROFILES, check_scratches, check_views
 
 __all__ = [
     "Design",
@@ -43,7 +46,7 @@ __all__ = [
 
 _REQUIRED = ("p0", "p1", "width", "depth", "alpha", "board")
 _VIEWS = ("camera", "light", "intensity")
-_MAKER = ("machine", "plunge")
+_MAKER = ("machine", "plunge", "profile")
 
 
 class DesignError(InputError):
@@ -67,6 +70,7 @@ class Design(NamedTuple):
     - `machine`: the machine profile (a dict, `jscratch.machine.MachineProfile.to_dict`) the
       design was made for, or `None`.
     - `plunge`: `(N,)` cutter plunge per scratch, metres (carvable designs), or `None`.
+    - `profile`: the grooves' cross-section, ``"paper"`` or ``"arc"`` (`jscratch.scene.Scratches`).
     """
 
     p0: np.ndarray
@@ -80,6 +84,7 @@ class Design(NamedTuple):
     intensity: np.ndarray | None = None
     machine: dict | None = None
     plunge: np.ndarray | None = None
+    profile: str = "paper"
 
     @property
     def n(self) -> int:
@@ -113,7 +118,7 @@ def _as_float_array(name, value, source):
 
 
 def validate_design(p0, p1, width, depth, alpha, board, camera=None, light=None, intensity=None,
-                    machine=None, plunge=None, *, source="design") -> Design:
+                    machine=None, plunge=None, profile="paper", *, source="design") -> Design:
     """Check a design against docs/model.md §9 and return it as a float64 `Design`.
 
     **Arguments:** the design arrays (anything `np.asarray` reads, e.g. jax arrays), see
@@ -172,7 +177,11 @@ def validate_design(p0, p1, width, depth, alpha, board, camera=None, light=None,
         views = {"camera": cam, "light": lig, "intensity": inten}
     else:
         views = {"camera": None, "light": None, "intensity": None}
-    return Design(**arrays, **views, **_check_maker(machine, plunge, n, source))
+    if isinstance(profile, np.ndarray) and profile.shape == ():
+        profile = profile.item()
+    if profile not in PROFILES:
+        raise DesignError(f"{source}: profile must be one of {PROFILES}, got {profile!r}")
+    return Design(**arrays, **views, **_check_maker(machine, plunge, n, source), profile=profile)
 
 
 def _check_maker(machine, plunge, n, source):
@@ -218,7 +227,7 @@ def _umask() -> int:
 
 
 def save_design(path, p0, p1, width, depth, alpha, board, camera=None, light=None, intensity=None,
-                machine=None, plunge=None) -> Design:
+                machine=None, plunge=None, profile="paper") -> Design:
     """Validate and write a design to a `.npz` file (docs/model.md §9), atomically.
 
     **Arguments:** `path` (the file; written as given, no suffix added), then the arrays of
@@ -230,8 +239,9 @@ def save_design(path, p0, p1, width, depth, alpha, board, camera=None, light=Non
     """
     path = os.fspath(path)
     design = validate_design(p0, p1, width, depth, alpha, board, camera, light, intensity, machine, plunge,
-                             source=path)
+                             profile, source=path)
     payload = {k: v for k, v in design._asdict().items() if v is not None}
+    payload["profile"] = np.array(design.profile)
     if design.machine is not None:
         import json
 

@@ -12,9 +12,9 @@ differentiable in ``render``.
 - ``gram_loss``: ``E_g = sum_j mean_l ||Gram(phi_l(I_j)) - Gram(phi_l(T_j))||_F^2`` with Gatys-style
   Gram matrices normalised by channels times positions; ``phi`` is ``FilterBank`` (weight-free,
   default) or ``VGG19Features`` (from a local weights file, ``load_vgg19``).
-- ``total_loss``, ``LossConfig``, ``make_loss``: the weighted sum ``lambda_p E_p + lambda_g E_g``
-  (plus ``lambda_x E_x`` when ``LossConfig.lambda_x > 0``).
-- ``ghost_loss``: ``E_x``, cross-view ghosting beyond a baseline (``jscratch.ssim``), off.
+- ``ghost_loss``: ``E_x``, cross-view ghosting beyond a baseline (``jscratch.ssim``).
+- ``total_loss``, ``LossConfig``, ``make_loss``: ``lambda_p E_p + lambda_g E_g + w_x E_x``
+  (``w_x`` from ``lambda_x`` by ``ghost_weight_factor``).
 
 The filter bank's design is in ``FilterBank``, the VGG format in ``load_vgg19``, the calibration
 of ``LAMBDA_G`` next to it. NaN detection is the optimiser's job: these functions propagate NaN.
@@ -38,10 +38,11 @@ from jscratch.options import option
 from jscratch.ssim import ssim_mean
 
 __all__ = [
-    "BLUR_SIGMA", "LAMBDA_G", "LOSS_KINDS", "VGG19_LAYERS", "VGG19_TAPS", "BoundLoss",
-    "FilterBank", "Loss", "LossConfig", "VGG19Features", "blur3", "calibrate_lambda_g",
-    "gaussian_kernel3", "gram", "cross_ssim", "ghost_loss", "gram_loss", "l2_loss", "load_vgg19",
-    "make_loss", "perceptual_loss", "total_loss",
+    "BLUR_SIGMA", "GHOST_EP_REF", "GHOST_SCALES", "LAMBDA_G", "LOSS_KINDS", "VGG19_LAYERS",
+    "VGG19_TAPS", "BoundLoss", "FilterBank", "Loss", "LossConfig", "VGG19Features", "blur3",
+    "calibrate_lambda_g", "gaussian_kernel3", "gram", "cross_ssim", "ghost_loss",
+    "ghost_weight_factor", "gram_loss", "l2_loss", "load_vgg19", "make_loss", "perceptual_loss",
+    "total_loss",
 ]
 
 #: Standard deviation (pixels) of the 3x3 Gaussian ``g`` in ``E_p``. With sigma = 1 px the 1D
@@ -62,8 +63,14 @@ LAMBDA_G = 20.0
 #: the ghosting of docs/model.md §7); 0.01 cut ghosting further but lost much SSIM.
 LAMBDA_X = 1e-3
 
+#: ``LossConfig.ghost_scale = "rms"``: the per-view ``E_p`` at and above which ``E_x`` has its full
+#: weight ``lambda_x`` (the default design's, 3 views / 20,000 scratches, never goes below it).
+GHOST_EP_REF = 2.5e-3
+
 #: Allowed ``LossConfig.kind`` values.
 LOSS_KINDS = ("l2", "perceptual", "perceptual+gram")
+#: Allowed ``LossConfig.ghost_scale`` values (see `ghost_weight_factor`).
+GHOST_SCALES = ("rms", "fixed")
 
 
 def _check_images(render, target, name: str = "render") -> tuple[Array, Array]:
@@ -113,9 +120,7 @@ def gaussian_kernel3(sigma: float = BLUR_SIGMA, dtype=None) -> Array:
     - `sigma`: standard deviation in pixels, ``> 0``. Default ``BLUR_SIGMA`` (1 px).
     - `dtype`: floating dtype of the result (default: JAX's default float).
 
-    **Returns:**
-
-    ``(3, 3)`` array summing to 1.
+    **Returns:** ``(3, 3)`` array summing to 1.
     """
     k = np.array(_gauss1(sigma))
     return jnp.asarray(np.outer(k, k), dtype=dtype)
@@ -159,9 +164,7 @@ def blur3(images: Float[Array, "... H W"], sigma: float = BLUR_SIGMA) -> Float[A
     - `images`: ``(..., H, W)`` floating array.
     - `sigma`: Gaussian standard deviation in pixels.
 
-    **Returns:**
-
-    ``(..., H, W)`` blurred images.
+    **Returns:** ``(..., H, W)`` blurred images.
     """
     k = _gauss1(sigma)  # separable
     p = _pad1(images)
@@ -179,9 +182,7 @@ def perceptual_loss(render: Float[Array, "M H W"], target: Float[Array, "M H W"]
     - `render`: ``(M, H, W)`` rendered display values.
     - `target`: ``(M, H, W)`` target display values (cast to ``render``'s dtype).
 
-    **Returns:**
-
-    Scalar in ``render``'s dtype.
+    **Returns:** Scalar in ``render``'s dtype.
     """
     render, target = _check_images(render, target)
     d = blur3(render - target)
@@ -217,6 +218,18 @@ def ghost_loss(render: Float[Array, "M H W"], target: Float[Array, "M H W"],
     return jnp.sum(jax.nn.relu(s - baseline.astype(render.dtype)[j, k]))
 
 
+def ghost_weight_factor(rule: str, e_p, m: int):
+    """The factor on ``lambda_x`` (a scalar, no gradient): 1 for ``"fixed"``; for ``"rms"``
+    ``min(1, sqrt(E_p / (M GHOST_EP_REF))) * 2 / (M - 1)``. ``E_p``'s gradient scales with the RMS
+    image error while ``E_x``'s does not, so a fixed weight pulls harder against the picture the
+    closer the render gets to its target (more scratches); and ``E_x`` sums ``M - 1`` pairs per
+    view (`ghost_loss`), ``E_p`` one. The rule keeps their balance where ``lambda_x`` was set."""
+    if rule == "fixed" or m < 2:
+        return 1.0
+    rms = jnp.sqrt(jax.lax.stop_gradient(e_p) / (m * GHOST_EP_REF))
+    return jnp.minimum(1.0, rms) * (2.0 / (m - 1))
+
+
 def l2_loss(render: Float[Array, "M H W"], target: Float[Array, "M H W"]) -> Array:
     """Plain squared L2 ``sum_j mean_pixels((I_j - T_j)^2)`` (the paper's Fig. 17 baseline).
 
@@ -224,9 +237,7 @@ def l2_loss(render: Float[Array, "M H W"], target: Float[Array, "M H W"]) -> Arr
 
     - `render`, `target`: ``(M, H, W)`` display values.
 
-    **Returns:**
-
-    Scalar in ``render``'s dtype.
+    **Returns:** Scalar in ``render``'s dtype.
     """
     render, target = _check_images(render, target)
     d = render - target
@@ -248,9 +259,7 @@ def gram(features: Float[Array, "... C H W"]) -> Float[Array, "... C C"]:
 
     - `features`: ``(..., C, H, W)`` feature maps.
 
-    **Returns:**
-
-    ``(..., C, C)`` symmetric matrices.
+    **Returns:** ``(..., C, C)`` symmetric matrices.
     """
     c, h, w = features.shape[-3:]
     f = features.reshape(*features.shape[:-3], c, h * w)
@@ -359,9 +368,7 @@ class FilterBank(eqx.Module):
 
         - `images`: ``(M, H, W)`` display values; ``H, W >= 2**n_scales``.
 
-        **Returns:**
-
-        A list of ``n_scales`` arrays ``(M, 17, H_s, W_s)``, ``H_s = floor(H / 2^s)``.
+        **Returns:** A list of ``n_scales`` arrays ``(M, 17, H_s, W_s)``, ``H_s = floor(H / 2^s)``.
         """
         h, w = images.shape[-2:]
         if min(h, w) < self.min_size():
@@ -430,9 +437,7 @@ class VGG19Features(eqx.Module):
 
         - `images`: ``(M, H, W)`` display values in ``[0, 1]``; ``H, W >= 16``.
 
-        **Returns:**
-
-        A list of 5 arrays ``(M, C_l, H_l, W_l)``, ``H_l = floor(H / 2^l)``.
+        **Returns:** A list of 5 arrays ``(M, C_l, H_l, W_l)``, ``H_l = floor(H / 2^l)``.
         """
         h, w = images.shape[-2:]
         if min(h, w) < self.min_size():
@@ -471,9 +476,7 @@ def load_vgg19(path: str | os.PathLike) -> VGG19Features:
 
     - `path`: the ``.npz`` file.
 
-    **Returns:**
-
-    A ``VGG19Features`` module (weights stored as float32, cast to the image dtype when applied).
+    **Returns:** A ``VGG19Features`` module (weights stored as float32, cast to the image dtype when applied).
 
     **Raises:**
 
@@ -551,22 +554,15 @@ def gram_loss(
     - `features`: ``phi``, a callable ``(M, H, W) -> [(M, C_l, H_l, W_l), ...]``; default
       ``FilterBank()``.
 
-    **Returns:**
-
-    Scalar in ``render``'s dtype.
+    **Returns:** Scalar in ``render``'s dtype.
     """
     render, target = _check_images(render, target)
     features = FilterBank() if features is None else features
     return _gram_distance(_grams(features, render), _grams(features, target))
 
 
-def total_loss(
-    render: Float[Array, "M H W"],
-    target: Float[Array, "M H W"],
-    lambda_p: float = 1.0,
-    lambda_g: float = LAMBDA_G,
-    features: Features | None = None,
-) -> Array:
+def total_loss(render: Float[Array, "M H W"], target: Float[Array, "M H W"], lambda_p: float = 1.0,
+               lambda_g: float = LAMBDA_G, features: Features | None = None) -> Array:
     """``E = lambda_p E_p + lambda_g E_g`` (docs/model.md §6, Eq. 14).
 
     **Arguments:**
@@ -577,9 +573,7 @@ def total_loss(
       ``FilterBank``; VGG features need their own value.
     - `features`: ``phi`` of ``gram_loss``; default ``FilterBank()``.
 
-    **Returns:**
-
-    Scalar in ``render``'s dtype.
+    **Returns:** Scalar in ``render``'s dtype.
     """
     e = lambda_p * perceptual_loss(render, target)
     if not (isinstance(lambda_g, (int, float)) and lambda_g == 0):
@@ -605,9 +599,7 @@ def calibrate_lambda_g(
     - `features`: ``phi``; default ``FilterBank()``.
     - `ratio`: wanted ``lambda_g E_g / E_p`` (``lambda_p = 1``), positive.
 
-    **Returns:**
-
-    ``ratio * E_p / E_g`` as a Python float.
+    **Returns:** ``ratio * E_p / E_g`` as a Python float.
     """
     if not (math.isfinite(ratio) and ratio > 0):
         raise InputError(f"ratio must be finite and positive, got {ratio!r}")
@@ -637,6 +629,8 @@ class LossConfig:
       ``FilterBank``.
     - `lambda_x`: weight of the cross-view ghosting term ``E_x`` (``ghost_loss``), ``>= 0``;
       added to any kind; default `LAMBDA_X`; 0 leaves it out.
+    - `ghost_scale`: ``"rms"`` (default) or ``"fixed"``: the rule for ``E_x``'s weight
+      (`ghost_weight_factor`).
     - `ghost_baseline`: ``"zero"`` (default): ``E_x`` is the raw cross-view SSIM, the ghosting of
       docs/model.md §7 itself; ``"targets"``: only the resemblance beyond the targets' own.
 
@@ -655,10 +649,15 @@ class LossConfig:
     ghost_baseline: str = option("zero", "E_x penalises all of the cross-view SSIM (zero: the "
                                  "ghosting itself) or only what exceeds the targets' own (targets)",
                                  choices=("targets", "zero"))
+    ghost_scale: str = option("rms", "E_x's weight: lambda_x (fixed) or lambda_x scaled by the "
+                              "RMS image error below its reference and by 2 / (views - 1) (rms)",
+                              choices=GHOST_SCALES)
 
     def __post_init__(self):
         if self.kind not in LOSS_KINDS:
             raise InputError(f"LossConfig.kind must be one of {LOSS_KINDS}, got {self.kind!r}")
+        if self.ghost_scale not in GHOST_SCALES:
+            raise InputError(f"LossConfig.ghost_scale must be one of {GHOST_SCALES}, got {self.ghost_scale!r}")
         if self.ghost_baseline not in ("targets", "zero"):
             raise InputError(f"LossConfig.ghost_baseline must be 'targets' or 'zero', got {self.ghost_baseline!r}")
         for name in ("lambda_p", "lambda_g", "lambda_x"):
@@ -712,6 +711,7 @@ class Loss(eqx.Module):
     features: FilterBank | VGG19Features | None
     lambda_x: float = eqx.field(static=True, default=0.0)
     ghost_baseline: str = eqx.field(static=True, default="targets")
+    ghost_scale: str = eqx.field(static=True, default="fixed")
 
     def __call__(self, render: Float[Array, "M H W"], target: Float[Array, "M H W"]) -> Array:
         """Total loss (scalar in ``render``'s dtype)."""
@@ -732,9 +732,7 @@ class Loss(eqx.Module):
         - `target`: ``(M, H, W)`` floating display values; kept in their own dtype (cast to
           the render's dtype when the loss is evaluated).
 
-        **Returns:**
-
-        A ``BoundLoss``; ``bound(render) == loss(render, target)`` up to rounding.
+        **Returns:** A ``BoundLoss``; ``bound(render) == loss(render, target)`` up to rounding.
         """
         target, _ = _check_images(target, target, name="target")
         grams = None
@@ -762,7 +760,8 @@ class Loss(eqx.Module):
             zero = jnp.zeros((m, m), render.dtype) if self.ghost_baseline == "zero" else None
             ex = ghost_loss(render, target, zero)
             out["E_x"] = ex
-            out["total"] = out["total"] + self.lambda_x * ex
+            wx = self.lambda_x * ghost_weight_factor(self.ghost_scale, ep, m)
+            out["total"] = out["total"] + wx * ex
         return out
 
     def _combine(self, render, target, target_grams) -> Array:
@@ -785,9 +784,7 @@ def make_loss(config: LossConfig | None = None) -> Loss:
     - `config`: a ``LossConfig``; default ``LossConfig()`` (``E_p + LAMBDA_G E_g + LAMBDA_X E_x``,
       filter bank, the design's loss).
 
-    **Returns:**
-
-    A ``Loss`` module (jittable; ``loss.bind(target)`` precomputes the target's Grams).
+    **Returns:** A ``Loss`` module (jittable; ``loss.bind(target)`` precomputes the target's Grams).
     """
     config = LossConfig() if config is None else config
     if not isinstance(config, LossConfig):
@@ -797,4 +794,4 @@ def make_loss(config: LossConfig | None = None) -> Loss:
         features = FilterBank() if config.vgg_weights is None else load_vgg19(config.vgg_weights)
     lambda_g = LAMBDA_G if config.lambda_g is None else float(config.lambda_g)
     return Loss(config.kind, float(config.lambda_p), lambda_g, features, float(config.lambda_x),
-                config.ghost_baseline)
+                config.ghost_baseline, config.ghost_scale)

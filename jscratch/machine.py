@@ -66,9 +66,10 @@ class MachineProfile:
     - `min_length_mm`: shorter scratches are an error (or dropped with `drop_short`).
     - `spindle_rpm`: 0 for no spindle commands, else ``M3 S..`` / ``M5``.
     - `spinup_s`: dwell after ``M3`` for the spindle to reach speed (also sent on resume).
-    - `groove_fit`: how a carvable design maps a plunge to the renderer's groove profile
-      (`jscratch.design.carvable`): ``"height"`` (least-squares heights; default, measured best
-      "as carved") or ``"slope"`` (least-squares wall angles).
+    - `groove_fit`: the groove a carvable design renders for a plunge
+      (`jscratch.design.carvable`): ``"arc"`` (default: the ball's own circular arc,
+      docs/model.md §13), or the paper's profile fitted to it, ``"height"`` (least-squares
+      heights) or ``"slope"`` (least-squares wall angles).
     - `overhead_s`: per-scratch acceleration and settling time, for the estimate (with the paper's
       mean 1.5 cm scratch at 1.5 cm/s this makes about one scratch a second plus travel).
     """
@@ -92,7 +93,7 @@ class MachineProfile:
     holder: str = "spring"
     plunge_min_mm: float = 0.005
     plunge_max_mm: float = 0.1
-    groove_fit: str = "height"
+    groove_fit: str = "arc"
 
     def __post_init__(self):
         from jscratch.grbl import gword
@@ -120,8 +121,8 @@ class MachineProfile:
             bad("cutter", "'ball' (the only cutter kind supported)")
         if self.holder not in ("spring", "rigid"):
             bad("holder", "'spring' or 'rigid'")
-        if self.groove_fit not in ("height", "slope"):
-            bad("groove_fit", "'height' or 'slope'")
+        if self.groove_fit not in ("arc", "height", "slope"):
+            bad("groove_fit", "'arc', 'height' or 'slope'")
         if not isinstance(self.drop_short, bool):
             bad("drop_short", "true or false")
         r = self.cutter_radius_mm

@@ -78,7 +78,7 @@ def render_orbit(design, *, frames: int = 36, size: int = 128, batch: int = 6,
     inten = float(np.exp(np.mean(np.log(design.intensity)))) if intensity is None else float(intensity)
     f32 = np.float32
     sc = Scratches(design.p0.astype(f32), design.p1.astype(f32), design.width.astype(f32),
-                   design.depth.astype(f32), design.alpha.astype(f32))
+                   design.depth.astype(f32), design.alpha.astype(f32), profile=design.profile)
     out = []
     bar = None
     if progress:

@@ -19,27 +19,23 @@ both are re-exported here.
 - `render_reference(scratches, views, board)`: float64 all-pairs reference (every scratch against
   every pixel, dense sum, plain autodiff), for small scenes and tests.
 
-**Memory and the reverse pass.** Pairs are evaluated in chunks inside a `lax.scan` and
-segment-summed per pixel: a forward pass holds ``O(M H W + N + chunk)`` floats for any number of
-pairs. The reverse pass (a `jax.custom_vjp`) walks the same chunks and scatter-adds each pair's
-derivatives into the gradients. On one device with the native kernel, the forward pass of a
-gradient keeps every pair's Jacobian (`native.pair_jacobian`: ``10 M + 6`` floats a pair, ~70 MB
-for the default design) and nothing is evaluated twice; otherwise each chunk is re-evaluated
-(`native.pair_vjp` or the jnp path's VJP). No forward-mode autodiff (``jax.jvp``).
+**Memory and the reverse pass.** Pairs are evaluated in chunks in a `lax.scan`, segment-summed
+per pixel (``O(M H W + N + chunk)`` floats for any number of pairs); the reverse pass (a
+`jax.custom_vjp`) walks the same chunks. On one device with the native kernel the gradient's
+forward pass keeps each pair's Jacobian (`native.pair_jacobian`, ``10 M + 6`` floats a pair);
+otherwise chunks are re-evaluated (`native.pair_vjp`, or the jnp path's VJP). Reverse mode only.
 
-**The pair kernel.** With the native kernel (`jscratch.native`: CPU) a chunk is one call: each
-pair's geometry and its Jacobian once, then every view over that pair's own pieces that are not
-points (docs/model.md §12). Elsewhere (another backend, ``JSCRATCH_NATIVE=0``) the jnp path runs
-`ndf.pair_geometry` vmapped over the chunk, then per view `ndf.lit_integral(..., pieces=k)`, `k`
-the smallest of `PIECE_BUDGETS` that holds every `ndf.PairGeometry.count` of the chunk.
-Each shard's pairs are sorted (stably) padding last, and chunks of padding are skipped; on the
-jnp path also by the budget a pair needs (`_pair_classes`).
+**The pair kernel** follows `Scratches.profile` (the paper's groove or the ball's arc). With the
+native kernel (CPU) a chunk is one call: each pair's geometry once, then every view over its own
+pieces (docs/model.md §12). Elsewhere (``JSCRATCH_NATIVE=0``, other backends) the jnp path runs
+`ndf.pair_geometry` vmapped, then per view `ndf.lit_integral(..., pieces=k)` (`k` the smallest of
+`PIECE_BUDGETS` the chunk needs) or `arc.arc_lit_integral`. Padding is sorted last per shard and
+skipped by chunks.
 
 **Multiple devices.** Given a `jax.sharding.Mesh`, the pixel axis is split into strips of rows
-over the mesh axes (`jax.shard_map`); parameters are replicated and their gradients ``psum``-ed;
-the pair lists must be laid out per strip (`bin_pairs` / `cull_pairs` with ``shards=``, which
-`render` does from the mesh, and `render_pairs` checks). The result is the one-device result up
-to summation order. Details: docs/architecture.md, "Several devices".
+(`jax.shard_map`), parameters replicated and their gradients ``psum``-ed; the pair lists must be
+laid out per strip (`bin_pairs` / `cull_pairs` with ``shards=``, as `render` does). The result is
+the one-device result up to summation order (docs/architecture.md, "Several devices").
 
 Computation follows the dtype of ``scratches`` (float32 for users, float64 for references);
 ``views`` are cast to it.
@@ -59,7 +55,7 @@ import numpy as np
 from jax.sharding import PartitionSpec
 from jaxtyping import Array, Float
 
-from jscratch import lobe, native, ndf
+from jscratch import arc, lobe, native, ndf
 from jscratch.bvh import DEFAULT_CHUNK, bin_pairs, cull_pairs, pixels_per_shard
 from jscratch.errors import InputError
 from jscratch.scene import (
@@ -84,27 +80,10 @@ from jscratch.shading import (
 )
 
 __all__ = [
-    "DEFAULT_CHUNK",
-    "DISPLAY_GAMMA",
-    "DISPLAY_KNEE",
-    "Board",
-    "Scratches",
-    "Views",
-    "bin_pairs",
-    "cull_pairs",
-    "display",
-    "flat_highlight",
-    "pixel_edges",
-    "grad_compiler_options",
-    "half_vectors",
-    "board_ndf",
-    "pixel_centres",
-    "pixel_footprints",
-    "render",
-    "render_pairs",
-    "render_reference",
-    "shade",
-    "views_on_circle",
+    "DEFAULT_CHUNK", "DISPLAY_GAMMA", "DISPLAY_KNEE", "Board", "Scratches", "Views",
+    "bin_pairs", "cull_pairs", "display", "flat_highlight", "pixel_edges",
+    "grad_compiler_options", "half_vectors", "board_ndf", "pixel_centres", "pixel_footprints",
+    "render", "render_pairs", "render_reference", "shade", "views_on_circle",
 ]
 
 
@@ -126,6 +105,11 @@ class _Cfg(NamedTuple):
     per_view: bool  # pair outputs are (view, pixel): index v * P_pad + pixel; else pixel only
     need_D: bool
     need_A: bool
+    profile: str  # `Scratches.profile`
+
+    def nodes(self, dtype) -> int:
+        """Gauss-Legendre nodes per piece of the profile's lit integral (the native kernel's)."""
+        return (arc.nodes if self.profile == "arc" else lobe.nodes)(dtype)
 
 
 def _board_of(cfg: _Cfg) -> Board:
@@ -187,14 +171,16 @@ def _chunk_geometry(cfg: _Cfg, xe, ye, pix, valid, p0, p1, w, d):
     return geometry._replace(count=None), budget
 
 
-def _chunk_lit(pieces: int, geometry, valid, a, h):
+def _chunk_lit(profile: str, pieces: int, geometry, valid, a, h):
     """Per-pair ``D_hat`` ``(V, chunk)``, one row per view of ``h`` ``(V, chunk, 3)``, from the
-    chunk's geometry with `ndf.lit_integral(..., pieces=pieces)`; zero on padding slots. The
-    geometry is shared by the views (vmap keeps it unbatched)."""
+    chunk's geometry with `ndf.lit_integral(..., pieces=pieces)` (`arc.arc_lit_integral` for the
+    arc profile); zero on padding slots. The geometry is shared by the views (vmap keeps it
+    unbatched)."""
     dt = a.dtype
     a = jnp.where(valid, a, jnp.asarray(0.5, dt))
     h = jnp.where(valid[None, :, None], h, jnp.asarray([0.0, 0.0, 1.0], dt))
-    lit = functools.partial(ndf.lit_integral, pieces=pieces)
+    lit = (arc.arc_lit_integral if profile == "arc"
+           else functools.partial(ndf.lit_integral, pieces=pieces))
     D = jax.vmap(jax.vmap(lit), in_axes=(None, 0, None))(geometry, h, a)
     return jnp.where(valid[None], D, jnp.zeros((), dt))
 
@@ -207,9 +193,9 @@ def _chunk_native(cfg: _Cfg, xe, ye, pix, valid, p0, p1, w, d, a, h):
     return footprints, p0, p1, w, d, a, valid, (h if cfg.need_D else h[:0])
 
 
-def _budgets(fn):
-    """`lax.switch` branches: ``fn(pieces, ...)`` for each of `PIECE_BUDGETS`."""
-    return [functools.partial(fn, k) for k in PIECE_BUDGETS]
+def _budgets(cfg: _Cfg, fn):
+    """`lax.switch` branches: ``fn(profile, pieces, ...)`` for each of `PIECE_BUDGETS`."""
+    return [functools.partial(fn, cfg.profile, k) for k in PIECE_BUDGETS]
 
 
 def _edges_in(cfg: _Cfg, dtype):
@@ -255,13 +241,13 @@ def _fwd_local(cfg: _Cfg, params, h_loc, out, scr, valid):
         pix, local = _split_index(cfg, oc)
         p0, p1, w, d, a, h = _gather(params, h_rows, sc, local)
         if native.available(dt):
-            D, A = native.pair_values(lobe.nodes(dt), *_chunk_native(cfg, xe, ye, pix, vc, p0, p1,
-                                                                   w, d, a, h))
+            D, A = native.pair_values(cfg.nodes(dt), *_chunk_native(cfg, xe, ye, pix, vc, p0, p1,
+                                                                    w, d, a, h), profile=cfg.profile)
             Ds = Ds.at[:, local].add(D, mode="drop") if cfg.need_D else Ds
             return Ds, (As.at[local].add(A, mode="drop") if cfg.need_A else As)
         geometry, budget = _chunk_geometry(cfg, xe, ye, pix, vc, p0, p1, w, d)
         if cfg.need_D:
-            D = jax.lax.switch(budget, _budgets(_chunk_lit), geometry, vc, a, h)
+            D = jax.lax.switch(budget, _budgets(cfg, _chunk_lit), geometry, vc, a, h)
             Ds = Ds.at[:, local].add(D, mode="drop")
         if cfg.need_A:
             As = As.at[local].add(jnp.where(vc, geometry.area, 0), mode="drop")
@@ -279,10 +265,10 @@ def _bwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, gD, gA):
     gD = gD.reshape(h_rows.shape[:2])
     gA = gA.reshape(-1)
 
-    def lit_vjp(pieces, geometry, valid, a, h, ct):
+    def lit_vjp(profile, pieces, geometry, valid, a, h, ct):
         """The per-view stage's value and reverse pass in one `lax.switch` branch, so no
         residuals cross the switch."""
-        _, vjp = jax.vjp(lambda g, a, h: _chunk_lit(pieces, g, valid, a, h), geometry, a, h)
+        _, vjp = jax.vjp(lambda g, a, h: _chunk_lit(profile, pieces, g, valid, a, h), geometry, a, h)
         return vjp(ct)
 
     def add_chunk(carry, xs):
@@ -293,14 +279,14 @@ def _bwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, gD, gA):
             args = _chunk_native(cfg, xe, ye, pix, vc, p0, p1, w, d, a, h)
             ctD = gD.at[:, local].get(mode="clip")[:len(args[-1])]  # (no rows without D)
             ctA = gA.at[local].get(mode="clip") if cfg.need_A else jnp.zeros_like(w)
-            *dp, dh = native.pair_vjp(lobe.nodes(dt), *args, ctD, ctA)
+            *dp, dh = native.pair_vjp(cfg.nodes(dt), *args, ctD, ctA, profile=cfg.profile)
             return scatter(carry, sc, local, *dp, dh if cfg.need_D else jnp.zeros_like(h))
         geometry, geometry_vjp, budget = jax.vjp(
             lambda *x: _chunk_geometry(cfg, xe, ye, pix, vc, *x), p0, p1, w, d, has_aux=True)
         # Only the outputs the caller uses are differentiated (no dead reverse work).
         if cfg.need_D:
             ctD = gD.at[:, local].get(mode="clip")
-            g_geometry, da, dh = jax.lax.switch(budget, _budgets(lit_vjp), geometry, vc, a, h,
+            g_geometry, da, dh = jax.lax.switch(budget, _budgets(cfg, lit_vjp), geometry, vc, a, h,
                                                 ctD)
         else:
             g_geometry = jax.tree_util.tree_map(jnp.zeros_like, geometry)
@@ -362,8 +348,8 @@ def _jac_fwd(cfg: _Cfg, params, h_loc, out, scr, valid):
         Ds, As = carry
         pix, local = _split_index(cfg, xs[0])
         p0, p1, w, d, a, h = _gather(params, h_rows, xs[1], local)
-        D, A, *J = native.pair_jacobian(lobe.nodes(dt), *_chunk_native(cfg, xe, ye, pix, xs[2],
-                                                                       p0, p1, w, d, a, h))
+        D, A, *J = native.pair_jacobian(cfg.nodes(dt), *_chunk_native(
+            cfg, xe, ye, pix, xs[2], p0, p1, w, d, a, h), profile=cfg.profile)
         Ds = Ds.at[:, local].add(D, mode="drop") if cfg.need_D else Ds
         return (Ds, As.at[local].add(A, mode="drop") if cfg.need_A else As), tuple(J)
 
@@ -501,7 +487,7 @@ def _run_pair_sums(scratches: Scratches, board: Board, h_views, out, scr, valid,
         fill = jnp.zeros(h_views.shape[:1] + (Pb * shards - P, 3), h_views.dtype).at[..., 2].set(1)
         h_views = jnp.concatenate([h_views, fill], 1)
     cfg = _Cfg(board.H, board.W, board.Sx, board.Sy, chunk, mesh, axes, Pb, per_view, need_D,
-               need_A)
+               need_A, scratches.profile)
     params = (scratches.p0, scratches.p1, scratches.width, scratches.depth, scratches.alpha)
 
     def order(params, out, scr, valid, k):  # pad and sort ``k`` segments
@@ -738,6 +724,9 @@ def render(scratches: Scratches, views: Views, board: Board, *, eps: float = 0.0
     """
     if eps < 0 or not math.isfinite(eps):
         raise InputError(f"render: `eps` must be finite and >= 0; got {eps}")
+    if eps > 0 and scratches.profile != "paper":
+        raise InputError(f"render: culling (eps > 0) bounds the paper profile only; got "
+                         f"profile {scratches.profile!r} (use eps = 0)")
     check_scratches(scratches.p0, scratches.p1, scratches.width, scratches.depth, scratches.alpha,
                     board=(board.Sx, board.Sy), source="render")
     axis_names = tuple(axis_names) if isinstance(axis_names, list) else axis_names
@@ -760,7 +749,8 @@ def render(scratches: Scratches, views: Views, board: Board, *, eps: float = 0.0
 def render_reference(scratches: Scratches, views: Views, board: Board, *,
                      pixel_batch: int = 64) -> Float[Array, "m h w"]:
     """All-pairs reference: every scratch against every pixel, ``D_P`` and ``c`` as dense sums of
-    `ndf.pair_integral` (no binning, no custom VJP: plain autodiff), then `shade`.
+    `arc.pair_integral_of` the scratches' profile (no binning, no custom VJP: plain autodiff),
+    then `shade`.
 
     Cost ``M * H*W * N`` pair integrals: small scenes only. Use float64 scratches for a reference.
 
@@ -778,7 +768,7 @@ def render_reference(scratches: Scratches, views: Views, board: Board, *,
 
     def one_pixel(args):
         fp, h = args
-        over_scratches = jax.vmap(ndf.pair_integral, in_axes=(None, None, 0, 0, 0, 0, 0))
+        over_scratches = jax.vmap(arc.pair_integral_of(s.profile), in_axes=(None, None, 0, 0, 0, 0, 0))
         over_views = jax.vmap(over_scratches, in_axes=(0, None, None, None, None, None, None))
         D, A = over_views(h, fp, s.p0, s.p1, s.width, s.depth, s.alpha)  # (M, N)
         return D.sum(-1), A[0].sum(-1)

@@ -37,6 +37,7 @@ from jscratch.errors import InputError
 
 __all__ = [
     "ON_BOARD_RTOL",
+    "PROFILES",
     "SCRATCH_RULES",
     "Board",
     "Scratches",
@@ -51,6 +52,9 @@ __all__ = [
 #: Endpoints may exceed the board by this fraction of its size (float32 rounding of values the
 #: optimiser keeps on ``[0, S]``: one float32 ulp at 0.3 m is 3e-8 m = 1e-7 of the board).
 ON_BOARD_RTOL = 1e-6
+
+#: Groove cross-sections (`Scratches.profile`): the paper's and the ball cutter's circular arc.
+PROFILES = ("paper", "arc")
 
 #: The range rule of each per-scratch value: ``name -> (predicate, text)``; the predicate works
 #: elementwise on numpy and jax arrays alike.
@@ -255,6 +259,11 @@ class Scratches(eqx.Module):
     - `depth`: depth ``d`` (m), ``(N,)`` or scalar. Default ``1e-4``.
     - `alpha`: intrinsic GGX roughness in ``(0, 1)`` (the domain of `ndf.pair_integral`),
       ``(N,)`` or scalar. Default ``0.04``.
+    - `profile` (static): the grooves' cross-section, one of `PROFILES`: ``"paper"`` (default)
+      the profile ``theta(x) = 2 atan(2x / w)`` of docs/model.md §2 with width ``w`` and depth
+      ``d``; ``"arc"`` the circular arc a ball of radius ``R`` cuts at plunge ``p``
+      (docs/model.md §13), stored as ``width = 2R`` and ``depth = -2R log(1 - p/R)``
+      (`jscratch.arc.arc_groove`), the paper groove with the same footprint on the board.
 
     All five arrays share one floating dtype (that of ``p0, p1``; integers become the default float).
     Shapes are checked always; values (`check_scratches`: finite, ``width, depth > 0``,
@@ -267,9 +276,13 @@ class Scratches(eqx.Module):
     width: Float[Array, " n"]
     depth: Float[Array, " n"]
     alpha: Float[Array, " n"]
+    profile: str = eqx.field(static=True, default="paper")
 
     def __init__(self, p0: ArrayLike, p1: ArrayLike, width: ArrayLike = 1e-4,
-                 depth: ArrayLike = 1e-4, alpha: ArrayLike = 0.04):
+                 depth: ArrayLike = 1e-4, alpha: ArrayLike = 0.04, profile: str = "paper"):
+        if profile not in PROFILES:
+            raise InputError(f"Scratches: `profile` must be one of {PROFILES}; got {profile!r}")
+        self.profile = profile
         p0 = jnp.asarray(p0)
         p1 = jnp.asarray(p1)
         dtype = _float_dtype(p0, p1)
@@ -321,6 +334,14 @@ class Scratches(eqx.Module):
         p0, p1 = _random_endpoints(key, n, float(board.Sx), float(board.Sy),
                                    tuple(float(x) for x in length), jnp.dtype(dtype))
         return Scratches(p0, p1, width, depth, alpha)
+
+    def replace(self, **arrays) -> "Scratches":
+        """A copy with some of ``p0, p1, width, depth, alpha`` replaced, the profile kept."""
+        fields = {k: getattr(self, k) for k in ("p0", "p1", "width", "depth", "alpha")}
+        unknown = set(arrays) - set(fields)
+        if unknown:
+            raise InputError(f"Scratches.replace: unknown fields {sorted(unknown)}")
+        return Scratches(**{**fields, **arrays}, profile=self.profile)
 
 
 @functools.partial(jax.jit, static_argnums=(1, 2, 3, 4, 5))

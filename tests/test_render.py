@@ -18,7 +18,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jscratch import brute, bvh, native, ndf
+from jscratch import arc, brute, bvh, native, ndf
+from jscratch.errors import InputError
 from jscratch import render
 
 BOARD = render.Board(shape=(10, 10), Sx=0.01, Sy=0.01)  # 1 mm pixels
@@ -455,3 +456,85 @@ def test_errors_name_the_argument():
     bad = eqx.tree_at(lambda p: p.overflow, _pairs(s), jnp.asarray(True))
     with pytest.raises(Exception, match="overflowed its capacity"):
         jax.block_until_ready(_fwd(s, v, bad))
+
+
+# --------------------------------------------------------------------------------------------
+# The ball's arc profile (`Scratches.profile == "arc"`, docs/model.md §13)
+
+R_BALL = 1.25e-4  # m
+
+
+def _arc_scene(dtype=jnp.float64, seed=4):
+    """`_scene`'s scratches as ball cuts of radius `R_BALL` at plunges 0.05 R .. 0.95 R."""
+    s, v = _scene(dtype, seed)
+    plunge = np.random.default_rng(seed + 1).uniform(0.05, 0.95, s.n) * R_BALL
+    w, d = arc.arc_groove(jnp.asarray(plunge, dtype), jnp.asarray(R_BALL, dtype))
+    return render.Scratches(s.p0, s.p1, jnp.broadcast_to(w, (s.n,)), d, s.alpha,
+                            profile="arc"), v
+
+
+@pytest.mark.float64
+def test_arc_profile_matches_reference_and_brute_force():
+    """Arc grooves: `render_pairs` (native kernel where built) against the float64 all-pairs
+    reference (`arc.arc_lit_integral`, plain jnp), and against the brute-force supersampler of the
+    real arc (its normals from ``x / R``; no analytic integral): unbiased to sampling error. The
+    paper profile with the same ``(w, d)`` renders visibly differently (the test can fail)."""
+    s, v = _arc_scene()
+    ref = np.asarray(_ref(s, v))
+    out64 = _fwd(s, v, _pairs(s))
+    assert _rel(out64, ref) <= 1e-6
+    s32, v32 = _arc_scene(jnp.float32)
+    assert _rel(_fwd(s32, v32, _pairs(s32)), ref) <= 1e-3
+    paper = render.Scratches(s.p0, s.p1, s.width, s.depth, s.alpha)
+    assert _rel(_fwd(paper, v, _pairs(paper)), ref) > 0.05
+    sums = jax.jit(lambda key: brute.brute_sums(s, v, BOARD, n=12, key=key), compiler_options=FAST)
+    rad = []
+    for k in range(8):
+        D, c = sums(jax.random.PRNGKey(k))
+        rad.append(np.asarray(brute.brute_shade(D, c[None], v, BOARD)))
+    rad = np.stack(rad)
+    mean, se = rad.mean(0), rad.std(0, ddof=1) / math.sqrt(rad.shape[0])
+    ana = ref.reshape(3, -1)
+    sampled = se > 1e-9 * np.abs(mean)
+    assert sampled.sum() > 30
+    z2 = ((mean - ana) / np.where(sampled, se, 1)) ** 2
+    assert float(z2[sampled].mean()) < 3.0  # (K-1)/(K-3) = 1.4 for an unbiased estimate
+    assert float(np.median((se / ana)[sampled])) < 0.05
+
+
+@pytest.mark.float64
+def test_arc_profile_gradients_match_finite_differences_and_jnp_path():
+    """Arc grooves, float64: the renderer's gradients (native kernel where built) against central
+    finite differences of the forward renderer, and the native kernel against the jnp path."""
+    s, v = _arc_scene()
+    pairs = _pairs(s)
+    wts = _loss_weights(jnp.float64)
+    (val, _), (gs, _) = _vg((s, v), pairs, wts)
+    rng = np.random.default_rng(1)
+    for field, d in (("p0", rng.normal(size=(12, 2)) * 1e-4), ("p1", rng.normal(size=(12, 2)) * 1e-4),
+                     ("depth", rng.normal(size=12) * np.asarray(s.depth) * 0.2),
+                     ("alpha", rng.normal(size=12) * np.asarray(s.alpha) * 0.3)):
+        d = jnp.asarray(d)
+
+        def at(t):
+            moved = eqx.tree_at(lambda m: getattr(m, field), s, getattr(s, field) + t * d)
+            return float(jnp.sum(wts * _fwd(moved, v, pairs)) / wts.size)
+
+        fd = (at(1e-4) - at(-1e-4)) / 2e-4
+        ad = float(jnp.sum(getattr(gs, field) * d))
+        assert abs(fd) > 1e-6 * abs(float(val)), field
+        assert abs(ad - fd) <= 1e-5 * abs(fd), (field, ad, fd)
+    if native.available(jnp.float64):
+        with native.override(enabled=False):
+            (_, r0), (g0, _) = jax.jit(jax.value_and_grad(_objective, has_aux=True),
+                                       compiler_options=FAST)((s, v), pairs, wts)
+        (_, r1), (g1, _) = _vg((s, v), pairs, wts)
+        assert np.max(np.abs(np.asarray(r1) - np.asarray(r0))) <= 1e-12 * np.max(np.abs(r0))
+        for a, b in zip(jax.tree_util.tree_leaves(g1), jax.tree_util.tree_leaves(g0)):
+            assert np.max(np.abs(a - b)) <= 1e-10 * np.max(np.abs(b))
+
+
+def test_arc_profile_refuses_culling():
+    s, v = _arc_scene(jnp.float32)
+    with pytest.raises(InputError, match="culling .* paper profile"):
+        render.render(s, v, BOARD, eps=1e-3)

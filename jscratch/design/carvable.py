@@ -1,4 +1,11 @@
-"""Carvable grooves by construction: one plunge per scratch, mapped to the paper's profile.
+"""Carvable grooves by construction: one plunge per scratch, rendered as the ball's own arc or
+mapped to the paper's profile.
+
+With `MachineProfile.groove_fit` ``"arc"`` (the default) a plunge ``p`` is rendered as the groove
+the ball cuts, the circular arc of docs/model.md §13 (`jscratch.scene.Scratches` with profile
+``"arc"``: ``w = 2R``, ``d = -2R log(1 - p/R)``, `jscratch.arc.arc_groove`): nothing is fitted
+and the design's render is the carved board's up to the model's own approximations. The fits below
+map a plunge to the paper's profile instead (``"height"``, ``"slope"``), for comparison.
 
 A ball-end cutter of radius ``R`` plunged to ``p`` cuts the circular arc
 ``z(x) = R - p - sqrt(R^2 - x^2)`` over ``|x| < a = sqrt(2Rp - p^2)``; its wall slope angle is
@@ -12,7 +19,7 @@ map chooses, for each plunge, the ``(w, d)`` whose groove
 2. has the remaining parameter ``w`` fitted by least squares at area-uniform points
    ``x_k = a (k + 1/2) / K`` (`criterion`):
 
-   - ``"height"`` (the default, `MachineProfile.groove_fit`): the heights ``h(x_k)`` against the
+   - ``"height"``: the heights ``h(x_k)`` against the
      arc's (both are zero at ``x = a``);
    - ``"slope"``: the wall angles, ``sum_k (theta(x_k) - theta_ball(x_k))^2``; both increase
      with ``x``, so this is the squared 2-Wasserstein distance between the two area-weighted
@@ -30,8 +37,8 @@ map chooses, for each plunge, the ``(w, d)`` whose groove
 
 The fit (optimistix Levenberg-Marquardt, vmapped over a grid of plunges) runs once per machine
 (`groove_map`, cached); the optimiser's width parameter is then the plunge logit
-``z``: ``p = p_min + (p_max - p_min) sigmoid(z)``, and ``(w, d)`` follow from ``p`` by
-interpolating ``log(w / 2a - 1)`` on the grid. Every ``p`` lies in ``[p_min, p_max]`` whatever
+``z``: ``p = p_min + (p_max - p_min) sigmoid(z)``, and ``(w, d)`` follow from ``p`` (the
+arc's in closed form; a fit's by interpolating ``log(w / 2a - 1)`` on the grid). Every ``p`` lies in ``[p_min, p_max]`` whatever
 ``z`` is, so every groove is carvable. See `GrooveMap`.
 """
 
@@ -45,6 +52,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jscratch import arc
 from jscratch.errors import InputError
 
 __all__ = ["GrooveMap", "groove_map", "ball_slope_fit", "GROOVE_MODES"]
@@ -118,11 +126,12 @@ def ball_slope_fit(plunge_over_r, criterion: str = "slope") -> tuple[np.ndarray,
 
 @dataclasses.dataclass(frozen=True)
 class GrooveMap:
-    """Plunge -> paper profile, for one cutter (hashable: a static field of `DesignParams`).
+    """Plunge -> rendered groove, for one cutter (hashable: a static field of `DesignParams`).
 
-    **Fields:** `radius`, `p_min`, `p_max` (m); `t_grid` the fitted ``log(w / 2a - 1)`` at
-    `_GRID` plunges evenly spaced in ``[p_min, p_max]``; `rms_deg` the largest RMS wall-angle error
-    of the fit over the grid (degrees).
+    **Fields:** `radius`, `p_min`, `p_max` (m); `fit` the `MachineProfile.groove_fit` (``"arc"``:
+    the ball's arc itself, `t_grid` empty and `rms_deg` 0); `t_grid` the fitted
+    ``log(w / 2a - 1)`` at `_GRID` plunges evenly spaced in ``[p_min, p_max]``; `rms_deg` the
+    largest RMS wall-angle error of the fit over the grid (degrees).
     """
 
     radius: float
@@ -130,6 +139,12 @@ class GrooveMap:
     p_max: float
     t_grid: tuple
     rms_deg: float
+    fit: str = "height"
+
+    @property
+    def profile(self) -> str:
+        """The `jscratch.scene.Scratches.profile` the map's grooves render with."""
+        return "arc" if self.fit == "arc" else "paper"
 
     def plunge(self, z):
         """Plunge ``p`` (m) of the unconstrained ``z``: ``p_min + (p_max - p_min) sigmoid(z)``."""
@@ -143,6 +158,8 @@ class GrooveMap:
         """``(w, d)`` (m) for plunge ``p`` (m), ``p`` within ``[p_min, p_max]`` (jittable)."""
         p = jnp.asarray(p)
         dt = p.dtype
+        if self.fit == "arc":
+            return arc.arc_groove(p, jnp.asarray(self.radius, dt))
         R = jnp.asarray(self.radius, dt)
         grid = jnp.linspace(self.p_min, self.p_max, len(self.t_grid), dtype=dt)
         t = jnp.interp(p, grid, jnp.asarray(self.t_grid, dt))
@@ -173,15 +190,17 @@ class GrooveMap:
 
 
 @functools.lru_cache(maxsize=16)
-def groove_map(radius: float, p_min: float, p_max: float, criterion: str = "height") -> GrooveMap:
-    """Fit the plunge -> ``(w, d)`` map for a ball of `radius` over ``[p_min, p_max]`` (m), once
-    (cached). **Raises** `ValueError` unless ``0 < p_min < p_max < radius``."""
+def groove_map(radius: float, p_min: float, p_max: float, criterion: str = "arc") -> GrooveMap:
+    """The plunge -> ``(w, d)`` map for a ball of `radius` over ``[p_min, p_max]`` (m): the arc
+    itself (``criterion = "arc"``) or the paper profile fitted by `criterion`, once (cached). **Raises** `ValueError` unless ``0 < p_min < p_max < radius``."""
     if not (0 < p_min < p_max < radius):
         raise InputError(f"groove map needs 0 < p_min < p_max < radius, got {p_min}, {p_max}, {radius}")
+    if criterion == "arc":  # the ball's own groove: nothing to fit
+        return GrooveMap(float(radius), float(p_min), float(p_max), (), 0.0, "arc")
     grid = np.linspace(p_min, p_max, _GRID) / radius
     t, rms = ball_slope_fit(grid, criterion)
     return GrooveMap(float(radius), float(p_min), float(p_max), tuple(float(v) for v in t),
-                     float(np.degrees(rms.max())))
+                     float(np.degrees(rms.max())), criterion)
 
 
 def groove_map_of(profile) -> GrooveMap:

@@ -194,7 +194,8 @@ def save_result(result: DesignResult, out: str | os.PathLike, *, scene: SceneCon
     d = designfile.save_design(os.path.join(out, "design.npz"), np.asarray(s.p0), np.asarray(s.p1),
                                np.asarray(s.width), np.asarray(s.depth), np.asarray(s.alpha),
                                np.array([b.Sx, b.Sy]), np.asarray(v.camera), np.asarray(v.light),
-                               np.asarray(v.intensity), machine=profile.to_dict(), plunge=plunge)
+                               np.asarray(v.intensity), machine=profile.to_dict(), plunge=plunge,
+                               profile=s.profile)
     designfile.write_svg(os.path.join(out, "design.svg"), d)
     add = {"machine": profile.to_dict(), "groove": result.config.groove}
     if as_carved_samples > 0:
@@ -286,7 +287,8 @@ def load_result(out: str | os.PathLike) -> DesignResult:
     keep = np.asarray(arrays["keep"], bool)
     if keep.shape != (config.n_scratches,) or int(keep.sum()) != d.n:
         raise DesignFileError(f"{rpath!r} does not match {os.path.join(out, 'design.npz')!r}")
-    scratches = Scratches(*(np.asarray(a, dt) for a in (d.p0, d.p1, d.width, d.depth, d.alpha)))
+    scratches = Scratches(*(np.asarray(a, dt) for a in (d.p0, d.p1, d.width, d.depth, d.alpha)),
+                          profile=d.profile)
     views = Views(np.asarray(d.camera, dt), np.asarray(d.light, dt), np.asarray(d.intensity, dt))
     history = json.loads(bytes(arrays["history"]).decode())
     return DesignResult(scratches, views, board, params, keep, arrays["radiance"],

@@ -70,7 +70,7 @@ def as_carved(design: designfile.Design, profile: MachineProfile, shape, design_
                   design.intensity.astype(np.float32))
     sc = Scratches(design.p0.astype(np.float32), design.p1.astype(np.float32),
                    design.width.astype(np.float32), design.depth.astype(np.float32),
-                   design.alpha.astype(np.float32))
+                   design.alpha.astype(np.float32), profile=design.profile)
     rad, pairs, _ = render(sc, views, board, return_pairs=True)
     if design_display is None:
         design_display = np.asarray(display(rad))
@@ -87,6 +87,7 @@ def as_carved(design: designfile.Design, profile: MachineProfile, shape, design_
     carved_sc = Scratches(sc.p0, sc.p1, sc.width, plunge.astype(np.float32), sc.alpha)
     carved_rad = np.asarray(brute_render(carved_sc, views, board, n=samples, key=key, pairs=ball_pairs,
                                          ball_radius=profile.radius), np.float64)
+    # (the design's own profile: arcs for an arc design, `brute` follows `Scratches.profile`)
     own_rad = np.asarray(brute_render(sc, views, board, n=samples, key=key, pairs=pairs), np.float64)
     # Control variate: the analytic render of the design's profile plus the brute-force difference
     # (ball - design profile) on the same samples; unbiased for the as-carved radiance, with the

@@ -191,7 +191,7 @@ def setup(tnp, views, board, config, mesh=None):
 
 
 def _scratches(params) -> Scratches:
-    return Scratches(*physical(params)[:5])
+    return params.scratches()
 
 
 def pair_lists(params, ctx, config) -> bvh.PairLists:
@@ -373,7 +373,8 @@ def _finish(state, ctx, tnp, config, *, discard_now: bool) -> DesignResult:
     disp = np.asarray(display(rad))
     p0, p1, wd, dp, al, inten = (np.asarray(a) for a in physical(params))
     k = keep
-    result_scratches = Scratches(p0[k], p1[k], wd[k], dp[k], al[k])
+    result_scratches = Scratches(p0[k], p1[k], wd[k], dp[k], al[k],
+                                 profile="paper" if params.groove is None else params.groove.profile)
     result_views = Views(np.asarray(ctx.camera), np.asarray(ctx.light), inten)
     mets = image_metrics(disp, tnp)
     mets.update({
