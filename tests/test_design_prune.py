@@ -21,7 +21,8 @@ SIZE = 32
 
 def _config(**kw):
     base = dict(n_scratches=300, iterations=6, cull_eps=0.0, checkpoint_every=2, prune_every=2,
-                prune_fraction=0.1, prune_until=1.0, groove="free")  # re-seeded widths: init_width
+                prune_fraction=0.1, prune_per_pixel=0.0, prune_until=1.0,
+                groove="free")  # re-seeded widths: init_width
     base.update(kw)
     return DesignConfig(**base)
 
@@ -130,3 +131,14 @@ def test_schedule():
     cfg = _config(iterations=100, prune_every=20, prune_until=0.6)
     assert [i for i in range(100) if prune.due(i, cfg)] == [20, 40, 60]
     assert not any(prune.due(i, _config(prune_every=0)) for i in range(10))
+
+
+def test_moved_count_is_capped_per_pixel():
+    """A round moves ``prune_fraction`` of the scratches, at most ``prune_per_pixel`` per pixel:
+    the default moves 1,000 of 20,000 at 256 x 256 px (5 %), 1,049 of 60,000 (1.7 %)."""
+    cfg = DesignConfig()
+    assert prune.moved_count(20_000, 256 * 256, cfg) == 1000
+    assert prune.moved_count(60_000, 256 * 256, cfg) == round(0.016 * 256 * 256) == 1049
+    assert prune.moved_count(5_000, 128 * 128, cfg) == 250
+    assert prune.moved_count(60_000, 256 * 256, DesignConfig(prune_per_pixel=0.0)) == 3000
+

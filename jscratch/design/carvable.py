@@ -142,7 +142,7 @@ class GrooveMap:
     fit: str = "height"
 
     @property
-    def profile(self) -> str:
+    def scratch_profile(self) -> str:
         """The `jscratch.scene.Scratches.profile` the map's grooves render with."""
         return "arc" if self.fit == "arc" else "paper"
 

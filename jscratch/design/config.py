@@ -117,6 +117,8 @@ class DesignConfig:
     prune_every: int = option(10, "iterations between prune/re-seed rounds that move the least "
                               "useful scratches to where a view is too dark (0: never)")
     prune_fraction: float = option(0.05, "fraction of the scratches moved per prune/re-seed round")
+    prune_per_pixel: float = option(0.016, "at most this many scratches per image pixel moved per "
+                                    "round (0: no cap); the round's count is the smaller of the two")
     prune_until: float = option(0.6, "no prune/re-seed round after this fraction of the iterations")
     target_ssim: float | None = option(
         None, "instead of the discard, keep the fewest scratches whose mean SSIM over the views "
@@ -180,7 +182,7 @@ class DesignConfig:
                 raise DesignError(f"DesignConfig.loss: unknown fields {unknown}") from None
         if not isinstance(self.loss, loss_mod.LossConfig):
             bad("loss", "a jscratch.loss.LossConfig")
-        for name in ("cull_eps", "coverage_eps", "skin", "discard_tol"):
+        for name in ("cull_eps", "coverage_eps", "skin", "discard_tol", "prune_per_pixel"):
             number(name, 0.0, what="finite and >= 0")
         for name in ("adam_b1", "adam_b2"):
             number(name, 0.0, 1.0, "in [0, 1)")

@@ -109,7 +109,7 @@ class DesignParams(eqx.Module):
         if self.groove is not None:
             w, d = self.groove.profile(self.log_width)
             return Scratches(p0, p1, w, d, jax.nn.sigmoid(self.logit_alpha),
-                             profile=self.groove.profile)
+                             profile=self.groove.scratch_profile)
         return Scratches(p0, p1, jnp.exp(self.log_width), jnp.exp(self.log_depth),
                            jax.nn.sigmoid(self.logit_alpha))
 

@@ -1,7 +1,8 @@
 """Prune and re-seed during the optimisation: the scratch budget goes where it helps.
 
 Every ``config.prune_every`` iterations (until ``config.prune_until`` of the run), the
-``config.prune_fraction`` of the scratches that send the least light to any view (the discard's
+``config.prune_fraction`` of the scratches (at most ``config.prune_per_pixel`` per image pixel,
+`moved_count`) that send the least light to any view (the discard's
 score: largest over the views of a scratch's contribution relative to the view's mean scratch) are
 moved: each is re-seeded where a view is most *too dark* and oriented so that it lights up in that
 view. Then the pair list is rebuilt and the per-view capacities re-measured, and the Adam moments of
@@ -51,6 +52,17 @@ def due(iteration: int, config) -> bool:
     every = config.prune_every
     return (every > 0 and iteration > 0 and iteration % every == 0
             and iteration <= config.prune_until * config.iterations)
+
+
+def moved_count(n: int, pixels: int, config) -> int:
+    """Scratches moved per round: ``prune_fraction * n``, at most ``prune_per_pixel * pixels``
+    (``pixels`` per view). The re-seeded scratches go where a view is too dark, which is a matter
+    of image area, not of the scratch count: above about 0.3 scratches per pixel a fixed fraction
+    moves more scratches than the dark areas need and costs picture (docs/model.md §6)."""
+    k = int(round(config.prune_fraction * n))
+    if config.prune_per_pixel > 0:
+        k = min(k, int(round(config.prune_per_pixel * pixels)))
+    return k
 
 
 def error_density(disp: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -106,7 +118,7 @@ def prune_reseed(params, opt_state, lists, ctx, config, iteration: int):
     """One round. Returns ``(params, opt_state, moved indices (k,))``; the caller rebuilds the
     pair list and the capacities for the new parameters."""
     n = params.log_width.shape[0]
-    k = int(round(config.prune_fraction * n))
+    k = moved_count(n, ctx.board.n_pixels, config)
     if k == 0:
         return params, opt_state, np.zeros((0,), np.int64)
     sc = scores(params, lists, ctx)

@@ -374,7 +374,7 @@ def _finish(state, ctx, tnp, config, *, discard_now: bool) -> DesignResult:
     p0, p1, wd, dp, al, inten = (np.asarray(a) for a in physical(params))
     k = keep
     result_scratches = Scratches(p0[k], p1[k], wd[k], dp[k], al[k],
-                                 profile="paper" if params.groove is None else params.groove.profile)
+                                 profile="paper" if params.groove is None else params.groove.scratch_profile)
     result_views = Views(np.asarray(ctx.camera), np.asarray(ctx.light), inten)
     mets = image_metrics(disp, tnp)
     mets.update({
