@@ -63,14 +63,14 @@ LAMBDA_G = 20.0
 #: the ghosting of docs/model.md §7); 0.01 cut ghosting further but lost much SSIM.
 LAMBDA_X = 1e-3
 
-#: ``LossConfig.ghost_scale = "rms"``: the per-view ``E_p`` at and above which ``E_x`` has its full
-#: weight ``lambda_x`` (the default design's, 3 views / 20,000 scratches, never goes below it).
+#: ``LossConfig.ghost_scale = "relative"``: the per-view ``E_p`` at and above which ``E_x`` has its
+#: full weight ``lambda_x`` (the default design's, 3 views / 20,000 scratches, never goes below it).
 GHOST_EP_REF = 2.5e-3
 
 #: Allowed ``LossConfig.kind`` values.
 LOSS_KINDS = ("l2", "perceptual", "perceptual+gram")
 #: Allowed ``LossConfig.ghost_scale`` values (see `ghost_weight_factor`).
-GHOST_SCALES = ("rms", "fixed")
+GHOST_SCALES = ("relative", "fixed")
 
 
 def _check_images(render, target, name: str = "render") -> tuple[Array, Array]:
@@ -219,15 +219,16 @@ def ghost_loss(render: Float[Array, "M H W"], target: Float[Array, "M H W"],
 
 
 def ghost_weight_factor(rule: str, e_p, m: int):
-    """The factor on ``lambda_x`` (a scalar, no gradient): 1 for ``"fixed"``; for ``"rms"``
-    ``min(1, sqrt(E_p / (M GHOST_EP_REF))) * 2 / (M - 1)``. ``E_p``'s gradient scales with the RMS
-    image error while ``E_x``'s does not, so a fixed weight pulls harder against the picture the
-    closer the render gets to its target (more scratches); and ``E_x`` sums ``M - 1`` pairs per
-    view (`ghost_loss`), ``E_p`` one. The rule keeps their balance where ``lambda_x`` was set."""
+    """The factor on ``lambda_x`` (a scalar, no gradient): 1 for ``"fixed"``; for ``"relative"``
+    ``min(1, E_p / (M GHOST_EP_REF)) * 2 / (M - 1)``. ``E_x`` stays near the targets' own
+    cross-view SSIM while ``E_p`` falls as the render approaches its target (more scratches), so a
+    fixed weight lets ghosting take a growing share of the loss and costs picture; and ``E_x`` sums
+    ``M - 1`` view pairs per view (`ghost_loss`), ``E_p`` one. Below the reference the rule keeps
+    ``E_x``'s share of the loss per view pair what it is at the reference (docs/model.md §6)."""
     if rule == "fixed" or m < 2:
         return 1.0
-    rms = jnp.sqrt(jax.lax.stop_gradient(e_p) / (m * GHOST_EP_REF))
-    return jnp.minimum(1.0, rms) * (2.0 / (m - 1))
+    share = jax.lax.stop_gradient(e_p) / (m * GHOST_EP_REF)
+    return jnp.minimum(1.0, share) * (2.0 / (m - 1))
 
 
 def l2_loss(render: Float[Array, "M H W"], target: Float[Array, "M H W"]) -> Array:
@@ -629,7 +630,7 @@ class LossConfig:
       ``FilterBank``.
     - `lambda_x`: weight of the cross-view ghosting term ``E_x`` (``ghost_loss``), ``>= 0``;
       added to any kind; default `LAMBDA_X`; 0 leaves it out.
-    - `ghost_scale`: ``"rms"`` (default) or ``"fixed"``: the rule for ``E_x``'s weight
+    - `ghost_scale`: ``"relative"`` (default) or ``"fixed"``: the rule for ``E_x``'s weight
       (`ghost_weight_factor`).
     - `ghost_baseline`: ``"zero"`` (default): ``E_x`` is the raw cross-view SSIM, the ghosting of
       docs/model.md §7 itself; ``"targets"``: only the resemblance beyond the targets' own.
@@ -649,8 +650,8 @@ class LossConfig:
     ghost_baseline: str = option("zero", "E_x penalises all of the cross-view SSIM (zero: the "
                                  "ghosting itself) or only what exceeds the targets' own (targets)",
                                  choices=("targets", "zero"))
-    ghost_scale: str = option("rms", "E_x's weight: lambda_x (fixed) or lambda_x scaled by the "
-                              "RMS image error below its reference and by 2 / (views - 1) (rms)",
+    ghost_scale: str = option("relative", "E_x's weight: lambda_x (fixed), or lambda_x times "
+                              "min(1, E_p per view / GHOST_EP_REF) times 2 / (views - 1) (relative)",
                               choices=GHOST_SCALES)
 
     def __post_init__(self):
