@@ -58,6 +58,8 @@ from jscratch import lobe, ndf
 
 __all__ = [
     "arc_pair_integral",
+    "arc_lit_integral",
+    "arc_groove",
     "arc_height",
     "arc_half_width",
     "arc_normal",
@@ -157,32 +159,6 @@ def _vdd(x, y):
     """Divided difference ``(v(x) - v(y)) / (x - y) = 4 (1 - 4xy) / ((1 + 4x^2)(1 + 4y^2))``
     (any dtype, complex included)."""
     return 4 * (1 - 4 * x * y) / ((1 + 4 * x * x) * (1 + 4 * y * y))
-
-
-# ---------------------------------------------------------------------------------------------
-# The lit slab.
-
-
-def _cut_to_slab(ua, ub, Ya, Yb, lo, hi):
-    """Pieces `(ua, ub, Ya, Yb)` (`(6,)` each, any coordinate in which `Y` is linear) cut to the
-    slab `lo <= u <= hi`: ends clamped into it, `Y` at a clamped end where the piece crosses the
-    bound (a piece outside has zero length and contributes nothing). Then `Y` is re-centred on the
-    cut region (a constant shift on a closed boundary) so that a slab that nicks `F ∩ groove`
-    keeps `Y` of its own size. Returns the cut pieces and the flags `(lo_a, hi_a, lo_b, hi_b)`
-    of clamped ends."""
-    du, dY = ub - ua, Yb - Ya
-    lo_a, hi_a, lo_b, hi_b = ua < lo, ua > hi, ub < lo, ub > hi
-    ca = jnp.where(lo_a, lo, jnp.where(hi_a, hi, ua))
-    cb = jnp.where(lo_b, lo, jnp.where(hi_b, hi, ub))
-    ta = jnp.clip(_safe_div(ca - ua, du), 0, 1)
-    tb = jnp.where(du != 0, jnp.clip(_safe_div(cb - ua, du), 0, 1), 1)
-    Ya2 = Ya + ta * dY
-    Yb2 = jnp.where(tb >= 1, Yb, Ya + tb * dY)
-    sg = jax.lax.stop_gradient
-    wgt = sg(jnp.abs(cb - ca))
-    sw = jnp.sum(wgt)
-    ref = sg(jnp.where(sw > 0, jnp.sum(wgt * (Ya2 + Yb2) / 2) / jnp.where(sw > 0, sw, 1), 0))
-    return (ca, cb, Ya2 - ref, Yb2 - ref), (lo_a, hi_a, lo_b, hi_b)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -292,6 +268,52 @@ def _as_inputs(*xs):
     return tuple(jnp.asarray(v, dt) for v in xs)
 
 
+def arc_groove(plunge: ArrayLike, radius: ArrayLike) -> tuple[Array, Array]:
+    """``(width, depth)`` (m) of the paper groove (`jscratch.ndf`) with the same half-width as the
+    ball cutter's groove of radius `radius` at plunge `plunge` (m): ``(2R, -2R log(1 - rho))``,
+    ``rho = p / R`` taken in ``[0, 1 - 2^-20]`` (docs/model.md §13). `ndf.pair_geometry` at these
+    is the arc's geometry (its pieces in ``x / 2R = v / 2``), which `arc_lit_integral` and the
+    native kernel's ``profile="arc"`` read."""
+    plunge, radius = jnp.asarray(plunge), jnp.asarray(radius)
+    rho = jnp.minimum(_rho(plunge, radius), _RHO_CAP)
+    return 2 * radius, -2 * radius * jnp.log1p(-rho)
+
+
+def arc_lit_integral(geometry: ndf.PairGeometry, h: Float[ArrayLike, "3"],
+                     alpha: Float[ArrayLike, ""]) -> Float[Array, ""]:
+    """One view's ``D_hat`` (m^2) for an arc groove, from its geometry
+    ``ndf.pair_geometry(footprint, p0, p1, *arc_groove(plunge, radius))`` under the half vector
+    `h` (``(3,)``, board frame, normalised here) with roughness `alpha`, in the geometry's dtype.
+    The counterpart of `jscratch.ndf.lit_integral` for this profile: the groove's half-width in
+    ``u`` is ``U = u_of_v(2 X)`` (``X`` the geometry's half-width in widths), the lit slab is cut
+    in ``v / 2`` (`ndf`'s cut), the ends mapped to ``u`` and the pieces integrated by
+    `_piece_integrals`. Jittable, vmappable, reverse-mode differentiable."""
+    dt = geometry.area.dtype
+    h, alpha = jnp.asarray(h, dt), jnp.asarray(alpha, dt)
+    G = geometry
+    hn = h / jnp.sqrt(h[0] * h[0] + h[1] * h[1] + h[2] * h[2])
+    hx = hn[0] * G.b[0] + hn[1] * G.b[1]
+    hy = hn[0] * G.t[0] + hn[1] * G.t[1]
+    hz = hn[2]
+    U = u_of_v(2 * G.X)
+    u_m, u_p = ndf.lit_interval(hx, hz)
+    u_lo = jnp.maximum(-U, u_m)
+    u_hi = jnp.maximum(jnp.minimum(U, u_p), u_lo)
+    c = ndf._cut(*G.pieces, v_of_u(u_lo) / 2, v_of_u(u_hi) / 2)
+
+    def to_u(x, lo, hi):
+        # Slab bounds and groove edges are known in u exactly; other ends are mapped.
+        mapped = jnp.where(x == -G.X, -U, jnp.where(x == G.X, U, u_of_v(2 * x)))
+        return jnp.where(lo, u_lo, jnp.where(hi, u_hi, mapped))
+
+    ua, ub = to_u(c.ua, c.lo_a, c.hi_a), to_u(c.ub, c.lo_b, c.hi_b)
+    ub = jnp.where(c.ua == c.ub, ua, ub)
+    L = lobe.lobe(hx, hy, hz, alpha)
+    J = _piece_integrals(nodes(dt), ua, ub, c.Ya, c.Yb, lobe.lobe_params(L))
+    # -R ∮ Y D dv, with G.scale = -2R (orientation sign).
+    return G.scale * L.pref * (jnp.sum(J) / 2)
+
+
 def arc_pair_integral(
     h: Float[ArrayLike, "3"],
     footprint: Float[ArrayLike, "4 2"],
@@ -316,30 +338,5 @@ def arc_pair_integral(
     """
     h, footprint, p0, p1, plunge, radius, alpha = _as_inputs(h, footprint, p0, p1, plunge,
                                                              radius, alpha)
-    V, U = groove_coordinates(plunge, radius)
-    rho = jnp.minimum(_rho(plunge, radius), _RHO_CAP)
-    # A paper groove of width 2R and half-width a has the same F ∩ groove: ndf's pieces, in
-    # x / (2R) = v / 2.
-    G = ndf.pair_geometry(footprint, p0, p1, 2 * radius, -2 * radius * jnp.log1p(-rho))
-    ua2, ub2, Ya, Yb = G.pieces
-    hn = h / jnp.sqrt(h[0] * h[0] + h[1] * h[1] + h[2] * h[2])
-    hx = hn[0] * G.b[0] + hn[1] * G.b[1]
-    hy = hn[0] * G.t[0] + hn[1] * G.t[1]
-    hz = hn[2]
-    u_m, u_p = ndf.lit_interval(hx, hz)
-    u_lo = jnp.maximum(-U, u_m)
-    u_hi = jnp.maximum(jnp.minimum(U, u_p), u_lo)
-    (ca, cb, Ya2, Yb2), (lo_a, hi_a, lo_b, hi_b) = _cut_to_slab(
-        ua2, ub2, Ya, Yb, v_of_u(u_lo) / 2, v_of_u(u_hi) / 2)
-
-    def to_u(c, lo, hi):
-        # Slab bounds and groove edges are known in u exactly; other ends are mapped.
-        mapped = jnp.where(c == -G.X, -U, jnp.where(c == G.X, U, u_of_v(2 * c)))
-        return jnp.where(lo, u_lo, jnp.where(hi, u_hi, mapped))
-
-    ua, ub = to_u(ca, lo_a, hi_a), to_u(cb, lo_b, hi_b)
-    ub = jnp.where(ca == cb, ua, ub)
-    L = lobe.lobe(hx, hy, hz, alpha)
-    J = _piece_integrals(nodes(h.dtype), ua, ub, Ya2, Yb2, lobe.lobe_params(L))
-    # -R ∮ Y D dv, with G.scale = -2R (orientation sign).
-    return G.scale / 2 * L.pref * jnp.sum(J), G.area
+    G = ndf.pair_geometry(footprint, p0, p1, *arc_groove(plunge, radius))
+    return arc_lit_integral(G, h, alpha), G.area
