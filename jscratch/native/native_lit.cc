@@ -371,16 +371,19 @@ V piece(int n_gl, const double* xs, const double* ws, V ua, V ub, V Ya, V Yb, co
   return value;
 }
 
-// One lane per pair-view: `L` pair-views from lanes of the inputs (pieces `k` per lane).
-template <typename T, typename V, bool kPartials>
-void lit_lanes(int n_gl, const double* xs, const double* ws, int k, const V* ua, const V* ub,
-               const V* Ya, const V* Yb, const V* sv, V* out, V* g_ua, V* g_ub, V* g_Ya,
-               V* g_Yb, V* gs) {
-  const V zero = V{}, one = splat<V>(1), two = splat<V>(2);
-  // The view algebra with its Jacobian (`ndf._lit_integral`'s half vector in the scratch frame,
-  // `_view`, `lit_interval`, `lobe.lobe`, `lobe_params`), from sv = (X, h (3), b (2), t (2),
-  // alpha): computed here with IEEE operations, not in an XLA fusion (whose rewrites, such as
-  // x / sqrt(y) -> x * rsqrt(y), move a sharp peak by an ulp or two).
+// The view algebra with its Jacobian (`ndf._lit_integral`'s half vector in the scratch frame,
+// `_view`, `lit_interval`, `lobe.lobe`, `lobe_params`), from sv = (X, h (3), b (2), t (2),
+// alpha): computed here with IEEE operations, not in an XLA fusion (whose rewrites, such as
+// x / sqrt(y) -> x * rsqrt(y), move a sharp peak by an ulp or two). Out: X, the roots u_m, u_p of
+// N (`lit_interval`) and the 11 lobe parameters, each with its kTan tangents.
+template <typename V>
+struct View {
+  Dual<V> X, u_m, u_p, pd[11];
+};
+
+template <typename T, typename V>
+void view_algebra(const V* sv, View<V>* o) {
+  const V one = splat<V>(1), two = splat<V>(2);
   Dual<V> Xd = var(sv[0], 0), h0 = var(sv[1], 1), h1 = var(sv[2], 2), h2 = var(sv[3], 3),
           b0 = var(sv[4], 4), b1 = var(sv[5], 5), t0 = var(sv[6], 6), t1 = var(sv[7], 7),
           al = var(sv[8], 8);
@@ -391,10 +394,9 @@ void lit_lanes(int n_gl, const double* xs, const double* ws, int k, const V* ua,
   Dual<V> rp = r + dabs<T>(hx);
   Dual<V> near = hz / scale(two, rp), far = rp / scale(two, hz);
   auto hx_pos = hx.v >= 0;
-  Dual<V> u_p = dsel(hx_pos, near, far);
-  Dual<V> u_m = dsel(hx_pos, -far, -near);
-  Dual<V> lo = dmax<T>(-Xd, u_m);
-  Dual<V> hi = dmax<T>(dmin<T>(Xd, u_p), lo);
+  o->X = Xd;
+  o->u_p = dsel(hx_pos, near, far);
+  o->u_m = dsel(hx_pos, -far, -near);
   Dual<V> a2 = al * al;
   Dual<V> kk = dsafe_sqrt<T>(cst(one) - a2);
   Dual<V> g = cst(one) / (cst(one) + kk * hz);
@@ -405,81 +407,115 @@ void lit_lanes(int n_gl, const double* xs, const double* ws, int k, const V* ua,
   Dual<V> a = -(scale(two, g) * kk * hx) / beta;
   Dual<V> m = scale(two, kk) * (hz + g * kk * hx * hx) / beta2;
   Dual<V> g21 = scale(two, g) + cst(one);
-  Dual<V> pd[11] = {g * g + g, g21 * m + a * a, g21 * a, m * m - a * a, scale(two, a) * m,
-                    u1, q1, g, kk, hx, hz};
-  V p[11];
-  for (int i = 0; i < 11; ++i) p[i] = pd[i].v;
+  const Dual<V> pd[11] = {g * g + g, g21 * m + a * a, g21 * a, m * m - a * a, scale(two, a) * m,
+                          u1, q1, g, kk, hx, hz};
+  for (int i = 0; i < 11; ++i) o->pd[i] = pd[i];
+}
 
-  // `ndf._cut` of the pieces to the slab [lo, hi].
-  const V Lo = lo.v, Hi = hi.v;
+// `ndf._cut` of k pieces (one per lane) to the slab [Lo, Hi], with what its transpose
+// (`ndf._cut_transpose`, `cut_transpose`) needs; `ref` (`ndf._centre`, no derivative) is to be
+// subtracted from Ya2, Yb2.
+template <typename V>
+struct Cut {
   typedef decltype(V{} < V{}) M;
   V ca[kMaxPieces], cb[kMaxPieces], Ya2[kMaxPieces], Yb2[kMaxPieces], ta[kMaxPieces],
       tb[kMaxPieces], dYs[kMaxPieces], inv_du[kMaxPieces];
   M ta_free[kMaxPieces], tb_free[kMaxPieces], lo_a[kMaxPieces], hi_a[kMaxPieces],
       lo_b[kMaxPieces], hi_b[kMaxPieces], pt[kMaxPieces];
+  V ref;
+};
+
+template <typename T, typename V>
+void cut(int k, const V* ua, const V* ub, const V* Ya, const V* Yb, V Lo, V Hi, Cut<V>* c) {
+  typedef typename Cut<V>::M M;
+  const V zero = V{}, one = splat<V>(1);
   V sw = zero, swy = zero;
   for (int i = 0; i < k; ++i) {
     V du = ub[i] - ua[i], dY = Yb[i] - Ya[i];
-    lo_a[i] = ua[i] < Lo; hi_a[i] = ua[i] > Hi; lo_b[i] = ub[i] < Lo; hi_b[i] = ub[i] > Hi;
-    M moved_a = lo_a[i] | hi_a[i], moved_b = lo_b[i] | hi_b[i];
-    V c_a = sel<V>(lo_a[i], Lo, sel<V>(hi_a[i], Hi, ua[i]));
-    V c_b = sel<V>(lo_b[i], Lo, sel<V>(hi_b[i], Hi, ub[i]));
+    c->lo_a[i] = ua[i] < Lo; c->hi_a[i] = ua[i] > Hi; c->lo_b[i] = ub[i] < Lo; c->hi_b[i] = ub[i] > Hi;
+    M moved_a = c->lo_a[i] | c->hi_a[i], moved_b = c->lo_b[i] | c->hi_b[i];
+    V c_a = sel<V>(c->lo_a[i], Lo, sel<V>(c->hi_a[i], Hi, ua[i]));
+    V c_b = sel<V>(c->lo_b[i], Lo, sel<V>(c->hi_b[i], Hi, ub[i]));
     M nz = du != 0;
     V inv = 1 / sel<V>(nz, du, one);
-    auto param = [&](V c, M moved, V dflt, M* fr) {
-      V rr = (c - ua[i]) * inv;
+    auto param = [&](V cc, M moved, V dflt, M* fr) {
+      V rr = (cc - ua[i]) * inv;
       M mm = moved & nz;
       *fr = mm & (rr > 0) & (rr < 1);
       return sel<V>(mm, sel<V>(rr <= 0, zero, sel<V>(rr >= 1, one, rr)), dflt);
     };
-    ta[i] = param(c_a, moved_a, zero, &ta_free[i]);
-    tb[i] = param(c_b, moved_b, one, &tb_free[i]);
-    V y_a = lerp(Ya[i], Yb[i], dY, ta[i]);
-    V y_b = lerp(Ya[i], Yb[i], dY, tb[i]);
-    pt[i] = (nz & (c_a == c_b)) | (~nz & moved_a);
-    c_b = sel<V>(pt[i], c_a, c_b);
-    y_b = sel<V>(pt[i], y_a, y_b);
-    ca[i] = c_a; cb[i] = c_b; Ya2[i] = y_a; Yb2[i] = y_b; dYs[i] = dY; inv_du[i] = inv;
+    c->ta[i] = param(c_a, moved_a, zero, &c->ta_free[i]);
+    c->tb[i] = param(c_b, moved_b, one, &c->tb_free[i]);
+    V y_a = lerp(Ya[i], Yb[i], dY, c->ta[i]);
+    V y_b = lerp(Ya[i], Yb[i], dY, c->tb[i]);
+    c->pt[i] = (nz & (c_a == c_b)) | (~nz & moved_a);
+    c_b = sel<V>(c->pt[i], c_a, c_b);
+    y_b = sel<V>(c->pt[i], y_a, y_b);
+    c->ca[i] = c_a; c->cb[i] = c_b; c->Ya2[i] = y_a; c->Yb2[i] = y_b; c->dYs[i] = dY;
+    c->inv_du[i] = inv;
     V wgt = vabs<T>(c_b - c_a) + vabs<T>(y_b - y_a);
     sw += wgt;
     swy += wgt * (y_a + y_b) / 2;
   }
-  // `ndf._centre` (it carries no derivative).
-  V ref = sel<V>(sw > 0, swy / sel<V>(sw > 0, sw, one), zero);
+  c->ref = sel<V>(sw > 0, swy / sel<V>(sw > 0, sw, one), zero);
+}
 
+// `ndf._cut_transpose` of piece i: from the partials with respect to the cut piece's ends to
+// those of the uncut piece (g_ua .. g_Yb) and, summed, of the slab bounds (g_lo, g_hi).
+template <typename V>
+void cut_transpose(const Cut<V>& c, int i, V dca, V dcb, V dYa, V dYb, V* g_ua, V* g_ub,
+                   V* g_Ya, V* g_Yb, V* g_lo, V* g_hi) {
+  const V zero = V{};
+  dca = dca + sel<V>(c.pt[i], dcb, zero);
+  dYa = dYa + sel<V>(c.pt[i], dYb, zero);
+  dcb = sel<V>(c.pt[i], zero, dcb);
+  dYb = sel<V>(c.pt[i], zero, dYb);
+  *g_Ya = dYa * (1 - c.ta[i]) + dYb * (1 - c.tb[i]);
+  *g_Yb = dYa * c.ta[i] + dYb * c.tb[i];
+  V ga = sel<V>(c.ta_free[i], dYa * c.dYs[i] * c.inv_du[i], zero);
+  V gb = sel<V>(c.tb_free[i], dYb * c.dYs[i] * c.inv_du[i], zero);
+  dca += ga;
+  dcb += gb;
+  V gua = ga * (c.ta[i] - 1) + gb * (c.tb[i] - 1);
+  V gub = -(ga * c.ta[i] + gb * c.tb[i]);
+  gua += sel<V>(c.lo_a[i] | c.hi_a[i], zero, dca);
+  gub += sel<V>(c.lo_b[i] | c.hi_b[i], zero, dcb);
+  *g_ua = gua;
+  *g_ub = gub;
+  *g_lo += sel<V>(c.lo_a[i], dca, zero) + sel<V>(c.lo_b[i], dcb, zero);
+  *g_hi += sel<V>(c.hi_a[i], dca, zero) + sel<V>(c.hi_b[i], dcb, zero);
+}
+
+// One lane per pair-view: `L` pair-views from lanes of the inputs (pieces `k` per lane).
+template <typename T, typename V, bool kPartials>
+void lit_lanes(int n_gl, const double* xs, const double* ws, int k, const V* ua, const V* ub,
+               const V* Ya, const V* Yb, const V* sv, V* out, V* g_ua, V* g_ub, V* g_Ya,
+               V* g_Yb, V* gs) {
+  const V zero = V{};
+  View<V> vw;
+  view_algebra<T>(sv, &vw);
+  const Dual<V> lo = dmax<T>(-vw.X, vw.u_m);
+  const Dual<V> hi = dmax<T>(dmin<T>(vw.X, vw.u_p), lo);
+  V p[11];
+  for (int i = 0; i < 11; ++i) p[i] = vw.pd[i].v;
+  Cut<V> c;
+  cut<T>(k, ua, ub, Ya, Yb, lo.v, hi.v, &c);
   V value = zero, dp[11], g_lo = zero, g_hi = zero;
   for (int i = 0; i < 11; ++i) dp[i] = zero;
   for (int i = 0; i < k; ++i) {
     V dca, dcb, dYa, dYb;
-    value += piece<T, V, kPartials>(n_gl, xs, ws, ca[i], cb[i], Ya2[i] - ref, Yb2[i] - ref, p,
-                                    &dca, &dcb, &dYa, &dYb, dp);
-    if constexpr (!kPartials) continue;
-    // `ndf._cut_transpose`.
-    dca = dca + sel<V>(pt[i], dcb, zero);
-    dYa = dYa + sel<V>(pt[i], dYb, zero);
-    dcb = sel<V>(pt[i], zero, dcb);
-    dYb = sel<V>(pt[i], zero, dYb);
-    g_Ya[i] = dYa * (1 - ta[i]) + dYb * (1 - tb[i]);
-    g_Yb[i] = dYa * ta[i] + dYb * tb[i];
-    V ga = sel<V>(ta_free[i], dYa * dYs[i] * inv_du[i], zero);
-    V gb = sel<V>(tb_free[i], dYb * dYs[i] * inv_du[i], zero);
-    dca += ga;
-    dcb += gb;
-    V gua = ga * (ta[i] - 1) + gb * (tb[i] - 1);
-    V gub = -(ga * ta[i] + gb * tb[i]);
-    gua += sel<V>(lo_a[i] | hi_a[i], zero, dca);
-    gub += sel<V>(lo_b[i] | hi_b[i], zero, dcb);
-    g_ua[i] = gua;
-    g_ub[i] = gub;
-    g_lo += sel<V>(lo_a[i], dca, zero) + sel<V>(lo_b[i], dcb, zero);
-    g_hi += sel<V>(hi_a[i], dca, zero) + sel<V>(hi_b[i], dcb, zero);
+    value += piece<T, V, kPartials>(n_gl, xs, ws, c.ca[i], c.cb[i], c.Ya2[i] - c.ref,
+                                    c.Yb2[i] - c.ref, p, &dca, &dcb, &dYa, &dYb, dp);
+    if constexpr (kPartials)
+      cut_transpose(c, i, dca, dcb, dYa, dYb, &g_ua[i], &g_ub[i], &g_Ya[i], &g_Yb[i], &g_lo,
+                    &g_hi);
   }
   *out = value;
   if constexpr (!kPartials) return;
   // Chain the slab bounds' and the lobe parameters' partials through the view algebra.
   for (int t = 0; t < kTan; ++t) {
     V s = g_lo * lo.d[t] + g_hi * hi.d[t];
-    for (int i = 0; i < 11; ++i) s += dp[i] * pd[i].d[t];
+    for (int i = 0; i < 11; ++i) s += dp[i] * vw.pd[i].d[t];
     gs[t] = s;
   }
 }
