@@ -668,6 +668,9 @@ ffi::Error LitValuesImpl(ffi::ThreadPool pool, ffi::Buffer<DT> ua, ffi::Buffer<D
   return run<T, false>(pool, counts, n_gl, threads, in, res);
 }
 
+// The ball cutter's groove: `arc_lit_lanes`, the per-view stage of `arc.arc_lit_integral`.
+#include "native_arc.h"
+
 // ------------------------------------------------------------------------------------------
 // The whole pair: the view-independent geometry (`ndf._pair_geometry`) with its Jacobian with
 // respect to p0, p1, width and depth (forward mode, kGeo tangents; the footprint is data), then
@@ -900,7 +903,7 @@ struct PairArgs {
 // and dh (V, n, 3) = dD/dh, and JA (n, 6) = dA/d(p0x, p0y, p1x, p1y, w, d).
 template <typename T, bool kGrad, bool kJac = false>
 void pairs_range(int n_gl, const double* xs, const double* ws, size_t i0, size_t i1,
-                 const PairArgs<T>& a) {
+                 const PairArgs<T>& a, bool arc) {
   typedef typename Vec<T>::type V;
   constexpr int L = Vec<T>::L;
   constexpr int N = kGrad ? kGeo : 0;
@@ -987,7 +990,10 @@ void pairs_range(int n_gl, const double* xs, const double* ws, size_t i0, size_t
       for (int c = 0; c < 3; ++c) s[1 + c] = hv[c];
       V lit = zero, gp[4][kMaxPieces], gs[kTan];
       for (int c = 0; c < kTan; ++c) gs[c] = zero;
-      if (k > 0)
+      if (k > 0 && arc)
+        arc_lit_lanes<T, V, kGrad>(n_gl, xs, ws, k, cu, cv, cya, cyb, s, &lit, gp[0], gp[1],
+                                   gp[2], gp[3], gs);
+      else if (k > 0)
         lit_lanes<T, V, kGrad>(n_gl, xs, ws, k, cu, cv, cya, cyb, s, &lit, gp[0], gp[1], gp[2],
                                gp[3], gs);
       if constexpr (!kGrad) {
@@ -1064,24 +1070,25 @@ void pairs_range(int n_gl, const double* xs, const double* ws, size_t i0, size_t
 constexpr size_t kPairChunk = 256;
 
 template <typename T, bool kGrad, bool kJac = false>
-ffi::Error run_pairs(ffi::ThreadPool& pool, int64_t n_gl, int64_t threads, size_t n_fp,
-                     size_t n_h, size_t n_ct, PairArgs<T>& a, const size_t* counts) {
+ffi::Error run_pairs(ffi::ThreadPool& pool, int64_t n_gl, int64_t profile, int64_t threads,
+                     size_t n_fp, size_t n_h, size_t n_ct, PairArgs<T>& a, const size_t* counts) {
   // counts: p0, p1, w, d, alpha, valid (ctA for the reverse pass: counts[6]).
   const size_t n = a.n;
   if (n == 0) return ffi::Error::Success();
   bool ok = n_fp == 8 * n && counts[0] == 2 * n && counts[1] == 2 * n && n_gl >= 1 &&
-            n_gl <= kMaxNodes && n_h % (3 * n) == 0;
+            n_gl <= kMaxNodes && n_h % (3 * n) == 0 && (profile == 0 || profile == 1);
   for (int f = 2; f < (kGrad && !kJac ? 7 : 6); ++f) ok = ok && counts[f] == n;
   a.nv = n_h / (3 * n);
   if (kGrad && !kJac) ok = ok && n_ct == a.nv * n;
   if (!ok)
     return ffi::Error(ffi::ErrorCode::kInvalidArgument,
                       "jscratch pairs: inputs must be (n, 4, 2) footprints, (n, 2) p0 and p1, "
-                      "(n,) width, depth, alpha and valid, (V, n, 3) h (and (V, n) ctD, (n,) ctA)");
+                      "(n,) width, depth, alpha and valid, (V, n, 3) h (and (V, n) ctD, (n,) ctA), "
+                      "profile 0 (paper) or 1 (arc)");
   double xs[kMaxNodes], ws[kMaxNodes];
   gauss_legendre(static_cast<int>(n_gl), xs, ws);
   parallel(pool, n, kPairChunk, threads, [&](size_t i0, size_t i1) {
-    pairs_range<T, kGrad, kJac>(static_cast<int>(n_gl), xs, ws, i0, i1, a);
+    pairs_range<T, kGrad, kJac>(static_cast<int>(n_gl), xs, ws, i0, i1, a, profile == 1);
   });
   return ffi::Error::Success();
 }
@@ -1102,7 +1109,7 @@ template <ffi::DataType DT>
 ffi::Error PairsImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT> p0,
                      ffi::Buffer<DT> p1, ffi::Buffer<DT> w, ffi::Buffer<DT> d,
                      ffi::Buffer<DT> alpha, ffi::Buffer<ffi::DataType::PRED> valid,
-                     ffi::Buffer<DT> h, int64_t n_gl, int64_t threads, ffi::ResultBuffer<DT> D,
+                     ffi::Buffer<DT> h, int64_t n_gl, int64_t profile, int64_t threads, ffi::ResultBuffer<DT> D,
                      ffi::ResultBuffer<DT> A) {
   using T = ffi::NativeType<DT>;
   PairArgs<T> a;
@@ -1110,7 +1117,7 @@ ffi::Error PairsImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT> p
   a.D = D->typed_data(); a.A = A->typed_data();
   const size_t counts[6] = {p0.element_count(), p1.element_count(), w.element_count(),
                             d.element_count(), alpha.element_count(), valid.element_count()};
-  return run_pairs<T, false>(pool, n_gl, threads, fp.element_count(), h.element_count(), 0, a,
+  return run_pairs<T, false>(pool, n_gl, profile, threads, fp.element_count(), h.element_count(), 0, a,
                              counts);
 }
 
@@ -1119,7 +1126,7 @@ ffi::Error PairsVjpImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT
                         ffi::Buffer<DT> p1, ffi::Buffer<DT> w, ffi::Buffer<DT> d,
                         ffi::Buffer<DT> alpha, ffi::Buffer<ffi::DataType::PRED> valid,
                         ffi::Buffer<DT> h, ffi::Buffer<DT> ctD, ffi::Buffer<DT> ctA,
-                        int64_t n_gl, int64_t threads, ffi::ResultBuffer<DT> dp0,
+                        int64_t n_gl, int64_t profile, int64_t threads, ffi::ResultBuffer<DT> dp0,
                         ffi::ResultBuffer<DT> dp1, ffi::ResultBuffer<DT> dw,
                         ffi::ResultBuffer<DT> dd, ffi::ResultBuffer<DT> dalpha,
                         ffi::ResultBuffer<DT> dh) {
@@ -1132,7 +1139,7 @@ ffi::Error PairsVjpImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT
   const size_t counts[7] = {p0.element_count(), p1.element_count(), w.element_count(),
                             d.element_count(), alpha.element_count(), valid.element_count(),
                             ctA.element_count()};
-  return run_pairs<T, true>(pool, n_gl, threads, fp.element_count(), h.element_count(),
+  return run_pairs<T, true>(pool, n_gl, profile, threads, fp.element_count(), h.element_count(),
                             ctD.element_count(), a, counts);
 }
 
@@ -1140,7 +1147,7 @@ template <ffi::DataType DT>
 ffi::Error PairsJacImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT> p0,
                         ffi::Buffer<DT> p1, ffi::Buffer<DT> w, ffi::Buffer<DT> d,
                         ffi::Buffer<DT> alpha, ffi::Buffer<ffi::DataType::PRED> valid,
-                        ffi::Buffer<DT> h, int64_t n_gl, int64_t threads,
+                        ffi::Buffer<DT> h, int64_t n_gl, int64_t profile, int64_t threads,
                         ffi::ResultBuffer<DT> D, ffi::ResultBuffer<DT> A,
                         ffi::ResultBuffer<DT> JD, ffi::ResultBuffer<DT> dh,
                         ffi::ResultBuffer<DT> JA) {
@@ -1151,7 +1158,7 @@ ffi::Error PairsJacImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT
   a.dh = dh->typed_data(); a.JA = JA->typed_data();
   const size_t counts[6] = {p0.element_count(), p1.element_count(), w.element_count(),
                             d.element_count(), alpha.element_count(), valid.element_count()};
-  return run_pairs<T, true, true>(pool, n_gl, threads, fp.element_count(), h.element_count(), 0,
+  return run_pairs<T, true, true>(pool, n_gl, profile, threads, fp.element_count(), h.element_count(), 0,
                                   a, counts);
 }
 
@@ -1192,13 +1199,13 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchLitValuesF64, LitValuesImpl<ffi::DataType:
 
 #define JSCRATCH_PAIRS_BIND(DT)                                                            \
   JSCRATCH_PAIRS_ARGS(DT)                                                                  \
-      .Attr<int64_t>("n_gl").Attr<int64_t>("threads")                                      \
+      .Attr<int64_t>("n_gl").Attr<int64_t>("profile").Attr<int64_t>("threads")            \
       .Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()
 
 #define JSCRATCH_PAIRS_VJP_BIND(DT)                                                        \
   JSCRATCH_PAIRS_ARGS(DT)                                                                  \
       .Arg<ffi::Buffer<DT>>().Arg<ffi::Buffer<DT>>()                                       \
-      .Attr<int64_t>("n_gl").Attr<int64_t>("threads")                                      \
+      .Attr<int64_t>("n_gl").Attr<int64_t>("profile").Attr<int64_t>("threads")            \
       .Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()                \
       .Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()
 
@@ -1213,7 +1220,7 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchPairsVjpF64, PairsVjpImpl<ffi::DataType::F
 
 #define JSCRATCH_PAIRS_JAC_BIND(DT)                                                        \
   JSCRATCH_PAIRS_ARGS(DT)                                                                  \
-      .Attr<int64_t>("n_gl").Attr<int64_t>("threads")                                      \
+      .Attr<int64_t>("n_gl").Attr<int64_t>("profile").Attr<int64_t>("threads")            \
       .Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()                \
       .Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()
 
