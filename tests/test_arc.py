@@ -500,8 +500,8 @@ def test_lit_integral_on_the_arc_groove_is_the_pair_integral():
     np.testing.assert_allclose(D, D0, rtol=1e-14, atol=1e-300)
     w, d = arc.arc_groove(0.3 * R, R)
     assert float(w) == 2 * R
-    assert float(ndf.groove_half_width(w, d)) == pytest.approx(float(arc.arc_half_width(0.3 * R, R)),
-                                                               rel=1e-14)
+    a = float(arc.arc_half_width(0.3 * R, R))
+    assert float(ndf.groove_half_width(w, d)) == pytest.approx(a, rel=1e-14)
 
 
 def _native_inputs(rows, dtype):
@@ -515,7 +515,8 @@ def _native_inputs(rows, dtype):
 
 
 @pytest.mark.float64
-@pytest.mark.parametrize("dtype, rel, floor", [(np.float64, 1e-11, 1e-13), (np.float32, 1e-3, 1e-5)])
+@pytest.mark.parametrize("dtype, rel, floor",
+                         [(np.float64, 1e-11, 1e-13), (np.float32, 1e-3, 1e-5)])
 def test_native_kernel_matches_the_reference(dtype, rel, floor):
     """`native.pair_values(..., profile="arc")` against the mpmath reference, with the jnp
     kernel's tolerance (`test_values_match_the_reference`)."""

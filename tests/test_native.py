@@ -56,18 +56,18 @@ def _grads(pieces, use_native: bool, threads: int | None = None, jit: bool = Tru
     return run
 
 
-def _assert_as_accurate_as_jnp(native_rows, jnp_rows, reference_rows, factor=2):
+def _assert_as_accurate_as_jnp(native_rows, jnp_rows, reference_rows):
     """Per gradient (rows: pairs), the native kernel's float32 error against the float64
-    reference is finite and at most `factor` times the jnp path's, at the median and the 99th
-    percentile (each pair's error scaled by its largest reference entry)."""
+    reference is finite and at most twice the jnp path's, at the median and the 99th percentile
+    (each pair's error scaled by its largest reference entry)."""
     for k, (a, b, r) in enumerate(zip(native_rows, jnp_rows, reference_rows)):
         s = np.max(np.abs(r), axis=1)
         scale = s + 1e-5 * np.percentile(s, 90)
         e_nat = np.max(np.abs(a - r), axis=1) / scale
         e_jnp = np.max(np.abs(b - r), axis=1) / scale
         assert np.all(np.isfinite(a)), k
-        assert np.median(e_nat) <= factor * np.median(e_jnp) + 1e-7, (k, np.median(e_nat))
-        assert np.percentile(e_nat, 99) <= factor * np.percentile(e_jnp, 99) + 1e-4, k
+        assert np.median(e_nat) <= 2 * np.median(e_jnp) + 1e-7, (k, np.median(e_nat))
+        assert np.percentile(e_nat, 99) <= 2 * np.percentile(e_jnp, 99) + 1e-4, k
 
 
 def _flat(g, n):
@@ -202,7 +202,8 @@ def test_compiler_lookup_without_compilers(monkeypatch, tmp_path):
 
 
 def test_cache_key_covers_source_compiler_jaxlib_and_ffi_headers(monkeypatch, tmp_path):
-    """The key changes with the source text (either file), the compiler's path and version, the jaxlib
+    """The key changes with the source text (either file), the compiler's path and version, the
+    jaxlib
     version and the FFI headers, and is the same for the same inputs."""
     monkeypatch.setattr(native, "_compiler_version", lambda cxx: "g++ (X) 12.2.0")
     key = lambda: native._key(native._key_parts("/usr/bin/g++"))
@@ -628,8 +629,7 @@ def test_arc_pair_kernel_equals_jnp_float64():
 def test_arc_pair_kernel_float32_as_accurate_as_jnp():
     """``profile="arc"`` in float32 against the float64 jnp reference at the same rounded
     inputs: the kernel's error is that of `arc.arc_lit_integral` in float32 (values: 99th
-    percentile within 2x + 1e-6, worst within 3x or 1e-3; gradients: `_assert_as_accurate_as_jnp`
-    with 3x: the kernel differentiates the integral, the jnp code its quadrature)."""
+    percentile within 2x + 1e-6, worst within 3x or 1e-3; gradients: `_assert_as_accurate_as_jnp`)."""
     jax.config.update("jax_enable_x64", True)
     a32 = _arc_population(jnp.float32)
     a64 = tuple(x.astype(jnp.float64) if x.dtype == jnp.float32 else x for x in a32)
@@ -648,7 +648,7 @@ def test_arc_pair_kernel_float32_as_accurate_as_jnp():
     ct32 = tuple(jnp.asarray(c, jnp.float32) for c in ct)
     nat = _rows(native.pair_vjp(arc.nodes(jnp.float32), *a32, *ct32, profile="arc"), n)
     jnp32 = _rows(jax.jit(_arc_vjps)(a32, ct32), n)
-    _assert_as_accurate_as_jnp(nat, jnp32, ref, factor=3)
+    _assert_as_accurate_as_jnp(nat, jnp32, ref)
 
 
 @needs_native

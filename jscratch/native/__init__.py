@@ -1,4 +1,5 @@
-"""The pair kernel as native CPU kernels (XLA FFI custom calls, `native_lit.cc`).
+"""The pair kernel as native CPU kernels (XLA FFI custom calls, `native_lit.cc` and the arc
+groove's `native_arc.h`, which it includes).
 
 `jscratch.ndf` evaluates a pair with jnp (XLA's CPU backend evaluates the many gradient outputs
 in separate fusions that each recompute the shared arithmetic); where this module is available,
@@ -8,7 +9,9 @@ each with a values-only and a reverse-pass variant:
 - the whole pair (`pair_values`, `pair_vjp`, differentiable `pairs`; what `jscratch.render` runs
   per chunk): the view-independent geometry (`ndf.pair_geometry`) and its Jacobian with respect
   to ``p0, p1, width, depth`` (forward mode), then every view's lit integral over the pair's
-  pieces that are not points, chained; one SIMD lane per pair;
+  pieces that are not points, chained; one SIMD lane per pair. ``profile="paper"`` (default)
+  integrates the paper's groove, ``profile="arc"`` a ball cutter's (`arc.arc_lit_integral`,
+  the geometry of `arc.arc_groove`'s (width, depth));
 - the per-view stage (`lit`, `lit_values`, `lit_partials`; what `ndf.lit_integral` calls): the
   slab, lobe, cut and piece integrals and their partials; one SIMD lane per pair-view.
 
@@ -23,18 +26,19 @@ and float32).
   mode: its partials from the kernel; `ndf` calls this).
 - `lit_partials(n_gl, ua, ub, Ya, Yb, X, h, b, t, alpha)`: the lit integral and its partials
   (`native_lit.cc` says which); `lit_values(...)`: the integral alone.
-- `pair_values(n_gl, footprint, p0, p1, width, depth, alpha, valid, h) -> (D, A)`,
-  `pair_vjp(..., ct_D, ct_A)`, `pairs(...)`: the whole pair; `pair_jacobian(...)`: its values
-  and Jacobians in one pass (the renderer's gradient on one device keeps them).
+- `pair_values(n_gl, footprint, p0, p1, width, depth, alpha, valid, h, profile="paper") ->
+  (D, A)`, `pair_vjp(..., ct_D, ct_A, profile=...)`, `pairs(..., profile)`: the whole pair;
+  `pair_jacobian(..., profile=...)`: its values and Jacobians in one pass (the renderer's
+  gradient on one device keeps them).
 - `status()`: what runs and why, a JSON-friendly dict (the design writes it to metrics.json);
   ``python -m jscratch.native [--json]`` prints it (and builds the kernel if needed).
 
-Build. The kernel is compiled on first use with the system's C++ compiler (``$CXX``, else
-``g++``, ``c++`` or ``clang++`` on ``PATH``; 5-8 s) into ``native_lit-<key>.so`` in
-``$JSCRATCH_CACHE`` (else ``$XDG_CACHE_HOME/jscratch`` or ``~/.cache/jscratch``). The key (`_key`)
-covers everything the binary depends on: the source text, the compiler's path and its
-``--version`` output, the flags (``-march=native``), the CPU's model and features, the jaxlib
-version and a hash of the XLA FFI headers under ``jax.ffi.include_dir()``. After a build the
+Build. The kernel (native_lit.cc, which includes native_arc.h) is compiled on first use with
+the system's C++ compiler (``$CXX``, else ``g++``, ``c++`` or ``clang++`` on ``PATH``; 5-8 s)
+into ``native_lit-<key>.so`` in ``$JSCRATCH_CACHE`` (else ``$XDG_CACHE_HOME/jscratch`` or
+``~/.cache/jscratch``). The key (`_key`) covers everything the binary depends on: the text of
+both source files, the compiler's path and its ``--version`` output, the flags
+(``-march=native``), the CPU's model and features, the jaxlib version and a hash of the XLA FFI headers under ``jax.ffi.include_dir()``. After a build the
 cache's other ``native_lit-*.so`` (stale keys) are deleted. Nothing is downloaded.
 
 Settings, read from the environment ONCE, when this module is imported (changing them later in
@@ -80,7 +84,8 @@ import jaxlib
 
 from jscratch.errors import InputError, error_line
 
-__all__ = ["PROFILES", "NativeKernelWarning", "available", "enabled", "lit", "lit_partials", "lit_values",
+__all__ = ["PROFILES", "NativeKernelWarning", "available", "enabled", "lit", "lit_partials",
+           "lit_values",
            "main", "override", "pair_jacobian", "pair_values", "pair_vjp", "pairs", "prepare", "status",
            "threads"]
 

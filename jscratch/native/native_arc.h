@@ -6,10 +6,10 @@
 //
 // Per view: the groove's half-width in u is U = u_of_v(2 X); the lit slab [u_lo, u_hi] is cut in
 // the geometry's coordinate x / 2R = v / 2 (`cut`), the ends are mapped to u (slab bounds and
-// groove edges exactly), and each piece's J = ∫ Y(v(u)) v'(u) (F1 + F2) du (`arc._piece_integrals`:
-// the sharp lobe's poles subtracted by the Hermite cubic H and integrated in closed form, the
-// rest by n_gl-point Gauss-Legendre in u). lit = sum of J / 2 (so that D = scale * pref * lit,
-// as for the paper's profile).
+// groove edges exactly), and each piece's J = ∫ Y(v(u)) v'(u) (F1 + F2) du
+// (`arc._piece_integrals`: the sharp lobe's poles subtracted by the Hermite cubic H and
+// integrated in closed form, the rest by n_gl-point Gauss-Legendre in u). lit = sum of J / 2
+// (so that D = scale * pref * lit, as for the paper's profile).
 //
 // Partial derivatives, all by hand, from one pass over the nodes:
 // - J is affine in the sharp lobe's coefficients (c0, c10, c11, c20, c21): their partials are the
@@ -17,12 +17,14 @@
 // - J is linear in the piece's Y, which is linear in mu = (v(u) - v(ua)) / (ub - ua): with
 //   J_1 (Y = 1) and J_mu (Y = mu), d J / d Yb = J_mu / den, d J / d Ya = J_1 - J_mu / den
 //   (den = (v(ub) - v(ua)) / (ub - ua));
-// - the ends: the derivatives of the integral itself, d J / d ub = v'(ub) (Yb D(ub) - Y_v J_lambda),
-//   d J / d ua = -v'(ua) (Ya D(ua) + Y_v J_(1-lambda)) (Y_v = dY / (v(ub) - v(ua)), lambda = mu / den),
-//   which differ from the rule's own derivative by that rule's error on smooth integrands;
+// - the ends: the derivatives of the integral itself,
+//   d J / d ub = v'(ub) (Yb D(ub) - Y_v J_lambda),
+//   d J / d ua = -v'(ua) (Ya D(ua) + Y_v J_(1-lambda))
+//   (Y_v = dY / (v(ub) - v(ua)), lambda = mu / den), which differ from the rule's own
+//   derivative by that rule's error on smooth integrands;
 // - u1 and q1 (the peak's position and width): the rule's derivative, the nodes' s moving
-//   (d/ds of the basis functions), the Hermite data moving with z = u1 + i q1 (w', w'' at z) and the
-//   closed form's ends (its integrands at the ends);
+//   (d/ds of the basis functions), the Hermite data moving with z = u1 + i q1 (w', w'' at z) and
+//   the closed form's ends (its integrands at the ends);
 // - k, hx, hz: the smooth lobe F2 at the nodes, as for the paper's profile.
 
 constexpr double kQSub = 0.375;  // `arc.Q_SUB`
@@ -125,8 +127,8 @@ V arc_piece(int n_gl, const double* xs, const double* ws, V ua, V ub, V Ya, V Yb
   // Gauss-Legendre in u on the rest: r = w (c0 + F2) + (w P - H) e^2 at the nodes.
   V gl = zero;
   V S_vD = zero, S_mD = zero, S_w = zero, S_we = zero, S_wse = zero, S_wee = zero,
-    S_wsee = zero, S_wP = zero, S_wsP = zero, S_e = zero, S_se = zero, S_ee = zero,
-    S_see = zero, S_eee = zero, S_seee = zero, S_k = zero, S_hx = zero, S_hz = zero;
+    S_wsee = zero, S_Rp = zero, S_sRp = zero, S_e = zero, S_se = zero, S_ee = zero,
+    S_see = zero, S_k = zero, S_hx = zero, S_hz = zero;
   const V iBa = 1 / Ba;
   for (int j = 0; j < n_gl; ++j) {
     const V x = splat<V>(xs[j]), w = splat<V>(ws[j]);
@@ -139,14 +141,15 @@ V arc_piece(int n_gl, const double* xs, const double* ws, V ua, V ub, V Ya, V Yb
     const V N = hz * (1 - 4 * u2) - 4 * hx * uu, inv2 = 1 / (B + k * N), T2 = B * inv2;
     const V F2 = T2 * T2 + T2;
     const V s = (uu - u1) / q1, e = 1 / (1 + s * s), se = s * e, ee = e * e, see = se * e;
-    const V Rs = ((wu * c10 - h[2]) + (wu * c11 - h[3]) * s) * e +
-                 ((wu * c20 - h[0]) + (wu * c21 - h[1]) * s) * ee;
+    const V A0 = wu * c10 - h[2], A1 = wu * c11 - h[3], B0 = wu * c20 - h[0],
+            B1 = wu * c21 - h[1];
+    const V Rs = (A0 + A1 * s) * e + (B0 + B1 * s) * ee;
     gl += w * (wu * (c0 + F2) + Rs);
     if constexpr (kPartials) {
       const V eee = ee * e, seee = see * e;
       const V Dt = c0 + F2 + c10 * e + c11 * se + c20 * ee + c21 * see;
-      // d/ds of c10 e + c11 s e + c20 e^2 + c21 s e^2.
-      const V Pp = -2 * c10 * see + c11 * (2 * ee - e) - 4 * c20 * seee + c21 * (4 * eee - 3 * ee);
+      // d/ds of the remainder (w P - H) e^2 at fixed w, term by term as Rs.
+      const V Rp = -2 * A0 * see + A1 * (2 * ee - e) - 4 * B0 * seee + B1 * (4 * eee - 3 * ee);
       const V ww = w * wu;
       S_vD += w * vpj * Dt;
       S_mD += w * mu * vpj * Dt;
@@ -155,14 +158,12 @@ V arc_piece(int n_gl, const double* xs, const double* ws, V ua, V ub, V Ya, V Yb
       S_wse += ww * se;
       S_wee += ww * ee;
       S_wsee += ww * see;
-      S_wP += ww * Pp;
-      S_wsP += ww * s * Pp;
+      S_Rp += w * Rp;
+      S_sRp += w * s * Rp;
       S_e += w * e;
       S_se += w * se;
       S_ee += w * ee;
       S_see += w * see;
-      S_eee += w * eee;
-      S_seee += w * seee;
       const V f = ww * (-(2 * T2 + 1) * T2 * inv2);
       S_k += f * N;
       S_hx += f * (-4 * k * uu);
@@ -209,19 +210,15 @@ V arc_piece(int n_gl, const double* xs, const double* ws, V ua, V ub, V Ya, V Yb
       rmul(splat<V>(-96), radd(one, rmul(splat<V>(-24), z2) + rmul(splat<V>(16), z2 * z2))) *
       iB2 * iB2;
   const Cx<V> wppz = rmul(3 * dYdv, vp * vpp) + Yz * vppp;
-  const V Hp = h[2] * (-2 * S_see) + h[3] * (2 * S_ee - S_e) + h[0] * (-4 * S_seee) +
-               h[1] * (4 * S_eee - 3 * S_ee);
-  const V Hps = h[2] * (-2 * (S_e - S_ee)) + h[3] * (2 * S_see - S_se) +
-                h[0] * (-4 * (S_ee - S_eee)) + h[1] * (4 * S_seee - 3 * S_see);
   const V eb2 = eb * eb, ea2 = ea * ea;
   const V kin_sa = q1_s * (h[0] * (eb2 - ea2) + h[1] * (sb_s * eb2 - sa_s * ea2) +
                            h[2] * (eb - ea) + h[3] * (sb_s * eb - sa_s * ea));
   const V kin_ds = q1_s * (h[0] * eb2 + h[1] * sb_s * eb2 + h[2] * eb + h[3] * sb_s * eb);
   const Cx<V> dFu = wpz * Pi, dGu = rmul(q1_s, wppz * Pi) + wpz * dPi;
-  V gu1 = lfull(dFu, dGu) + sel<V>(sub, -kin_sa / q1, zero) + half * (-(S_wP - Hp) / q1);
+  V gu1 = lfull(dFu, dGu) + sel<V>(sub, -kin_sa / q1, zero) + half * (-S_Rp / q1);
   V gq1 = lfull(times_i(dFu), dFu + times_i(dGu)) +
           sel<V>(sub, closed(h) / q1_s + (-sa_s * kin_sa - ds_s * kin_ds) / q1, zero) +
-          half * (-(S_wsP - Hps) / q1);
+          half * (-S_sRp / q1);
   // The sharp lobe's coefficients.
   const Cx<V> zc{zero, zero};
   V gc[5] = {half * S_w, lfull(zc, rmul(splat<V>(2), times_i(wz))) + half * S_we,

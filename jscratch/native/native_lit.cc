@@ -432,7 +432,8 @@ void cut(int k, const V* ua, const V* ub, const V* Ya, const V* Yb, V Lo, V Hi, 
   V sw = zero, swy = zero;
   for (int i = 0; i < k; ++i) {
     V du = ub[i] - ua[i], dY = Yb[i] - Ya[i];
-    c->lo_a[i] = ua[i] < Lo; c->hi_a[i] = ua[i] > Hi; c->lo_b[i] = ub[i] < Lo; c->hi_b[i] = ub[i] > Hi;
+    c->lo_a[i] = ua[i] < Lo; c->hi_a[i] = ua[i] > Hi;
+    c->lo_b[i] = ub[i] < Lo; c->hi_b[i] = ub[i] > Hi;
     M moved_a = c->lo_a[i] | c->hi_a[i], moved_b = c->lo_b[i] | c->hi_b[i];
     V c_a = sel<V>(c->lo_a[i], Lo, sel<V>(c->hi_a[i], Hi, ua[i]));
     V c_b = sel<V>(c->lo_b[i], Lo, sel<V>(c->hi_b[i], Hi, ub[i]));
@@ -1109,7 +1110,8 @@ template <ffi::DataType DT>
 ffi::Error PairsImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT> p0,
                      ffi::Buffer<DT> p1, ffi::Buffer<DT> w, ffi::Buffer<DT> d,
                      ffi::Buffer<DT> alpha, ffi::Buffer<ffi::DataType::PRED> valid,
-                     ffi::Buffer<DT> h, int64_t n_gl, int64_t profile, int64_t threads, ffi::ResultBuffer<DT> D,
+                     ffi::Buffer<DT> h, int64_t n_gl, int64_t profile, int64_t threads,
+                     ffi::ResultBuffer<DT> D,
                      ffi::ResultBuffer<DT> A) {
   using T = ffi::NativeType<DT>;
   PairArgs<T> a;
@@ -1117,8 +1119,8 @@ ffi::Error PairsImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT> p
   a.D = D->typed_data(); a.A = A->typed_data();
   const size_t counts[6] = {p0.element_count(), p1.element_count(), w.element_count(),
                             d.element_count(), alpha.element_count(), valid.element_count()};
-  return run_pairs<T, false>(pool, n_gl, profile, threads, fp.element_count(), h.element_count(), 0, a,
-                             counts);
+  return run_pairs<T, false>(pool, n_gl, profile, threads, fp.element_count(),
+                             h.element_count(), 0, a, counts);
 }
 
 template <ffi::DataType DT>
@@ -1158,8 +1160,8 @@ ffi::Error PairsJacImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT
   a.dh = dh->typed_data(); a.JA = JA->typed_data();
   const size_t counts[6] = {p0.element_count(), p1.element_count(), w.element_count(),
                             d.element_count(), alpha.element_count(), valid.element_count()};
-  return run_pairs<T, true, true>(pool, n_gl, profile, threads, fp.element_count(), h.element_count(), 0,
-                                  a, counts);
+  return run_pairs<T, true, true>(pool, n_gl, profile, threads, fp.element_count(),
+                                  h.element_count(), 0, a, counts);
 }
 
 }  // namespace
