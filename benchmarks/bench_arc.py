@@ -6,8 +6,13 @@ groove, docs/model.md §13) against `ndf.pair_integral` on the same pairs, float
 Pairs: `ndf_cases.random_cases` (half vectors, footprints, scratches, alpha), each scratch cut by
 the default ball (R = 0.125 mm) at a plunge uniform in the default machine range
 (0.005..0.1 mm); the paper kernel sees the profile of width 4R with the same half-width. Set
-``JSCRATCH_NATIVE=0`` to compare jnp with jnp (the arc kernel has no native port). Prints ns per
-pair, medians of `block_until_ready` runs after one warm-up; compile time excluded.
+``JSCRATCH_NATIVE=0`` to compare jnp with jnp. Prints ns per pair, medians of
+`block_until_ready` runs after one warm-up; compile time excluded.
+
+Then the native whole-pair kernel (`native.pairs`, where it is available) with
+``profile="arc"`` against ``profile="paper"`` on the same pairs at ``--views`` views (the arc's
+(width, depth) from `arc.arc_groove`, the paper's as above): ns per pair-view, forward
+(`native.pair_values`) and forward+backward (value and gradient of `native.pairs`).
 """
 
 from __future__ import annotations
@@ -20,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jscratch import arc, ndf
+from jscratch import arc, lobe, native, ndf
 from jscratch.bench.ndf_cases import random_cases
 
 R = 1.25e-4
@@ -40,6 +45,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--pairs", type=int, default=8192)
     ap.add_argument("--repeats", type=int, default=7)
+    ap.add_argument("--views", type=int, default=3)
     a = ap.parse_args(argv)
     C = random_cases(a.pairs)
     rng = np.random.default_rng(0)
@@ -63,6 +69,28 @@ def main(argv=None):
                                            argnums=tuple(range(7))))
         print(f"| `{name}` | {ns_per_pair(fwd, args, a.pairs, a.repeats):.0f} | "
               f"{ns_per_pair(total, args, a.pairs, a.repeats):.0f} |")
+    if not native.available(jnp.float32):
+        print(f"\nnative kernel unavailable: {native.status()['why']}")
+        return
+    H = np.stack([np.roll(C.h, 17 * v, axis=0) for v in range(a.views)]).astype(f32)
+    wa, da = (np.asarray(t, f32) for t in arc.arc_groove(plunge, np.full(a.pairs, R)))
+    valid = np.ones(a.pairs, bool)
+    print(f"\n| native `pairs` ({a.views} views, float32) | forward (ns/pair-view) | "
+          "forward+backward (ns/pair-view) |\n|---|---|---|")
+    for profile, ng, wd in (("paper", lobe.nodes(f32), (w, d)), ("arc", arc.nodes(f32), (wa, da))):
+        args = (*base[1:], *(np.asarray(x, f32) for x in wd), C.alpha.astype(f32), valid, H)
+        fwd = jax.jit(lambda *x, p=profile, ng=ng: native.pair_values(ng, *x, profile=p))
+
+        def loss(p0, p1, w_, d_, al, h, rest, p=profile, ng=ng):
+            fp, valid = rest
+            D, A = native.pairs(ng, fp, p0, p1, w_, d_, al, valid, h, p)
+            return jnp.sum(D) + jnp.sum(A)
+
+        total = jax.jit(jax.value_and_grad(loss, argnums=tuple(range(6))))
+        targs = (*args[1:6], args[7], (args[0], args[6]))
+        nv = a.pairs * a.views
+        print(f"| `{profile}` (n_gl {ng}) | {ns_per_pair(fwd, args, nv, a.repeats):.0f} | "
+              f"{ns_per_pair(total, targs, nv, a.repeats):.0f} |")
 
 
 if __name__ == "__main__":

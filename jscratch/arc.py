@@ -15,6 +15,10 @@ paper's profile,
 - `arc_pair_integral(h, footprint, p0, p1, plunge, radius, alpha) -> (D_hat, A)`: pure,
   jittable, vmappable, reverse-mode differentiable in every float argument (`plunge` and
   `radius` included), float32 and float64 (it follows the dtype of its inputs).
+- `arc_groove(plunge, radius) -> (width, depth)` and `arc_lit_integral(geometry, h, alpha) ->
+  D_hat`: the two stages of `arc_pair_integral` (``ndf.pair_geometry(footprint, p0, p1,
+  *arc_groove(plunge, radius))``, then one view's integral on it); the native kernel's
+  ``profile="arc"`` (`jscratch.native.pairs`) evaluates the same and its gradients.
 - Building blocks: `arc_height`, `arc_half_width` (``a``), `arc_normal`, `arc_point_ndf`,
   `groove_coordinates` (``V = a / R`` and ``U``, below), `u_of_v`, `v_of_u`.
 
@@ -45,7 +49,8 @@ short compared with its distance from the peak, nothing is subtracted: the rule 
 Degenerate input (zero plunge, ``p >= R``, footprints that miss, edges parallel to the scratch,
 ends on groove edges) gives finite values and gradients: divisions and square roots that can meet
 zero go through guarded (double-``where``) forms. Reverse mode is plain autodiff; forward mode
-(`jax.jvp`) is not available (`jscratch.ndf.pair_geometry` has a custom VJP).
+(`jax.jvp`) is not available (`jscratch.ndf.pair_geometry` has a custom VJP). The native kernel
+(``jscratch/native/native_arc.h``) has hand-written partials (docs/model.md §13).
 """
 
 from __future__ import annotations

@@ -474,3 +474,82 @@ def test_building_blocks():
     hl = np.array([0.2, 0.1, 0.9]) / np.linalg.norm([0.2, 0.1, 0.9])
     np.testing.assert_allclose(np.asarray(arc.arc_point_ndf(hl, x, R, 0.3)),
                                np.asarray(ndf.ggx(n @ hl, 0.3)), rtol=1e-12)
+
+
+# ---------------------------------------------------------------------------------------------
+# The per-view stage and the native kernel's ``profile="arc"`` (docs/model.md §12, §13).
+
+
+def _geometry_views(cases, dtype):
+    """Per case: `arc_lit_integral` on the geometry of `arc_groove`, vmapped."""
+    def one(h, fp, p0, p1, p, r, a):
+        G = ndf.pair_geometry(fp, p0, p1, *arc.arc_groove(p, r))
+        return arc.arc_lit_integral(G, h, a), G.area
+
+    return jax.jit(jax.vmap(one))(*(jnp.asarray(x) for x in _stack(cases, dtype)))
+
+
+@pytest.mark.float64
+def test_lit_integral_on_the_arc_groove_is_the_pair_integral():
+    """`arc_lit_integral(pair_geometry(..., *arc_groove(p, R)), h, alpha)` is
+    `arc_pair_integral`'s value (and `A` its area), and its width is 2R."""
+    cases, _ = _population()
+    D, A = (np.asarray(t) for t in _geometry_views(cases, np.float64))
+    D0, A0 = _run(cases, np.float64)
+    np.testing.assert_array_equal(A, A0)
+    np.testing.assert_allclose(D, D0, rtol=1e-14, atol=1e-300)
+    w, d = arc.arc_groove(0.3 * R, R)
+    assert float(w) == 2 * R
+    a = float(arc.arc_half_width(0.3 * R, R))
+    assert float(ndf.groove_half_width(w, d)) == pytest.approx(a, rel=1e-14)
+
+
+def _native_inputs(rows, dtype):
+    """`native.pair_values`' arguments (one view) for rows of `(h, fp, p0, p1, p, R, alpha)`."""
+    h, fp, p0, p1, p, r, a = (np.asarray(x, np.float64) for x in _stack(rows, np.float64))
+    rho = np.minimum(np.clip(np.where(r > 0, p / r, 0), 0, 1), arc._RHO_CAP)
+    w, d = 2 * r, -2 * r * np.log1p(-rho)  # `arc.arc_groove`
+    cast = lambda x: jnp.asarray(x, dtype)
+    return (cast(fp), cast(p0), cast(p1), cast(w), cast(d), cast(a),
+            jnp.ones(len(rows), bool), cast(h[None]))
+
+
+@pytest.mark.float64
+@pytest.mark.parametrize("dtype, rel, floor",
+                         [(np.float64, 1e-11, 1e-13), (np.float32, 1e-3, 1e-5)])
+def test_native_kernel_matches_the_reference(dtype, rel, floor):
+    """`native.pair_values(..., profile="arc")` against the mpmath reference, with the jnp
+    kernel's tolerance (`test_values_match_the_reference`)."""
+    from jscratch import native
+
+    if not native.available(jnp.float32):
+        pytest.skip(f"native kernel unavailable: {native.status()['why']}")
+    jax.config.update("jax_enable_x64", True)
+    cases, names = _population()
+    D, A = native.pair_values(arc.nodes(dtype), *_native_inputs(cases, dtype), profile="arc")
+    D, A = np.asarray(D[0], np.float64), np.asarray(A, np.float64)
+    Dr, Ar = _reference()
+    tol = rel * np.abs(Dr) + floor * Ar / (np.pi * _alpha(cases)) + 1e-300
+    err = np.abs(D - Dr) / tol
+    assert np.all(err <= 1), {n: float(np.max(err[names == n])) for n in FAMILIES}
+
+
+def test_native_kernel_finite_over_extreme_ranges():
+    """The stability sweep (`_sweep`, float32) through `native.pair_vjp(..., profile="arc")`:
+    no non-finite value or gradient; zero plunge and zero length give exact zeros."""
+    from jscratch import native
+
+    if not native.available(jnp.float32):
+        pytest.skip(f"native kernel unavailable: {native.status()['why']}")
+    rows = _sweep(4096, 7)
+    args = _native_inputs(rows, jnp.float32)
+    ng = arc.nodes(jnp.float32)
+    D, A = native.pair_values(ng, *args, profile="arc")
+    ct = (jnp.ones(D.shape, jnp.float32), jnp.ones(A.shape, jnp.float32))
+    grads = native.pair_vjp(ng, *args, *ct, profile="arc")
+    for x in (D, A, *grads):
+        assert np.all(np.isfinite(np.asarray(x)))
+    D, A = np.asarray(D[0], np.float64), np.asarray(A, np.float64)
+    assert np.all(D >= -1e-5 * A / (np.pi * _alpha(rows)) - 1e-30)
+    zero = np.array([r[4] <= 0 or np.all(r[2] == r[3]) for r in rows])
+    assert np.all(D[zero] == 0) and np.all(A[zero] == 0)

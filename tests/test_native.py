@@ -20,7 +20,7 @@ import jaxlib
 import numpy as np
 import pytest
 
-from jscratch import lobe, native, ndf
+from jscratch import arc, lobe, native, ndf
 from jscratch.bench import ndf_cases
 from jscratch.errors import InputError
 
@@ -202,7 +202,8 @@ def test_compiler_lookup_without_compilers(monkeypatch, tmp_path):
 
 
 def test_cache_key_covers_source_compiler_jaxlib_and_ffi_headers(monkeypatch, tmp_path):
-    """The key changes with the source text, the compiler's path and version, the jaxlib
+    """The key changes with the source text (either file), the compiler's path and version, the
+    jaxlib
     version and the FFI headers, and is the same for the same inputs."""
     monkeypatch.setattr(native, "_compiler_version", lambda cxx: "g++ (X) 12.2.0")
     key = lambda: native._key(native._key_parts("/usr/bin/g++"))
@@ -218,11 +219,15 @@ def test_cache_key_covers_source_compiler_jaxlib_and_ffi_headers(monkeypatch, tm
     src.write_text(native._SOURCE.read_text() + "\n// one more line\n")
     monkeypatch.setattr(native, "_SOURCE", src)
     keys.add(key())
+    arc_src = tmp_path / "native_arc.h"
+    arc_src.write_text(native._ARC_SOURCE.read_text() + "\n// one more line\n")
+    monkeypatch.setattr(native, "_ARC_SOURCE", arc_src)
+    keys.add(key())
     (tmp_path / "include" / "xla").mkdir(parents=True)
     (tmp_path / "include" / "xla" / "ffi.h").write_text("// other headers\n")
     monkeypatch.setattr(jax.ffi, "include_dir", lambda: str(tmp_path / "include"))
     keys.add(key())
-    assert len(keys) == 6, keys
+    assert len(keys) == 7, keys
     parts = native._key_parts("/usr/bin/g++")
     assert {"source", "compiler", "compiler_version", "flags", "cpu", "cpu_features", "jaxlib",
             "ffi_headers"} <= set(parts), parts
@@ -445,22 +450,24 @@ def test_pair_kernel_float32_as_accurate_as_jnp():
 
 
 @needs_native
-def test_pair_kernel_padding_is_exactly_zero_whatever_it_holds():
+@pytest.mark.parametrize("profile", ["paper", "arc"])
+def test_pair_kernel_padding_is_exactly_zero_whatever_it_holds(profile):
     """Padding slots give exact zeros, value and reverse pass, even holding NaN and infinities;
-    the valid slots are unchanged by them."""
-    fp, p0, p1, w, d, a, valid, H = _pair_population(jnp.float32)
+    the valid slots are unchanged by them (both profiles)."""
+    pop = _pair_population if profile == "paper" else _arc_population
+    fp, p0, p1, w, d, a, valid, H = pop(jnp.float32)
     bad = ~valid
     junk = lambda x, v: jnp.where(bad.reshape(bad.shape + (1,) * (x.ndim - 1)), v, x)
     dirty = (junk(fp, jnp.nan), junk(p0, jnp.inf), junk(p1, jnp.nan), junk(w, 0.0),
              junk(d, -1.0), junk(a, jnp.nan), valid,
              jnp.where(bad[None, :, None], jnp.nan, H))
     clean = (fp, p0, p1, w, d, a, valid, H)
-    ng = lobe.nodes(jnp.float32)
+    ng = (lobe.nodes if profile == "paper" else arc.nodes)(jnp.float32)
     ct = (jnp.ones(H.shape[:2], jnp.float32), jnp.ones(w.shape, jnp.float32))
     pair_axis = (1, 0, 0, 0, 0, 0, 0, 1)  # D, A, d_p0, d_p1, d_w, d_d, d_alpha, d_h
-    for x, y, ax in zip(native.pair_values(ng, *dirty) + native.pair_vjp(ng, *dirty, *ct),
-                        native.pair_values(ng, *clean) + native.pair_vjp(ng, *clean, *ct),
-                        pair_axis):
+    run = lambda x: (native.pair_values(ng, *x, profile=profile)
+                     + native.pair_vjp(ng, *x, *ct, profile=profile))
+    for x, y, ax in zip(run(dirty), run(clean), pair_axis):
         x, y = np.asarray(x), np.asarray(y)
         assert np.all(np.isfinite(x))
         np.testing.assert_array_equal(x, y)
@@ -514,23 +521,25 @@ def test_pair_kernel_gradients_match_finite_differences_float64():
 @needs_native
 @pytest.mark.float64
 @pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
-def test_pair_jacobian_contracts_to_the_reverse_pass(dtype):
+@pytest.mark.parametrize("profile", ["paper", "arc"])
+def test_pair_jacobian_contracts_to_the_reverse_pass(dtype, profile):
     """`pair_jacobian`'s values are `pair_values`' bit for bit, and its Jacobians contracted with
     random cotangents give `pair_vjp` (summed in another order: 1e-13 / 1e-5 of each gradient's
-    scale); padding slots are exact zeros even when they hold NaN."""
-    fp, p0, p1, w, d, a, valid, H = _pair_population(dtype)
+    scale); padding slots are exact zeros even when they hold NaN (both profiles)."""
+    fp, p0, p1, w, d, a, valid, H = (_pair_population if profile == "paper"
+                                     else _arc_population)(dtype)
     bad = np.asarray(~valid)
     H = jnp.where(jnp.asarray(bad)[None, :, None], jnp.nan, H)
     args = (fp, p0, p1, w, d, a, valid, H)
-    ng = lobe.nodes(dtype)
-    D, A, JD, Jh, JA = native.pair_jacobian(ng, *args)
-    D0, A0 = native.pair_values(ng, *args)
+    ng = (lobe.nodes if profile == "paper" else arc.nodes)(dtype)
+    D, A, JD, Jh, JA = native.pair_jacobian(ng, *args, profile=profile)
+    D0, A0 = native.pair_values(ng, *args, profile=profile)
     np.testing.assert_array_equal(np.asarray(D), np.asarray(D0))
     np.testing.assert_array_equal(np.asarray(A), np.asarray(A0))
     rng = np.random.default_rng(3)
     ctD = jnp.asarray(rng.normal(size=D.shape), dtype)
     ctA = jnp.asarray(rng.normal(size=A.shape), dtype)
-    d0, d1, dw, dd, da, dh = native.pair_vjp(ng, *args, ctD, ctA)
+    d0, d1, dw, dd, da, dh = native.pair_vjp(ng, *args, ctD, ctA, profile=profile)
     g = np.einsum("vn,vnk->nk", np.asarray(ctD, np.float64), np.asarray(JD, np.float64))
     g[:, :6] += np.asarray(ctA, np.float64)[:, None] * np.asarray(JA, np.float64)
     ref = np.concatenate([np.asarray(x, np.float64).reshape(len(bad), -1)
@@ -544,3 +553,138 @@ def test_pair_jacobian_contracts_to_the_reverse_pass(dtype):
     for x in (JD, Jh):
         assert np.all(np.asarray(x)[:, bad] == 0)
     assert np.all(np.asarray(JA)[bad] == 0) and np.all(np.isfinite(np.asarray(JD)))
+
+
+# --------------------------------------------------------------------------------------------
+# The ball cutter's groove (``profile="arc"``): the same kernels, each view's integral that of
+# `arc.arc_lit_integral` on the geometry of `arc.arc_groove`.
+
+
+def _arc_population(dtype):
+    """`_pair_population`'s pairs and views with each scratch an arc groove: radius 0.05-0.34 mm,
+    plunge ratio rho = p / R log-uniform in [1e-4, 1] (one in sixteen exactly 1), as the
+    (width, depth) of `arc.arc_groove` (in float64, then rounded)."""
+    fp, p0, p1, _, _, a, valid, H = _pair_population(dtype)
+    n = p0.shape[0]
+    rng = np.random.default_rng(11)
+    R = 1.25e-4 * np.exp(rng.uniform(-1, 1, n))
+    rho = np.exp(rng.uniform(np.log(1e-4), 0, n))
+    rho[::16] = 1.0
+    w, d = 2 * R, -2 * R * np.log1p(-np.minimum(rho, arc._RHO_CAP))  # `arc.arc_groove`
+    return fp, p0, p1, jnp.asarray(w, dtype), jnp.asarray(d, dtype), a, valid, H
+
+
+def _arc_reference(fp, p0, p1, w, d, a, valid, H):
+    """`(D (V, n), A (n,))` of `ndf.pair_geometry` + `arc.arc_lit_integral`, padding zeroed."""
+    def one(fp, p0, p1, w, d, a, h):
+        g = ndf.pair_geometry(fp, p0, p1, w, d)
+        return arc.arc_lit_integral(g, h, a), g.area
+
+    D, A = jax.vmap(jax.vmap(one), in_axes=(None,) * 6 + (0,))(fp, p0, p1, w, d, a, H)
+    return jnp.where(valid, D, 0), jnp.where(valid, A[0], 0)
+
+
+def _arc_vjps(args, ct):
+    """The jnp reference's reverse pass (autodiff of `_arc_reference`), as `pair_vjp` orders it."""
+    fp, p0, p1, w, d, a, valid, H = args
+    _, vjp = jax.vjp(lambda *x: _arc_reference(fp, *x[:5], valid, x[5]), p0, p1, w, d, a, H)
+    return vjp(ct)
+
+
+@needs_native
+@pytest.mark.float64
+def test_arc_pair_kernel_equals_jnp_float64():
+    """``profile="arc"`` against `arc.arc_lit_integral` on `ndf.pair_geometry` (autodiff), every
+    adversarial family with arc grooves, float64: values to 1e-12 relative, every gradient to
+    1e-10 of its pair's scale (plus 1e-14 of what it cancels from, as for the paper's profile),
+    padding exactly zero."""
+    jax.config.update("jax_enable_x64", True)
+    args = _arc_population(jnp.float64)
+    valid, n = np.asarray(args[6]), args[1].shape[0]
+    ng = arc.nodes(jnp.float64)
+    D, A = native.pair_values(ng, *args, profile="arc")
+    Dr, Ar = jax.jit(_arc_reference)(*args)
+    for x, r in ((D, Dr), (A, Ar)):
+        x, r = np.asarray(x), np.asarray(r)
+        np.testing.assert_allclose(x, r, rtol=1e-12, atol=1e-14 * np.max(np.abs(r)))
+        assert np.all(x[..., ~valid] == 0)
+    assert np.mean(np.asarray(Dr)[:, valid] > 0) > 0.3  # lit pairs, not zeros
+    rng = np.random.default_rng(5)
+    ct = (jnp.asarray(rng.normal(size=D.shape)), jnp.asarray(rng.normal(size=A.shape)))
+    got = _rows(native.pair_vjp(ng, *args, *ct, profile="arc"), n)
+    ref = _rows(jax.jit(_arc_vjps)(args, ct), n)
+    w, a = np.asarray(args[3]), np.asarray(args[5])
+    cancels = np.sum(np.abs(np.asarray(D)), axis=0) / (a * w)
+    for k, (x, r) in enumerate(zip(got, ref)):
+        assert np.all(np.isfinite(x)) and np.all(x[~valid] == 0), k
+        scale = np.max(np.abs(r), axis=1)
+        tol = 1e-10 * scale + 1e-14 * cancels + 1e-15 * np.percentile(scale[valid], 90)
+        err = np.max(np.abs(x - r), axis=1) / np.where(tol > 0, tol, 1)
+        assert err.max() <= 1, (k, err.max(), int(np.argmax(err)))
+        assert np.any(np.abs(r) > 0), k
+
+
+@needs_native
+@pytest.mark.float64
+def test_arc_pair_kernel_float32_as_accurate_as_jnp():
+    """``profile="arc"`` in float32 against the float64 jnp reference at the same rounded
+    inputs: the kernel's error is that of `arc.arc_lit_integral` in float32 (values: 99th
+    percentile within 2x + 1e-6, worst within 3x or 1e-3; gradients: `_assert_as_accurate_as_jnp`)."""
+    jax.config.update("jax_enable_x64", True)
+    a32 = _arc_population(jnp.float32)
+    a64 = tuple(x.astype(jnp.float64) if x.dtype == jnp.float32 else x for x in a32)
+    n = a32[1].shape[0]
+    Dr = np.asarray(jax.jit(_arc_reference)(*a64)[0])
+    Dn = np.asarray(native.pair_values(arc.nodes(jnp.float32), *a32, profile="arc")[0],
+                    np.float64)
+    Dj = np.asarray(jax.jit(_arc_reference)(*a32)[0], np.float64)
+    den = np.abs(Dr) + 1e-6 * np.max(np.abs(Dr))
+    e_nat, e_jnp = np.abs(Dn - Dr) / den, np.abs(Dj - Dr) / den
+    assert np.percentile(e_nat, 99) <= 2 * np.percentile(e_jnp, 99) + 1e-6
+    assert e_nat.max() <= max(3 * e_jnp.max(), 1e-3), (e_nat.max(), e_jnp.max())
+    rng = np.random.default_rng(6)
+    ct = (rng.normal(size=Dr.shape), rng.normal(size=(n,)))
+    ref = _rows(jax.jit(_arc_vjps)(a64, tuple(jnp.asarray(c) for c in ct)), n)
+    ct32 = tuple(jnp.asarray(c, jnp.float32) for c in ct)
+    nat = _rows(native.pair_vjp(arc.nodes(jnp.float32), *a32, *ct32, profile="arc"), n)
+    jnp32 = _rows(jax.jit(_arc_vjps)(a32, ct32), n)
+    _assert_as_accurate_as_jnp(nat, jnp32, ref)
+
+
+@needs_native
+@pytest.mark.float64
+def test_arc_pairs_gradients_match_finite_differences_float64():
+    """`native.pairs(..., profile="arc")` (the differentiable wrapper, profile by keyword): the
+    directional derivative of a weighted sum of ``D`` and ``A`` against central differences."""
+    jax.config.update("jax_enable_x64", True)
+    fp, p0, p1, w, d, a, _, H = _arc_population(jnp.float64)
+    fp, p0, p1, w, d, a, H = (*(x[:256] for x in (fp, p0, p1, w, d, a)), H[:, :256])
+    a = jnp.maximum(a, 0.05)  # the difference step must resolve the peak
+    valid = jnp.ones(w.shape, bool)
+    rng = np.random.default_rng(8)
+    cD, cA = rng.normal(size=H.shape[:2]), rng.normal(size=w.shape) * 1e3
+
+    def f(p0, p1, w, d, a, H):
+        D, A = native.pairs(arc.nodes(jnp.float64), fp, p0, p1, w, d, a, valid, H, profile="arc")
+        return jnp.sum(cD * D) + jnp.sum(cA * A)
+
+    x = (p0, p1, w, d, a, H)
+    g = jax.grad(f, argnums=range(6))(*x)
+    scales = (1e-7, 1e-7, 1e-3 * w, 1e-3 * d, 0.01 * a, 0.01)
+    for k in range(6):
+        u = jnp.asarray(rng.normal(size=x[k].shape)) * scales[k]
+        step = 1e-4
+        at = lambda t: f(*(xi + t * u if i == k else xi for i, xi in enumerate(x)))
+        fd = float(8 * (at(step) - at(-step)) - (at(2 * step) - at(-2 * step))) / (12 * step)
+        ad = float(jnp.sum(g[k] * u))
+        assert abs(ad - fd) <= 1e-6 * abs(fd) + 1e-12, (k, ad, fd)
+
+
+@needs_native
+def test_pair_kernels_refuse_an_unknown_profile():
+    args = _pair_population(jnp.float32)
+    for bad in ("ball", 1, None):
+        with pytest.raises(InputError, match=r"profile=.*expected one of 'paper', 'arc'"):
+            native.pair_values(4, *args, profile=bad)
+    with pytest.raises(InputError, match="profile='Arc'"):
+        native.pairs(4, *args, "Arc")

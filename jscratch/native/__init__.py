@@ -1,4 +1,5 @@
-"""The pair kernel as native CPU kernels (XLA FFI custom calls, `native_lit.cc`).
+"""The pair kernel as native CPU kernels (XLA FFI custom calls, `native_lit.cc` and the arc
+groove's `native_arc.h`, which it includes).
 
 `jscratch.ndf` evaluates a pair with jnp (XLA's CPU backend evaluates the many gradient outputs
 in separate fusions that each recompute the shared arithmetic); where this module is available,
@@ -8,7 +9,9 @@ each with a values-only and a reverse-pass variant:
 - the whole pair (`pair_values`, `pair_vjp`, differentiable `pairs`; what `jscratch.render` runs
   per chunk): the view-independent geometry (`ndf.pair_geometry`) and its Jacobian with respect
   to ``p0, p1, width, depth`` (forward mode), then every view's lit integral over the pair's
-  pieces that are not points, chained; one SIMD lane per pair;
+  pieces that are not points, chained; one SIMD lane per pair. ``profile="paper"`` (default)
+  integrates the paper's groove, ``profile="arc"`` a ball cutter's (`arc.arc_lit_integral`,
+  the geometry of `arc.arc_groove`'s (width, depth));
 - the per-view stage (`lit`, `lit_values`, `lit_partials`; what `ndf.lit_integral` calls): the
   slab, lobe, cut and piece integrals and their partials; one SIMD lane per pair-view.
 
@@ -23,18 +26,19 @@ and float32).
   mode: its partials from the kernel; `ndf` calls this).
 - `lit_partials(n_gl, ua, ub, Ya, Yb, X, h, b, t, alpha)`: the lit integral and its partials
   (`native_lit.cc` says which); `lit_values(...)`: the integral alone.
-- `pair_values(n_gl, footprint, p0, p1, width, depth, alpha, valid, h) -> (D, A)`,
-  `pair_vjp(..., ct_D, ct_A)`, `pairs(...)`: the whole pair; `pair_jacobian(...)`: its values
-  and Jacobians in one pass (the renderer's gradient on one device keeps them).
+- `pair_values(n_gl, footprint, p0, p1, width, depth, alpha, valid, h, profile="paper") ->
+  (D, A)`, `pair_vjp(..., ct_D, ct_A, profile=...)`, `pairs(..., profile)`: the whole pair;
+  `pair_jacobian(..., profile=...)`: its values and Jacobians in one pass (the renderer's
+  gradient on one device keeps them).
 - `status()`: what runs and why, a JSON-friendly dict (the design writes it to metrics.json);
   ``python -m jscratch.native [--json]`` prints it (and builds the kernel if needed).
 
-Build. The kernel is compiled on first use with the system's C++ compiler (``$CXX``, else
-``g++``, ``c++`` or ``clang++`` on ``PATH``; 5-8 s) into ``native_lit-<key>.so`` in
-``$JSCRATCH_CACHE`` (else ``$XDG_CACHE_HOME/jscratch`` or ``~/.cache/jscratch``). The key (`_key`)
-covers everything the binary depends on: the source text, the compiler's path and its
-``--version`` output, the flags (``-march=native``), the CPU's model and features, the jaxlib
-version and a hash of the XLA FFI headers under ``jax.ffi.include_dir()``. After a build the
+Build. The kernel (native_lit.cc, which includes native_arc.h) is compiled on first use with
+the system's C++ compiler (``$CXX``, else ``g++``, ``c++`` or ``clang++`` on ``PATH``; 5-8 s)
+into ``native_lit-<key>.so`` in ``$JSCRATCH_CACHE`` (else ``$XDG_CACHE_HOME/jscratch`` or
+``~/.cache/jscratch``). The key (`_key`) covers everything the binary depends on: the text of
+both source files, the compiler's path and its ``--version`` output, the flags
+(``-march=native``), the CPU's model and features, the jaxlib version and a hash of the XLA FFI headers under ``jax.ffi.include_dir()``. After a build the
 cache's other ``native_lit-*.so`` (stale keys) are deleted. Nothing is downloaded.
 
 Settings, read from the environment ONCE, when this module is imported (changing them later in
@@ -80,11 +84,16 @@ import jaxlib
 
 from jscratch.errors import InputError, error_line
 
-__all__ = ["NativeKernelWarning", "available", "enabled", "lit", "lit_partials", "lit_values",
+__all__ = ["PROFILES", "NativeKernelWarning", "available", "enabled", "lit", "lit_partials",
+           "lit_values",
            "main", "override", "pair_jacobian", "pair_values", "pair_vjp", "pairs", "prepare", "status",
            "threads"]
 
 _SOURCE = Path(__file__).with_name("native_lit.cc")
+#: The arc groove's per-view stage, included by `_SOURCE` (one library; the key covers both).
+_ARC_SOURCE = Path(__file__).with_name("native_arc.h")
+#: The whole-pair kernels' groove profiles (docs/model.md §2, §13) -> their ``profile`` attribute.
+PROFILES = {"paper": 0, "arc": 1}
 #: (dtype, with partials) -> (FFI target name, symbol in the library).
 _TARGETS = {(jnp.dtype(dt), partials): (f"jscratch_lit{'' if partials else '_values'}_{name}",
                                         f"JscratchLit{'' if partials else 'Values'}{name.upper()}")
@@ -221,7 +230,8 @@ def _ffi_headers() -> str:
 def _key_parts(cxx: str) -> dict:
     """What the library depends on, as strings: the cache key's inputs (`_key`)."""
     model, features = _cpu()
-    return {"source": _sha(_SOURCE.read_bytes()), "compiler": cxx,
+    return {"source": _sha(_SOURCE.read_bytes() + b"\0" + _ARC_SOURCE.read_bytes()),
+            "compiler": cxx,
             "compiler_version": _compiler_version(cxx), "flags": " ".join(_FLAGS),
             "cpu": f"{platform.machine()} {model}", "cpu_features": _sha(features.encode()),
             "jaxlib": jaxlib.__version__, "ffi_headers": _ffi_headers()}
@@ -263,7 +273,7 @@ def _compile() -> dict:
                                str(out)], capture_output=True, text=True)
         if proc.returncode != 0:
             last = (proc.stderr.strip().splitlines() or ["?"])[-1]
-            raise RuntimeError(f"{Path(cxx).name} failed on native_lit.cc: {last}")
+            raise RuntimeError(f"{Path(cxx).name} failed on {_SOURCE.name}: {last}")
         os.replace(out, lib)  # atomic: concurrent processes see a whole library or none
     _prune(lib)
     return info | {"built": True, "seconds": round(time.perf_counter() - t0, 1)}
@@ -437,73 +447,99 @@ def _lit_bwd(n_gl, partials, ct):
 
 lit.defvjp(_lit_fwd, _lit_bwd)
 
-def pair_values(n_gl: int, footprint, p0, p1, width, depth, alpha, valid, h):
+def _profile(profile) -> int:
+    """The ``profile`` attribute of a groove profile's name (`PROFILES`), else `InputError`."""
+    if not isinstance(profile, str) or profile not in PROFILES:
+        raise InputError(f"profile={profile!r}: expected one of {', '.join(map(repr, PROFILES))}")
+    return PROFILES[profile]
+
+
+def pair_values(n_gl: int, footprint, p0, p1, width, depth, alpha, valid, h, profile="paper"):
     """The whole pair integral of ``n`` pixel-scratch pairs under ``V`` views, natively:
     ``(D_hat, A)``, ``(V, n)`` and ``(n,)``, as ``ndf.lit_integral(ndf.pair_geometry(...), ...)``
     and that geometry's ``area`` give them (the geometry once per pair, every view on its pieces
     that are not points). ``footprint`` ``(n, 4, 2)``, ``p0, p1`` ``(n, 2)``, ``width, depth,
     alpha`` ``(n,)`` (m, m, m, 1), ``valid`` ``(n,)`` bool (padding slots: exact zeros), ``h``
-    ``(V, n, 3)`` board-frame half vectors; ``n_gl`` Gauss-Legendre nodes (`lobe.nodes`). Needs
-    `available`; works under `jax.shard_map`."""
+    ``(V, n, 3)`` board-frame half vectors. Needs `available`; works under `jax.shard_map`.
+
+    ``profile`` (static) chooses the groove (docs/model.md §2, §13):
+
+    - ``"paper"`` (default): the paper's profile of width ``w`` and depth ``d``; ``n_gl`` the
+      Gauss-Legendre nodes of its smooth lobe and short pieces (`lobe.nodes`: 4 in float32, 16 in
+      float64);
+    - ``"arc"``: a ball cutter's groove, given as ``(width, depth) = arc.arc_groove(plunge,
+      radius)`` (``width = 2R``); the same geometry, each view's ``D_hat`` that of
+      `arc.arc_lit_integral`; ``n_gl`` the nodes of its rule on every piece (`arc.nodes`: 8 in
+      float32, 24 in float64).
+
+    Anything else: `InputError`."""
     dt = jnp.dtype(width.dtype)
+    code = _profile(profile)
     args = (footprint, p0, p1, width, depth, alpha, valid, h)
     call = jax.ffi.ffi_call(_PAIR_TARGETS[dt, False][0],
                             (jax.ShapeDtypeStruct(h.shape[:-1], dt),
                              jax.ShapeDtypeStruct(width.shape, dt)))
-    D, A = call(*args, n_gl=int(n_gl), threads=threads())
+    D, A = call(*args, n_gl=int(n_gl), profile=code, threads=threads())
     return (functools.reduce(_varying_like, args, D), functools.reduce(_varying_like, args, A))
 
 
-def pair_vjp(n_gl: int, footprint, p0, p1, width, depth, alpha, valid, h, ct_D, ct_A):
+def pair_vjp(n_gl: int, footprint, p0, p1, width, depth, alpha, valid, h, ct_D, ct_A,
+             profile="paper"):
     """The reverse pass of `pair_values` at the cotangents ``ct_D`` ``(V, n)`` and ``ct_A``
     ``(n,)``: ``(d_p0, d_p1, d_width, d_depth, d_alpha, d_h)``, shaped as those inputs (zeros on
     padding slots; the footprint is data). The geometry's Jacobian is computed in forward mode
-    (six tangents) and chained with every view's partials (`lit_partials`' formulas)."""
+    (six tangents) and chained with every view's partials (`lit_partials`' formulas for the
+    paper's profile, `native_arc.h`'s for the arc). ``profile`` as in `pair_values`."""
     dt = jnp.dtype(width.dtype)
+    code = _profile(profile)
     args = (footprint, p0, p1, width, depth, alpha, valid, h, ct_D, ct_A)
     out = tuple(jax.ShapeDtypeStruct(x.shape, dt) for x in (p0, p1, width, depth, alpha, h))
     call = jax.ffi.ffi_call(_PAIR_TARGETS[dt, True][0], out)
-    res = call(*args, n_gl=int(n_gl), threads=threads())
+    res = call(*args, n_gl=int(n_gl), profile=code, threads=threads())
     return tuple(functools.reduce(_varying_like, args, r) for r in res)
 
 
-def pair_jacobian(n_gl: int, footprint, p0, p1, width, depth, alpha, valid, h):
+def pair_jacobian(n_gl: int, footprint, p0, p1, width, depth, alpha, valid, h, profile="paper"):
     """`pair_values` and the pairs' Jacobians, natively, in one pass: ``(D_hat (V, n), A (n),
     J_D (V, n, 7), J_h (V, n, 3), J_A (n, 6))``, ``J_D`` the derivatives of each view's
     ``D_hat`` with respect to ``(p0x, p0y, p1x, p1y, width, depth, alpha)``, ``J_h`` with respect
     to that view's ``h``, ``J_A`` those of ``A`` with respect to the first six (zeros on padding
     slots). `pair_vjp` at cotangents ``(ct_D, ct_A)`` is ``sum_v ct_D[v] J_D[v] + ct_A J_A`` (and
-    ``ct_D[v] J_h[v]``): a reverse pass that keeps these needs no second evaluation."""
+    ``ct_D[v] J_h[v]``): a reverse pass that keeps these needs no second evaluation. ``profile``
+    as in `pair_values`."""
     dt = jnp.dtype(width.dtype)
+    code = _profile(profile)
     args = (footprint, p0, p1, width, depth, alpha, valid, h)
     V, n = h.shape[0], width.shape[0]
     out = (jax.ShapeDtypeStruct((V, n), dt), jax.ShapeDtypeStruct((n,), dt),
            jax.ShapeDtypeStruct((V, n, 7), dt), jax.ShapeDtypeStruct((V, n, 3), dt),
            jax.ShapeDtypeStruct((n, 6), dt))
-    res = jax.ffi.ffi_call(_JAC_TARGETS[dt][0], out)(*args, n_gl=int(n_gl), threads=threads())
+    res = jax.ffi.ffi_call(_JAC_TARGETS[dt][0], out)(*args, n_gl=int(n_gl), profile=code,
+                                                      threads=threads())
     return tuple(functools.reduce(_varying_like, args, r) for r in res)
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
-def pairs(n_gl: int, footprint, p0, p1, width, depth, alpha, valid, h):
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0, 9))
+def pairs(n_gl: int, footprint, p0, p1, width, depth, alpha, valid, h, profile="paper"):
     """`pair_values`, differentiable (reverse mode, by `pair_vjp`; no gradient to the
-    footprint or `valid`)."""
-    return pair_values(n_gl, footprint, p0, p1, width, depth, alpha, valid, h)
+    footprint or `valid`). ``profile`` (static, positional or keyword) as in `pair_values`."""
+    return pair_values(n_gl, footprint, p0, p1, width, depth, alpha, valid, h, profile)
 
 
-def _pairs_fwd(n_gl, *args):
-    return pair_values(n_gl, *args), args
+def _pairs_fwd(n_gl, footprint, p0, p1, width, depth, alpha, valid, h, profile):
+    args = (footprint, p0, p1, width, depth, alpha, valid, h)
+    return pair_values(n_gl, *args, profile), args
 
 
-def _pairs_bwd(n_gl, args, ct):
-    d0, d1, dw, dd, da, dh = pair_vjp(n_gl, *args, *ct)
+def _pairs_bwd(n_gl, profile, args, ct):
+    d0, d1, dw, dd, da, dh = pair_vjp(n_gl, *args, *ct, profile=profile)
     return jnp.zeros_like(args[0]), d0, d1, dw, dd, da, None, dh
 
 
 pairs.defvjp(_pairs_fwd, _pairs_bwd)
 
 #: How the CLI names the key's inputs.
-_COVERS = {"source": "native_lit.cc sha256", "compiler": "compiler",
+_COVERS = {"source": "native_lit.cc and native_arc.h sha256", "compiler": "compiler",
            "compiler_version": "its --version", "flags": "flags", "cpu": "CPU",
            "cpu_features": "CPU features sha256", "jaxlib": "jaxlib",
            "ffi_headers": "XLA FFI headers sha256"}

@@ -371,16 +371,19 @@ V piece(int n_gl, const double* xs, const double* ws, V ua, V ub, V Ya, V Yb, co
   return value;
 }
 
-// One lane per pair-view: `L` pair-views from lanes of the inputs (pieces `k` per lane).
-template <typename T, typename V, bool kPartials>
-void lit_lanes(int n_gl, const double* xs, const double* ws, int k, const V* ua, const V* ub,
-               const V* Ya, const V* Yb, const V* sv, V* out, V* g_ua, V* g_ub, V* g_Ya,
-               V* g_Yb, V* gs) {
-  const V zero = V{}, one = splat<V>(1), two = splat<V>(2);
-  // The view algebra with its Jacobian (`ndf._lit_integral`'s half vector in the scratch frame,
-  // `_view`, `lit_interval`, `lobe.lobe`, `lobe_params`), from sv = (X, h (3), b (2), t (2),
-  // alpha): computed here with IEEE operations, not in an XLA fusion (whose rewrites, such as
-  // x / sqrt(y) -> x * rsqrt(y), move a sharp peak by an ulp or two).
+// The view algebra with its Jacobian (`ndf._lit_integral`'s half vector in the scratch frame,
+// `_view`, `lit_interval`, `lobe.lobe`, `lobe_params`), from sv = (X, h (3), b (2), t (2),
+// alpha): computed here with IEEE operations, not in an XLA fusion (whose rewrites, such as
+// x / sqrt(y) -> x * rsqrt(y), move a sharp peak by an ulp or two). Out: X, the roots u_m, u_p of
+// N (`lit_interval`) and the 11 lobe parameters, each with its kTan tangents.
+template <typename V>
+struct View {
+  Dual<V> X, u_m, u_p, pd[11];
+};
+
+template <typename T, typename V>
+void view_algebra(const V* sv, View<V>* o) {
+  const V one = splat<V>(1), two = splat<V>(2);
   Dual<V> Xd = var(sv[0], 0), h0 = var(sv[1], 1), h1 = var(sv[2], 2), h2 = var(sv[3], 3),
           b0 = var(sv[4], 4), b1 = var(sv[5], 5), t0 = var(sv[6], 6), t1 = var(sv[7], 7),
           al = var(sv[8], 8);
@@ -391,10 +394,9 @@ void lit_lanes(int n_gl, const double* xs, const double* ws, int k, const V* ua,
   Dual<V> rp = r + dabs<T>(hx);
   Dual<V> near = hz / scale(two, rp), far = rp / scale(two, hz);
   auto hx_pos = hx.v >= 0;
-  Dual<V> u_p = dsel(hx_pos, near, far);
-  Dual<V> u_m = dsel(hx_pos, -far, -near);
-  Dual<V> lo = dmax<T>(-Xd, u_m);
-  Dual<V> hi = dmax<T>(dmin<T>(Xd, u_p), lo);
+  o->X = Xd;
+  o->u_p = dsel(hx_pos, near, far);
+  o->u_m = dsel(hx_pos, -far, -near);
   Dual<V> a2 = al * al;
   Dual<V> kk = dsafe_sqrt<T>(cst(one) - a2);
   Dual<V> g = cst(one) / (cst(one) + kk * hz);
@@ -405,81 +407,116 @@ void lit_lanes(int n_gl, const double* xs, const double* ws, int k, const V* ua,
   Dual<V> a = -(scale(two, g) * kk * hx) / beta;
   Dual<V> m = scale(two, kk) * (hz + g * kk * hx * hx) / beta2;
   Dual<V> g21 = scale(two, g) + cst(one);
-  Dual<V> pd[11] = {g * g + g, g21 * m + a * a, g21 * a, m * m - a * a, scale(two, a) * m,
-                    u1, q1, g, kk, hx, hz};
-  V p[11];
-  for (int i = 0; i < 11; ++i) p[i] = pd[i].v;
+  const Dual<V> pd[11] = {g * g + g, g21 * m + a * a, g21 * a, m * m - a * a, scale(two, a) * m,
+                          u1, q1, g, kk, hx, hz};
+  for (int i = 0; i < 11; ++i) o->pd[i] = pd[i];
+}
 
-  // `ndf._cut` of the pieces to the slab [lo, hi].
-  const V Lo = lo.v, Hi = hi.v;
+// `ndf._cut` of k pieces (one per lane) to the slab [Lo, Hi], with what its transpose
+// (`ndf._cut_transpose`, `cut_transpose`) needs; `ref` (`ndf._centre`, no derivative) is to be
+// subtracted from Ya2, Yb2.
+template <typename V>
+struct Cut {
   typedef decltype(V{} < V{}) M;
   V ca[kMaxPieces], cb[kMaxPieces], Ya2[kMaxPieces], Yb2[kMaxPieces], ta[kMaxPieces],
       tb[kMaxPieces], dYs[kMaxPieces], inv_du[kMaxPieces];
   M ta_free[kMaxPieces], tb_free[kMaxPieces], lo_a[kMaxPieces], hi_a[kMaxPieces],
       lo_b[kMaxPieces], hi_b[kMaxPieces], pt[kMaxPieces];
+  V ref;
+};
+
+template <typename T, typename V>
+void cut(int k, const V* ua, const V* ub, const V* Ya, const V* Yb, V Lo, V Hi, Cut<V>* c) {
+  typedef typename Cut<V>::M M;
+  const V zero = V{}, one = splat<V>(1);
   V sw = zero, swy = zero;
   for (int i = 0; i < k; ++i) {
     V du = ub[i] - ua[i], dY = Yb[i] - Ya[i];
-    lo_a[i] = ua[i] < Lo; hi_a[i] = ua[i] > Hi; lo_b[i] = ub[i] < Lo; hi_b[i] = ub[i] > Hi;
-    M moved_a = lo_a[i] | hi_a[i], moved_b = lo_b[i] | hi_b[i];
-    V c_a = sel<V>(lo_a[i], Lo, sel<V>(hi_a[i], Hi, ua[i]));
-    V c_b = sel<V>(lo_b[i], Lo, sel<V>(hi_b[i], Hi, ub[i]));
+    c->lo_a[i] = ua[i] < Lo; c->hi_a[i] = ua[i] > Hi;
+    c->lo_b[i] = ub[i] < Lo; c->hi_b[i] = ub[i] > Hi;
+    M moved_a = c->lo_a[i] | c->hi_a[i], moved_b = c->lo_b[i] | c->hi_b[i];
+    V c_a = sel<V>(c->lo_a[i], Lo, sel<V>(c->hi_a[i], Hi, ua[i]));
+    V c_b = sel<V>(c->lo_b[i], Lo, sel<V>(c->hi_b[i], Hi, ub[i]));
     M nz = du != 0;
     V inv = 1 / sel<V>(nz, du, one);
-    auto param = [&](V c, M moved, V dflt, M* fr) {
-      V rr = (c - ua[i]) * inv;
+    auto param = [&](V cc, M moved, V dflt, M* fr) {
+      V rr = (cc - ua[i]) * inv;
       M mm = moved & nz;
       *fr = mm & (rr > 0) & (rr < 1);
       return sel<V>(mm, sel<V>(rr <= 0, zero, sel<V>(rr >= 1, one, rr)), dflt);
     };
-    ta[i] = param(c_a, moved_a, zero, &ta_free[i]);
-    tb[i] = param(c_b, moved_b, one, &tb_free[i]);
-    V y_a = lerp(Ya[i], Yb[i], dY, ta[i]);
-    V y_b = lerp(Ya[i], Yb[i], dY, tb[i]);
-    pt[i] = (nz & (c_a == c_b)) | (~nz & moved_a);
-    c_b = sel<V>(pt[i], c_a, c_b);
-    y_b = sel<V>(pt[i], y_a, y_b);
-    ca[i] = c_a; cb[i] = c_b; Ya2[i] = y_a; Yb2[i] = y_b; dYs[i] = dY; inv_du[i] = inv;
+    c->ta[i] = param(c_a, moved_a, zero, &c->ta_free[i]);
+    c->tb[i] = param(c_b, moved_b, one, &c->tb_free[i]);
+    V y_a = lerp(Ya[i], Yb[i], dY, c->ta[i]);
+    V y_b = lerp(Ya[i], Yb[i], dY, c->tb[i]);
+    c->pt[i] = (nz & (c_a == c_b)) | (~nz & moved_a);
+    c_b = sel<V>(c->pt[i], c_a, c_b);
+    y_b = sel<V>(c->pt[i], y_a, y_b);
+    c->ca[i] = c_a; c->cb[i] = c_b; c->Ya2[i] = y_a; c->Yb2[i] = y_b; c->dYs[i] = dY;
+    c->inv_du[i] = inv;
     V wgt = vabs<T>(c_b - c_a) + vabs<T>(y_b - y_a);
     sw += wgt;
     swy += wgt * (y_a + y_b) / 2;
   }
-  // `ndf._centre` (it carries no derivative).
-  V ref = sel<V>(sw > 0, swy / sel<V>(sw > 0, sw, one), zero);
+  c->ref = sel<V>(sw > 0, swy / sel<V>(sw > 0, sw, one), zero);
+}
 
+// `ndf._cut_transpose` of piece i: from the partials with respect to the cut piece's ends to
+// those of the uncut piece (g_ua .. g_Yb) and, summed, of the slab bounds (g_lo, g_hi).
+template <typename V>
+void cut_transpose(const Cut<V>& c, int i, V dca, V dcb, V dYa, V dYb, V* g_ua, V* g_ub,
+                   V* g_Ya, V* g_Yb, V* g_lo, V* g_hi) {
+  const V zero = V{};
+  dca = dca + sel<V>(c.pt[i], dcb, zero);
+  dYa = dYa + sel<V>(c.pt[i], dYb, zero);
+  dcb = sel<V>(c.pt[i], zero, dcb);
+  dYb = sel<V>(c.pt[i], zero, dYb);
+  *g_Ya = dYa * (1 - c.ta[i]) + dYb * (1 - c.tb[i]);
+  *g_Yb = dYa * c.ta[i] + dYb * c.tb[i];
+  V ga = sel<V>(c.ta_free[i], dYa * c.dYs[i] * c.inv_du[i], zero);
+  V gb = sel<V>(c.tb_free[i], dYb * c.dYs[i] * c.inv_du[i], zero);
+  dca += ga;
+  dcb += gb;
+  V gua = ga * (c.ta[i] - 1) + gb * (c.tb[i] - 1);
+  V gub = -(ga * c.ta[i] + gb * c.tb[i]);
+  gua += sel<V>(c.lo_a[i] | c.hi_a[i], zero, dca);
+  gub += sel<V>(c.lo_b[i] | c.hi_b[i], zero, dcb);
+  *g_ua = gua;
+  *g_ub = gub;
+  *g_lo += sel<V>(c.lo_a[i], dca, zero) + sel<V>(c.lo_b[i], dcb, zero);
+  *g_hi += sel<V>(c.hi_a[i], dca, zero) + sel<V>(c.hi_b[i], dcb, zero);
+}
+
+// One lane per pair-view: `L` pair-views from lanes of the inputs (pieces `k` per lane).
+template <typename T, typename V, bool kPartials>
+void lit_lanes(int n_gl, const double* xs, const double* ws, int k, const V* ua, const V* ub,
+               const V* Ya, const V* Yb, const V* sv, V* out, V* g_ua, V* g_ub, V* g_Ya,
+               V* g_Yb, V* gs) {
+  const V zero = V{};
+  View<V> vw;
+  view_algebra<T>(sv, &vw);
+  const Dual<V> lo = dmax<T>(-vw.X, vw.u_m);
+  const Dual<V> hi = dmax<T>(dmin<T>(vw.X, vw.u_p), lo);
+  V p[11];
+  for (int i = 0; i < 11; ++i) p[i] = vw.pd[i].v;
+  Cut<V> c;
+  cut<T>(k, ua, ub, Ya, Yb, lo.v, hi.v, &c);
   V value = zero, dp[11], g_lo = zero, g_hi = zero;
   for (int i = 0; i < 11; ++i) dp[i] = zero;
   for (int i = 0; i < k; ++i) {
     V dca, dcb, dYa, dYb;
-    value += piece<T, V, kPartials>(n_gl, xs, ws, ca[i], cb[i], Ya2[i] - ref, Yb2[i] - ref, p,
-                                    &dca, &dcb, &dYa, &dYb, dp);
-    if constexpr (!kPartials) continue;
-    // `ndf._cut_transpose`.
-    dca = dca + sel<V>(pt[i], dcb, zero);
-    dYa = dYa + sel<V>(pt[i], dYb, zero);
-    dcb = sel<V>(pt[i], zero, dcb);
-    dYb = sel<V>(pt[i], zero, dYb);
-    g_Ya[i] = dYa * (1 - ta[i]) + dYb * (1 - tb[i]);
-    g_Yb[i] = dYa * ta[i] + dYb * tb[i];
-    V ga = sel<V>(ta_free[i], dYa * dYs[i] * inv_du[i], zero);
-    V gb = sel<V>(tb_free[i], dYb * dYs[i] * inv_du[i], zero);
-    dca += ga;
-    dcb += gb;
-    V gua = ga * (ta[i] - 1) + gb * (tb[i] - 1);
-    V gub = -(ga * ta[i] + gb * tb[i]);
-    gua += sel<V>(lo_a[i] | hi_a[i], zero, dca);
-    gub += sel<V>(lo_b[i] | hi_b[i], zero, dcb);
-    g_ua[i] = gua;
-    g_ub[i] = gub;
-    g_lo += sel<V>(lo_a[i], dca, zero) + sel<V>(lo_b[i], dcb, zero);
-    g_hi += sel<V>(hi_a[i], dca, zero) + sel<V>(hi_b[i], dcb, zero);
+    value += piece<T, V, kPartials>(n_gl, xs, ws, c.ca[i], c.cb[i], c.Ya2[i] - c.ref,
+                                    c.Yb2[i] - c.ref, p, &dca, &dcb, &dYa, &dYb, dp);
+    if constexpr (kPartials)
+      cut_transpose(c, i, dca, dcb, dYa, dYb, &g_ua[i], &g_ub[i], &g_Ya[i], &g_Yb[i], &g_lo,
+                    &g_hi);
   }
   *out = value;
   if constexpr (!kPartials) return;
   // Chain the slab bounds' and the lobe parameters' partials through the view algebra.
   for (int t = 0; t < kTan; ++t) {
     V s = g_lo * lo.d[t] + g_hi * hi.d[t];
-    for (int i = 0; i < 11; ++i) s += dp[i] * pd[i].d[t];
+    for (int i = 0; i < 11; ++i) s += dp[i] * vw.pd[i].d[t];
     gs[t] = s;
   }
 }
@@ -631,6 +668,9 @@ ffi::Error LitValuesImpl(ffi::ThreadPool pool, ffi::Buffer<DT> ua, ffi::Buffer<D
                             b.element_count(),  t.element_count(),  alpha.element_count()};
   return run<T, false>(pool, counts, n_gl, threads, in, res);
 }
+
+// The ball cutter's groove: `arc_lit_lanes`, the per-view stage of `arc.arc_lit_integral`.
+#include "native_arc.h"
 
 // ------------------------------------------------------------------------------------------
 // The whole pair: the view-independent geometry (`ndf._pair_geometry`) with its Jacobian with
@@ -864,7 +904,7 @@ struct PairArgs {
 // and dh (V, n, 3) = dD/dh, and JA (n, 6) = dA/d(p0x, p0y, p1x, p1y, w, d).
 template <typename T, bool kGrad, bool kJac = false>
 void pairs_range(int n_gl, const double* xs, const double* ws, size_t i0, size_t i1,
-                 const PairArgs<T>& a) {
+                 const PairArgs<T>& a, bool arc) {
   typedef typename Vec<T>::type V;
   constexpr int L = Vec<T>::L;
   constexpr int N = kGrad ? kGeo : 0;
@@ -951,7 +991,10 @@ void pairs_range(int n_gl, const double* xs, const double* ws, size_t i0, size_t
       for (int c = 0; c < 3; ++c) s[1 + c] = hv[c];
       V lit = zero, gp[4][kMaxPieces], gs[kTan];
       for (int c = 0; c < kTan; ++c) gs[c] = zero;
-      if (k > 0)
+      if (k > 0 && arc)
+        arc_lit_lanes<T, V, kGrad>(n_gl, xs, ws, k, cu, cv, cya, cyb, s, &lit, gp[0], gp[1],
+                                   gp[2], gp[3], gs);
+      else if (k > 0)
         lit_lanes<T, V, kGrad>(n_gl, xs, ws, k, cu, cv, cya, cyb, s, &lit, gp[0], gp[1], gp[2],
                                gp[3], gs);
       if constexpr (!kGrad) {
@@ -1028,24 +1071,25 @@ void pairs_range(int n_gl, const double* xs, const double* ws, size_t i0, size_t
 constexpr size_t kPairChunk = 256;
 
 template <typename T, bool kGrad, bool kJac = false>
-ffi::Error run_pairs(ffi::ThreadPool& pool, int64_t n_gl, int64_t threads, size_t n_fp,
-                     size_t n_h, size_t n_ct, PairArgs<T>& a, const size_t* counts) {
+ffi::Error run_pairs(ffi::ThreadPool& pool, int64_t n_gl, int64_t profile, int64_t threads,
+                     size_t n_fp, size_t n_h, size_t n_ct, PairArgs<T>& a, const size_t* counts) {
   // counts: p0, p1, w, d, alpha, valid (ctA for the reverse pass: counts[6]).
   const size_t n = a.n;
   if (n == 0) return ffi::Error::Success();
   bool ok = n_fp == 8 * n && counts[0] == 2 * n && counts[1] == 2 * n && n_gl >= 1 &&
-            n_gl <= kMaxNodes && n_h % (3 * n) == 0;
+            n_gl <= kMaxNodes && n_h % (3 * n) == 0 && (profile == 0 || profile == 1);
   for (int f = 2; f < (kGrad && !kJac ? 7 : 6); ++f) ok = ok && counts[f] == n;
   a.nv = n_h / (3 * n);
   if (kGrad && !kJac) ok = ok && n_ct == a.nv * n;
   if (!ok)
     return ffi::Error(ffi::ErrorCode::kInvalidArgument,
                       "jscratch pairs: inputs must be (n, 4, 2) footprints, (n, 2) p0 and p1, "
-                      "(n,) width, depth, alpha and valid, (V, n, 3) h (and (V, n) ctD, (n,) ctA)");
+                      "(n,) width, depth, alpha and valid, (V, n, 3) h (and (V, n) ctD, (n,) ctA), "
+                      "profile 0 (paper) or 1 (arc)");
   double xs[kMaxNodes], ws[kMaxNodes];
   gauss_legendre(static_cast<int>(n_gl), xs, ws);
   parallel(pool, n, kPairChunk, threads, [&](size_t i0, size_t i1) {
-    pairs_range<T, kGrad, kJac>(static_cast<int>(n_gl), xs, ws, i0, i1, a);
+    pairs_range<T, kGrad, kJac>(static_cast<int>(n_gl), xs, ws, i0, i1, a, profile == 1);
   });
   return ffi::Error::Success();
 }
@@ -1066,7 +1110,8 @@ template <ffi::DataType DT>
 ffi::Error PairsImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT> p0,
                      ffi::Buffer<DT> p1, ffi::Buffer<DT> w, ffi::Buffer<DT> d,
                      ffi::Buffer<DT> alpha, ffi::Buffer<ffi::DataType::PRED> valid,
-                     ffi::Buffer<DT> h, int64_t n_gl, int64_t threads, ffi::ResultBuffer<DT> D,
+                     ffi::Buffer<DT> h, int64_t n_gl, int64_t profile, int64_t threads,
+                     ffi::ResultBuffer<DT> D,
                      ffi::ResultBuffer<DT> A) {
   using T = ffi::NativeType<DT>;
   PairArgs<T> a;
@@ -1074,8 +1119,8 @@ ffi::Error PairsImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT> p
   a.D = D->typed_data(); a.A = A->typed_data();
   const size_t counts[6] = {p0.element_count(), p1.element_count(), w.element_count(),
                             d.element_count(), alpha.element_count(), valid.element_count()};
-  return run_pairs<T, false>(pool, n_gl, threads, fp.element_count(), h.element_count(), 0, a,
-                             counts);
+  return run_pairs<T, false>(pool, n_gl, profile, threads, fp.element_count(),
+                             h.element_count(), 0, a, counts);
 }
 
 template <ffi::DataType DT>
@@ -1083,7 +1128,7 @@ ffi::Error PairsVjpImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT
                         ffi::Buffer<DT> p1, ffi::Buffer<DT> w, ffi::Buffer<DT> d,
                         ffi::Buffer<DT> alpha, ffi::Buffer<ffi::DataType::PRED> valid,
                         ffi::Buffer<DT> h, ffi::Buffer<DT> ctD, ffi::Buffer<DT> ctA,
-                        int64_t n_gl, int64_t threads, ffi::ResultBuffer<DT> dp0,
+                        int64_t n_gl, int64_t profile, int64_t threads, ffi::ResultBuffer<DT> dp0,
                         ffi::ResultBuffer<DT> dp1, ffi::ResultBuffer<DT> dw,
                         ffi::ResultBuffer<DT> dd, ffi::ResultBuffer<DT> dalpha,
                         ffi::ResultBuffer<DT> dh) {
@@ -1096,7 +1141,7 @@ ffi::Error PairsVjpImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT
   const size_t counts[7] = {p0.element_count(), p1.element_count(), w.element_count(),
                             d.element_count(), alpha.element_count(), valid.element_count(),
                             ctA.element_count()};
-  return run_pairs<T, true>(pool, n_gl, threads, fp.element_count(), h.element_count(),
+  return run_pairs<T, true>(pool, n_gl, profile, threads, fp.element_count(), h.element_count(),
                             ctD.element_count(), a, counts);
 }
 
@@ -1104,7 +1149,7 @@ template <ffi::DataType DT>
 ffi::Error PairsJacImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT> p0,
                         ffi::Buffer<DT> p1, ffi::Buffer<DT> w, ffi::Buffer<DT> d,
                         ffi::Buffer<DT> alpha, ffi::Buffer<ffi::DataType::PRED> valid,
-                        ffi::Buffer<DT> h, int64_t n_gl, int64_t threads,
+                        ffi::Buffer<DT> h, int64_t n_gl, int64_t profile, int64_t threads,
                         ffi::ResultBuffer<DT> D, ffi::ResultBuffer<DT> A,
                         ffi::ResultBuffer<DT> JD, ffi::ResultBuffer<DT> dh,
                         ffi::ResultBuffer<DT> JA) {
@@ -1115,8 +1160,8 @@ ffi::Error PairsJacImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT
   a.dh = dh->typed_data(); a.JA = JA->typed_data();
   const size_t counts[6] = {p0.element_count(), p1.element_count(), w.element_count(),
                             d.element_count(), alpha.element_count(), valid.element_count()};
-  return run_pairs<T, true, true>(pool, n_gl, threads, fp.element_count(), h.element_count(), 0,
-                                  a, counts);
+  return run_pairs<T, true, true>(pool, n_gl, profile, threads, fp.element_count(),
+                                  h.element_count(), 0, a, counts);
 }
 
 }  // namespace
@@ -1156,13 +1201,13 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchLitValuesF64, LitValuesImpl<ffi::DataType:
 
 #define JSCRATCH_PAIRS_BIND(DT)                                                            \
   JSCRATCH_PAIRS_ARGS(DT)                                                                  \
-      .Attr<int64_t>("n_gl").Attr<int64_t>("threads")                                      \
+      .Attr<int64_t>("n_gl").Attr<int64_t>("profile").Attr<int64_t>("threads")            \
       .Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()
 
 #define JSCRATCH_PAIRS_VJP_BIND(DT)                                                        \
   JSCRATCH_PAIRS_ARGS(DT)                                                                  \
       .Arg<ffi::Buffer<DT>>().Arg<ffi::Buffer<DT>>()                                       \
-      .Attr<int64_t>("n_gl").Attr<int64_t>("threads")                                      \
+      .Attr<int64_t>("n_gl").Attr<int64_t>("profile").Attr<int64_t>("threads")            \
       .Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()                \
       .Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()
 
@@ -1177,7 +1222,7 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchPairsVjpF64, PairsVjpImpl<ffi::DataType::F
 
 #define JSCRATCH_PAIRS_JAC_BIND(DT)                                                        \
   JSCRATCH_PAIRS_ARGS(DT)                                                                  \
-      .Attr<int64_t>("n_gl").Attr<int64_t>("threads")                                      \
+      .Attr<int64_t>("n_gl").Attr<int64_t>("profile").Attr<int64_t>("threads")            \
       .Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()                \
       .Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()
 

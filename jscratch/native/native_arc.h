@@ -1,0 +1,325 @@
+// The ball cutter's groove (`jscratch.arc`, docs/model.md §13) in the whole-pair kernels: the
+// per-view stage of `arc.arc_lit_integral` with its partial derivatives, one SIMD lane per pair.
+// Included by native_lit.cc inside its namespace (it uses that file's `Vec`, `Dual`, `View`,
+// `Cut` and their helpers); the geometry stage is the paper profile's, unchanged, at
+// (width, depth) = `arc.arc_groove(plunge, radius)`.
+//
+// Per view: the groove's half-width in u is U = u_of_v(2 X); the lit slab [u_lo, u_hi] is cut in
+// the geometry's coordinate x / 2R = v / 2 (`cut`), the ends are mapped to u (slab bounds and
+// groove edges exactly), and each piece's J = ∫ Y(v(u)) v'(u) (F1 + F2) du
+// (`arc._piece_integrals`: the sharp lobe's poles subtracted by the Hermite cubic H and
+// integrated in closed form, the rest by n_gl-point Gauss-Legendre in u). lit = sum of J / 2
+// (so that D = scale * pref * lit, as for the paper's profile).
+//
+// Partial derivatives, all by hand, from one pass over the nodes:
+// - J is affine in the sharp lobe's coefficients (c0, c10, c11, c20, c21): their partials are the
+//   same rule applied to the basis functions (1, e, s e, e^2, s e^2) with the Hermite data of each;
+// - J is linear in the piece's Y, which is linear in mu = (v(u) - v(ua)) / (ub - ua): with
+//   J_1 (Y = 1) and J_mu (Y = mu), d J / d Yb = J_mu / den, d J / d Ya = J_1 - J_mu / den
+//   (den = (v(ub) - v(ua)) / (ub - ua));
+// - the ends: the derivatives of the integral itself,
+//   d J / d ub = v'(ub) (Yb D(ub) - Y_v J_lambda),
+//   d J / d ua = -v'(ua) (Ya D(ua) + Y_v J_(1-lambda))
+//   (Y_v = dY / (v(ub) - v(ua)), lambda = mu / den), which differ from the rule's own
+//   derivative by that rule's error on smooth integrands;
+// - u1 and q1 (the peak's position and width): the rule's derivative, the nodes' s moving
+//   (d/ds of the basis functions), the Hermite data moving with z = u1 + i q1 (w', w'' at z) and
+//   the closed form's ends (its integrands at the ends);
+// - k, hx, hz: the smooth lobe F2 at the nodes, as for the paper's profile.
+
+constexpr double kQSub = 0.375;  // `arc.Q_SUB`
+
+// Complex numbers per lane (the Hermite data at z = u1 + i q1).
+template <typename V>
+struct Cx {
+  V re, im;
+};
+template <typename V>
+inline Cx<V> operator+(const Cx<V>& a, const Cx<V>& b) {
+  return {a.re + b.re, a.im + b.im};
+}
+template <typename V>
+inline Cx<V> operator-(const Cx<V>& a, const Cx<V>& b) {
+  return {a.re - b.re, a.im - b.im};
+}
+template <typename V>
+inline Cx<V> operator*(const Cx<V>& a, const Cx<V>& b) {
+  return {a.re * b.re - a.im * b.im, a.re * b.im + a.im * b.re};
+}
+template <typename V>
+inline Cx<V> rmul(V s, const Cx<V>& a) {
+  return {s * a.re, s * a.im};
+}
+template <typename V>
+inline Cx<V> radd(V s, const Cx<V>& a) {
+  return {s + a.re, a.im};
+}
+template <typename V>
+inline Cx<V> times_i(const Cx<V>& a) {
+  return {-a.im, a.re};
+}
+template <typename V>
+inline Cx<V> cinv(const Cx<V>& a) {
+  V m = 1 / (a.re * a.re + a.im * a.im);
+  return {a.re * m, -a.im * m};
+}
+
+// One piece per lane: J (value), and with kPartials its partials with respect to the ends (u),
+// the ends' Y and (accumulated into dp) the lobe parameters (`lobe.lobe_params`' layout; g has
+// none). A point (ua == ub, Ya == Yb) has zero partials.
+template <typename T, typename V, bool kPartials>
+V arc_piece(int n_gl, const double* xs, const double* ws, V ua, V ub, V Ya, V Yb, const V* p,
+            V* d_ua, V* d_ub, V* d_Ya, V* d_Yb, V* dp) {
+  const V c0 = p[0], c10 = p[1], c11 = p[2], c20 = p[3], c21 = p[4], u1 = p[5], q1 = p[6],
+          k = p[8], hx = p[9], hz = p[10];
+  const V zero = V{}, one = splat<V>(1), four = splat<V>(4);
+  const V du = ub - ua, half = du / 2, um = ua + half, dY = Yb - Ya;
+  const V Ba = 1 + 4 * ua * ua;
+  const V den = 4 * (1 - 4 * ub * ua) / ((1 + 4 * ub * ub) * Ba);  // `arc._vdd(ub, ua)`
+  const auto denp = den > 0;
+  const V den1 = sel<V>(denp, den, one), dYden = dY / den1;
+  // Where the sharp lobe's poles are subtracted (`arc._piece_integrals`).
+  const V ds = du / q1, sa = (ua - u1) / q1, sm = sa + ds / 2;
+  const auto sub = (q1 < splat<V>(kQSub)) &
+                   (vabs<T>(ds) >= vmax<T>(one, splat<V>(0.5) * vabs<T>(sm)));
+  const V ds_s = sel<V>(sub, ds, one), sa_s = sel<V>(sub, sa, zero), du_s = sel<V>(sub, du, one);
+  const V q1_s = sel<V>(sub, q1, splat<V>(kQSub / 2)), idu = 1 / du_s;
+
+  // Hermite data at z: v' (vp), v'' (vpp), v''' (vppp); Y(z) = Ya + dYden mu(z).
+  const Cx<V> z{u1, q1_s}, z2 = z * z;
+  const Cx<V> iB = cinv(radd(one, rmul(four, z2))), iB2 = iB * iB;
+  const Cx<V> vp = rmul(four, radd(one, rmul(splat<V>(-4), z2))) * iB2;
+  const Cx<V> vpp = rmul(splat<V>(-32), z * radd(splat<V>(3), rmul(splat<V>(-4), z2))) * iB2 * iB;
+  const Cx<V> muz = rmul(idu, (z - Cx<V>{ua, zero}) *
+                                  rmul(four / Ba, radd(one, rmul(-4 * ua, z)) * iB));
+  const Cx<V> Yz = radd(Ya, rmul(dYden, muz));
+  const V dYdv = dYden * idu;
+  const Cx<V> wz = Yz * vp, wpz = rmul(dYdv, vp * vp) + Yz * vpp;
+  const Cx<V> Pi{c20, c21}, dPi{c21 - 2 * c11, 2 * c10};
+  // H's coefficients (al0, al1, ga0, ga1) from Φ(i) = F and Φ'(i) = G; zero where nothing is
+  // subtracted.
+  auto coef = [&](const Cx<V>& F, const Cx<V>& G, V* a) {
+    a[0] = sel<V>(sub, F.re, zero);
+    a[1] = sel<V>(sub, F.im, zero);
+    a[2] = sel<V>(sub, G.im / 2, zero);
+    a[3] = sel<V>(sub, -(G.re - F.im) / 2, zero);
+  };
+  V h[4];
+  coef(wz * Pi, rmul(q1_s, wpz * Pi) + wz * dPi, h);
+  // The closed form's basis integrals (`arc._basis`).
+  const V sb_s = sa_s + ds_s, ea = 1 / (1 + sa_s * sa_s), eb = 1 / (1 + sb_s * sb_s);
+  V I0, lg;
+  {
+    const V y0 = 1 + sa_s * sb_s, ps = ds_s * (sa_s + sb_s);
+    const auto up = ps >= 0;
+    const V larg = sel<V>(up, ps * ea, -ps * eb);
+    for (int l = 0; l < Vec<T>::L; ++l) {
+      I0[l] = std::atan2(ds_s[l], y0[l]);
+      lg[l] = std::log1p(larg[l]);
+    }
+    lg = sel<V>(up, lg, -lg);
+  }
+  const V I1 = splat<V>(0.5) * lg;
+  const V K0 = splat<V>(0.5) * I0 + splat<V>(0.5) * (ds_s * ea) * ((1 - sa_s * sb_s) * eb);
+  const V K1 = splat<V>(0.5) * (ds_s * ea) * ((sa_s + sb_s) * eb);
+  auto closed = [&](const V* a) { return q1_s * (a[0] * K0 + a[1] * K1 + a[2] * I0 + a[3] * I1); };
+
+  // Gauss-Legendre in u on the rest: r = w (c0 + F2) + (w P - H) e^2 at the nodes.
+  V gl = zero;
+  V S_vD = zero, S_mD = zero, S_w = zero, S_we = zero, S_wse = zero, S_wee = zero,
+    S_wsee = zero, S_Rp = zero, S_sRp = zero, S_e = zero, S_se = zero, S_ee = zero,
+    S_see = zero, S_k = zero, S_hx = zero, S_hz = zero;
+  const V iBa = 1 / Ba;
+  for (int j = 0; j < n_gl; ++j) {
+    const V x = splat<V>(xs[j]), w = splat<V>(ws[j]);
+    const V tau = (1 + x) / 2;
+    const V uu = um + half * x, u2 = uu * uu, B = 1 + 4 * u2, iBu = 1 / B;
+    const V vpj = 4 * (1 - 4 * u2) * iBu * iBu;
+    // mu = (v(u) - v(ua)) / (ub - ua) at the node, by the divided difference.
+    const V mu = sel<V>(denp, tau * (4 * (1 - 4 * uu * ua) * iBu * iBa), tau);
+    const V wu = (Ya + dYden * mu) * vpj;
+    const V N = hz * (1 - 4 * u2) - 4 * hx * uu, inv2 = 1 / (B + k * N), T2 = B * inv2;
+    const V F2 = T2 * T2 + T2;
+    const V s = (uu - u1) / q1, e = 1 / (1 + s * s), se = s * e, ee = e * e, see = se * e;
+    const V A0 = wu * c10 - h[2], A1 = wu * c11 - h[3], B0 = wu * c20 - h[0],
+            B1 = wu * c21 - h[1];
+    const V Rs = (A0 + A1 * s) * e + (B0 + B1 * s) * ee;
+    gl += w * (wu * (c0 + F2) + Rs);
+    if constexpr (kPartials) {
+      const V eee = ee * e, seee = see * e;
+      const V Dt = c0 + F2 + c10 * e + c11 * se + c20 * ee + c21 * see;
+      // d/ds of the remainder (w P - H) e^2 at fixed w, term by term as Rs.
+      const V Rp = -2 * A0 * see + A1 * (2 * ee - e) - 4 * B0 * seee + B1 * (4 * eee - 3 * ee);
+      const V ww = w * wu;
+      S_vD += w * vpj * Dt;
+      S_mD += w * mu * vpj * Dt;
+      S_w += ww;
+      S_we += ww * e;
+      S_wse += ww * se;
+      S_wee += ww * ee;
+      S_wsee += ww * see;
+      S_Rp += w * Rp;
+      S_sRp += w * s * Rp;
+      S_e += w * e;
+      S_se += w * se;
+      S_ee += w * ee;
+      S_see += w * see;
+      const V f = ww * (-(2 * T2 + 1) * T2 * inv2);
+      S_k += f * N;
+      S_hx += f * (-4 * k * uu);
+      S_hz += f * (k * (1 - 4 * u2));
+    }
+  }
+  const V value = half * gl + sel<V>(sub, closed(h), zero);
+  if constexpr (!kPartials) return value;
+
+  // H's share of the rule's sum, and of its derivative in s (times s for q1).
+  auto hsum = [&](const V* a) { return a[2] * S_e + a[3] * S_se + a[0] * S_ee + a[1] * S_see; };
+  // ∫ of the Hermite-subtracted integrand whose H has Φ(i) = F, Φ'(i) = G, less the rule's
+  // share of H (the rule's share of the rest is added by the caller).
+  auto lfull = [&](const Cx<V>& F, const Cx<V>& G) {
+    V a[4];
+    coef(F, G, a);
+    return closed(a) - half * hsum(a);
+  };
+  // The two bases of Y: 1 and mu.
+  const Cx<V> F1 = vp * Pi, G1 = rmul(q1_s, vpp * Pi) + vp * dPi;
+  const Cx<V> wm = muz * vp, wmp = rmul(idu, vp * vp) + muz * vpp;
+  const Cx<V> Fm = wm * Pi, Gm = rmul(q1_s, wmp * Pi) + wm * dPi;
+  V a1[4], am[4];
+  coef(F1, G1, a1);
+  coef(Fm, Gm, am);
+  const V J1 = closed(a1) - half * hsum(a1) + half * S_vD;
+  const V Jm = closed(am) - half * hsum(am) + half * S_mD;
+  V gYb = Jm / den1, gYa = J1 - gYb;
+  // The ends: J_1 / du and J_mu / du, then the integral's derivatives.
+  const V M1 = sel<V>(sub, closed(a1) * idu, zero) + (S_vD - hsum(a1)) / 2;
+  const V Mm = sel<V>(sub, closed(am) * idu, zero) + (S_mD - hsum(am)) / 2;
+  auto at_end = [&](V u, V* vpe) {
+    const V B = 1 + 4 * u * u, N = hz * (1 - 4 * u * u) - 4 * hx * u, T2 = B / (B + k * N);
+    const V s = (u - u1) / q1, e = 1 / (1 + s * s);
+    *vpe = 4 * (1 - 4 * u * u) / (B * B);
+    return c0 + T2 * T2 + T2 + c10 * e + c11 * s * e + c20 * e * e + c21 * s * e * e;
+  };
+  V vpa, vpb;
+  const V Da = at_end(ua, &vpa), Db = at_end(ub, &vpb);
+  V gub = vpb * (Yb * Db - dYden * Mm / den1);
+  V gua = -vpa * (Ya * Da + dYden * (M1 - Mm / den1));
+  // u1 and q1: H moves with z (w' and w'' at z), the nodes' s and the closed form's ends move.
+  const Cx<V> vppp =
+      rmul(splat<V>(-96), radd(one, rmul(splat<V>(-24), z2) + rmul(splat<V>(16), z2 * z2))) *
+      iB2 * iB2;
+  const Cx<V> wppz = rmul(3 * dYdv, vp * vpp) + Yz * vppp;
+  const V eb2 = eb * eb, ea2 = ea * ea;
+  const V kin_sa = q1_s * (h[0] * (eb2 - ea2) + h[1] * (sb_s * eb2 - sa_s * ea2) +
+                           h[2] * (eb - ea) + h[3] * (sb_s * eb - sa_s * ea));
+  const V kin_ds = q1_s * (h[0] * eb2 + h[1] * sb_s * eb2 + h[2] * eb + h[3] * sb_s * eb);
+  const Cx<V> dFu = wpz * Pi, dGu = rmul(q1_s, wppz * Pi) + wpz * dPi;
+  V gu1 = lfull(dFu, dGu) + sel<V>(sub, -kin_sa / q1, zero) + half * (-S_Rp / q1);
+  V gq1 = lfull(times_i(dFu), dFu + times_i(dGu)) +
+          sel<V>(sub, closed(h) / q1_s + (-sa_s * kin_sa - ds_s * kin_ds) / q1, zero) +
+          half * (-S_sRp / q1);
+  // The sharp lobe's coefficients.
+  const Cx<V> zc{zero, zero};
+  V gc[5] = {half * S_w, lfull(zc, rmul(splat<V>(2), times_i(wz))) + half * S_we,
+             lfull(zc, rmul(splat<V>(-2), wz)) + half * S_wse,
+             lfull(wz, rmul(q1_s, wpz)) + half * S_wee,
+             lfull(times_i(wz), times_i(rmul(q1_s, wpz)) + wz) + half * S_wsee};
+  // A point's partials are zero.
+  const auto point = (ua == ub) & (Ya == Yb);
+  *d_ua = sel<V>(point, zero, gua);
+  *d_ub = sel<V>(point, zero, gub);
+  *d_Ya = sel<V>(point, zero, gYa);
+  *d_Yb = sel<V>(point, zero, gYb);
+  for (int i = 0; i < 5; ++i) dp[i] += sel<V>(point, zero, gc[i]);
+  dp[5] += sel<V>(point, zero, gu1);
+  dp[6] += sel<V>(point, zero, gq1);
+  dp[8] += sel<V>(point, zero, half * S_k);
+  dp[9] += sel<V>(point, zero, half * S_hx);
+  dp[10] += sel<V>(point, zero, half * S_hz);
+  return value;
+}
+
+// `arc.u_of_v(2 c)` and its derivative in c (as autodiff of `u_of_v` gives it: 1 where the
+// square root is 0).
+template <typename T, typename V>
+inline V u_of_c(V c, V* dudc) {
+  const V v = 2 * c, a = (1 - v) * (1 + v);
+  const auto pos = a > 0;
+  const V r = sel<V>(pos, vsqrt<T>(sel<V>(pos, a, splat<V>(1))), V{});
+  const V d = 1 + r;
+  *dudc = 2 * (1 / (2 * d) + sel<V>(pos, v * v / (2 * r * d * d), V{}));
+  return v / (2 * d);
+}
+
+// The arc's per-view stage, one lane per pair-view; inputs and outputs as `lit_lanes` (the
+// pieces in x / 2R, sv = (X, h, b, t, alpha)), lit = sum of J / 2.
+template <typename T, typename V, bool kPartials>
+void arc_lit_lanes(int n_gl, const double* xs, const double* ws, int k, const V* ua,
+                   const V* ub, const V* Ya, const V* Yb, const V* sv, V* out, V* g_ua, V* g_ub,
+                   V* g_Ya, V* g_Yb, V* gs) {
+  typedef typename Cut<V>::M M;
+  const V zero = V{}, one = splat<V>(1), two = splat<V>(2), four = splat<V>(4);
+  View<V> vw;
+  view_algebra<T>(sv, &vw);
+  // U = u_of_v(2 X), the slab in u and in x / 2R = v(u) / 2.
+  const Dual<V> v2 = scale(two, vw.X);
+  const Dual<V> U = v2 / scale(two, cst(one) + dsafe_sqrt<T>((cst(one) - v2) * (cst(one) + v2)));
+  const Dual<V> lo_u = dmax<T>(-U, vw.u_m);
+  const Dual<V> hi_u = dmax<T>(dmin<T>(U, vw.u_p), lo_u);
+  auto half_v = [&](const Dual<V>& u) {
+    return scale(splat<V>(0.5), scale(four, u) / (cst(one) + scale(four, u) * u));
+  };
+  const Dual<V> lo_c = half_v(lo_u), hi_c = half_v(hi_u);
+  V p[11];
+  for (int i = 0; i < 11; ++i) p[i] = vw.pd[i].v;
+  Cut<V> c;
+  cut<T>(k, ua, ub, Ya, Yb, lo_c.v, hi_c.v, &c);
+  const V X = vw.X.v, Uv = U.v;
+  // An end in u: the slab bound where the cut clamped it, the groove edge +-U where it is there,
+  // else mapped.
+  auto to_u = [&](V x, M lo, M hi, V* dudc, M* mapped, M* at_m, M* at_p) {
+    const V m = u_of_c<T>(x, dudc);
+    *at_m = ~lo & ~hi & (x == -X);
+    *at_p = ~lo & ~hi & ~*at_m & (x == X);
+    *mapped = ~lo & ~hi & ~*at_m & ~*at_p;
+    return sel<V>(lo, lo_u.v, sel<V>(hi, hi_u.v, sel<V>(x == -X, -Uv, sel<V>(x == X, Uv, m))));
+  };
+  V value = zero, dp[11], g_lo = zero, g_hi = zero, g_ulo = zero, g_uhi = zero, g_U = zero;
+  for (int i = 0; i < 11; ++i) dp[i] = zero;
+  for (int i = 0; i < k; ++i) {
+    V da, db;
+    M ma, mb, am, ap, bm, bp;
+    const V ua_u = to_u(c.ca[i], c.lo_a[i], c.hi_a[i], &da, &ma, &am, &ap);
+    const M same = c.ca[i] == c.cb[i];
+    const V ub_u = sel<V>(same, ua_u, to_u(c.cb[i], c.lo_b[i], c.hi_b[i], &db, &mb, &bm, &bp));
+    V gua, gub, gYa, gYb;
+    value += arc_piece<T, V, kPartials>(n_gl, xs, ws, ua_u, ub_u, c.Ya2[i] - c.ref,
+                                        c.Yb2[i] - c.ref, p, &gua, &gub, &gYa, &gYb, dp);
+    if constexpr (!kPartials) continue;
+    // The ends' mapping, transposed (a point's second end is its first).
+    gua += sel<V>(same, gub, zero);
+    gub = sel<V>(same, zero, gub);
+    g_ulo += sel<V>(c.lo_a[i], gua, zero) + sel<V>(c.lo_b[i], gub, zero);
+    g_uhi += sel<V>(~c.lo_a[i] & c.hi_a[i], gua, zero) + sel<V>(~c.lo_b[i] & c.hi_b[i], gub, zero);
+    g_U += sel<V>(ap, gua, zero) - sel<V>(am, gua, zero) + sel<V>(bp, gub, zero) -
+           sel<V>(bm, gub, zero);
+    const V gca = sel<V>(ma, gua * da, zero), gcb = sel<V>(mb, gub * db, zero);
+    cut_transpose(c, i, gca, gcb, gYa, gYb, &g_ua[i], &g_ub[i], &g_Ya[i], &g_Yb[i], &g_lo, &g_hi);
+  }
+  const V h2 = splat<V>(0.5);
+  *out = h2 * value;
+  if constexpr (!kPartials) return;
+  for (int i = 0; i < k; ++i) {
+    g_ua[i] *= h2;
+    g_ub[i] *= h2;
+    g_Ya[i] *= h2;
+    g_Yb[i] *= h2;
+  }
+  for (int t = 0; t < kTan; ++t) {
+    V s = g_lo * lo_c.d[t] + g_hi * hi_c.d[t] + g_ulo * lo_u.d[t] + g_uhi * hi_u.d[t] +
+          g_U * U.d[t];
+    for (int i = 0; i < 11; ++i) s += dp[i] * vw.pd[i].d[t];
+    gs[t] = h2 * s;
+  }
+}
