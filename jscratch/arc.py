@@ -306,17 +306,18 @@ def arc_lit_integral(geometry: ndf.PairGeometry, h: Float[ArrayLike, "3"],
     u_m, u_p = ndf.lit_interval(hx, hz)
     u_lo = jnp.maximum(-U, u_m)
     u_hi = jnp.maximum(jnp.minimum(U, u_p), u_lo)
-    c = ndf._cut(*G.pieces, v_of_u(u_lo) / 2, v_of_u(u_hi) / 2)
+    (ca, cb, Ya, Yb), (lo_a, hi_a, lo_b, hi_b) = ndf.cut_to_slab(
+        *G.pieces, v_of_u(u_lo) / 2, v_of_u(u_hi) / 2)
 
     def to_u(x, lo, hi):
         # Slab bounds and groove edges are known in u exactly; other ends are mapped.
         mapped = jnp.where(x == -G.X, -U, jnp.where(x == G.X, U, u_of_v(2 * x)))
         return jnp.where(lo, u_lo, jnp.where(hi, u_hi, mapped))
 
-    ua, ub = to_u(c.ua, c.lo_a, c.hi_a), to_u(c.ub, c.lo_b, c.hi_b)
-    ub = jnp.where(c.ua == c.ub, ua, ub)
+    ua, ub = to_u(ca, lo_a, hi_a), to_u(cb, lo_b, hi_b)
+    ub = jnp.where(ca == cb, ua, ub)
     L = lobe.lobe(hx, hy, hz, alpha)
-    J = _piece_integrals(nodes(dt), ua, ub, c.Ya, c.Yb, lobe.lobe_params(L))
+    J = _piece_integrals(nodes(dt), ua, ub, Ya, Yb, lobe.lobe_params(L))
     # -R ∮ Y D dv, with G.scale = -2R (orientation sign).
     return G.scale * L.pref * (jnp.sum(J) / 2)
 

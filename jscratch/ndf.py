@@ -129,6 +129,7 @@ __all__ = [
     "local_frame",
     "lit_interval",
     "pair_geometry",
+    "cut_to_slab",
     "lit_integral",
     "PairGeometry",
     "N_PIECES",
@@ -444,6 +445,14 @@ def _cut(ua, ub, Ya, Yb, lo, hi) -> _Cut:
     ref = _centre(ca, cb, Ya2, Yb2)
     return _Cut(ca, cb, Ya2 - ref, Yb2 - ref, ta, tb, ta_free, tb_free, lo_a, hi_a, lo_b, hi_b,
                 point, dY, inv_du)
+
+
+def cut_to_slab(ua, ub, Ya, Yb, lo, hi):
+    """`pair_geometry`'s pieces cut to the slab `lo <= u <= hi` as a view cuts them (`_cut`;
+    `jscratch.arc` cuts in its own coordinate): `((ua, ub, Ya, Yb), (lo_a, hi_a, lo_b, hi_b))`,
+    the flags saying which ends were clamped to which bound. Differentiable (autodiff)."""
+    c = _cut(ua, ub, Ya, Yb, lo, hi)
+    return (c.ua, c.ub, c.Ya, c.Yb), (c.lo_a, c.hi_a, c.lo_b, c.hi_b)
 
 
 def _cut_transpose(c: _Cut, g_ca, g_cb, g_Ya, g_Yb):

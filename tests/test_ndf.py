@@ -537,3 +537,22 @@ def test_piece_count_estimate_is_the_count_but_for_ties(dtype):
     assert np.all(same[names == "random"])
     assert np.mean(same) >= 0.95, np.mean(same)
     assert set(np.unique(names[~same])) <= {"vertex_on_edge", "endpoints", "zero_length"}
+
+
+def test_cut_to_slab_clamps_ends_and_flags_them():
+    """`ndf.cut_to_slab`: a piece inside the slab is kept (Y re-centred on the cut region), a
+    crossing end moves to the bound with Y interpolated there and is flagged, a piece outside
+    becomes a point on the bound."""
+    ua = jnp.array([-0.1, -0.3, 0.3, 0.0, 0.0, 0.0])
+    ub = jnp.array([0.1, 0.1, 0.35, 0.0, 0.0, 0.0])
+    Ya = jnp.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+    Yb = jnp.array([1.0, 2.0, 1.0, 0.0, 0.0, 0.0])
+    (ca, cb, Ya2, Yb2), (lo_a, hi_a, lo_b, hi_b) = ndf.cut_to_slab(ua, ub, Ya, Yb, -0.2, 0.2)
+    np.testing.assert_allclose(np.asarray(ca[:3]), [-0.1, -0.2, 0.2])
+    np.testing.assert_allclose(np.asarray(cb[:3]), [0.1, 0.1, 0.2])
+    assert list(np.asarray(lo_a[:3])) == [False, True, False]
+    assert list(np.asarray(hi_a[:3])) == [False, False, True]
+    assert list(np.asarray(hi_b[:3])) == [False, False, True] and not np.any(np.asarray(lo_b))
+    # Y differences are kept: 1 along the first piece, 2 * (0.3 / 0.4) along the cut second one.
+    np.testing.assert_allclose(np.asarray(Yb2 - Ya2)[:3], [1.0, 1.5, 0.0], atol=1e-6)
+    np.testing.assert_allclose(float(Ya2[1] - Ya2[0]), 0.5, atol=1e-6)
