@@ -24,6 +24,10 @@ the GGX `D(c) = chi+(c) alpha^2 / (pi (c^2 (alpha^2 - 1) + 1)^2)` increases on `
 `rho = alpha^4` bounds it). `rho` is in `[0, 1]`: the fraction of the most the pair could ever
 contribute. `c_max` gets 4 ulps added so that the bound survives rounding. `cull_ratio` computes
 `rho` per pair in O(1) (no integral); `cull` drops the pair when `rho < eps`. `eps = 0` keeps all.
+The bound holds for the ball's arc too (`Scratches.profile == "arc"`, stored as the paper groove
+with its footprint, ``w = 2R``): the arc's wall angles ``asin(x / R)`` lie within that groove's
+``2 atan(x / R)`` (``asin s <= 2 atan s`` on ``[0, 1]``), so its normals are a subset of the arc
+above.
 
 **View culling: the rendered error.** Per pixel the dropped pairs lower `D_P = sum_i D_hat_i / S_P`
 (never raise it) by

@@ -724,9 +724,6 @@ def render(scratches: Scratches, views: Views, board: Board, *, eps: float = 0.0
     """
     if eps < 0 or not math.isfinite(eps):
         raise InputError(f"render: `eps` must be finite and >= 0; got {eps}")
-    if eps > 0 and scratches.profile != "paper":
-        raise InputError(f"render: culling (eps > 0) bounds the paper profile only; got "
-                         f"profile {scratches.profile!r} (use eps = 0)")
     check_scratches(scratches.p0, scratches.p1, scratches.width, scratches.depth, scratches.alpha,
                     board=(board.Sx, board.Sy), source="render")
     axis_names = tuple(axis_names) if isinstance(axis_names, list) else axis_names

@@ -200,6 +200,39 @@ def test_cull_error_bound_with_the_ndf_kernel(random_layout):
 
 
 
+
+@pytest.mark.float64
+def test_cull_ratio_bounds_the_arc_groove(random_layout):
+    """Ball-cutter arcs (`arc.pair_integral_of("arc")`, stored as ``w = 2R`` and the arc's depth):
+    the paper groove's bound still holds pair by pair, since the arc's wall angles lie within it."""
+    from jscratch import arc
+
+    board, shape = BOARD, (32, 32)
+    rng = np.random.default_rng(5)
+    n, R = 300, 1.25e-4
+    mid, u = random_layout(rng, n, 0.0, 0.3)
+    half = 0.5 * rng.uniform(0.005, 0.025, n)[:, None] * u
+    p0, p1 = np.clip(mid - half, 0, 0.3), np.clip(mid + half, 0, 0.3)
+    width, depth = (np.asarray(x) for x in arc.arc_groove(rng.uniform(0.02, 1.0, n) * R, R))
+    width = np.broadcast_to(width, (n,))
+    alpha = rng.uniform(0.01, 0.3, n)
+    pairs, _ = bvh.build_pairs(p0, p1, width, depth, board=board, shape=shape)
+    valid, pix = np.asarray(pairs.valid), np.asarray(pairs.pixel)
+    s = np.minimum(np.asarray(pairs.scratch), n - 1)
+    r, c = np.divmod(pix, shape[1])
+    px, py = board[0] / shape[1], board[1] / shape[0]
+    x0, x1, y0, y1 = c * px, (c + 1) * px, board[1] - (r + 1) * py, board[1] - r * py
+    fps = np.stack([np.stack(v, -1) for v in ((x0, y0), (x1, y0), (x1, y1), (x0, y1))], 1)
+    kernel = jax.jit(jax.vmap(arc.pair_integral_of("arc")))
+    up = lambda az: np.array([0.15 + 0.6 * np.cos(az), 0.15 + 0.6 * np.sin(az), 0.8])  # noqa: E731
+    h = half_vectors(board, shape, up(2.0), up(0.5))
+    d_hat, area = (np.where(valid, np.asarray(v), 0.0) for v in kernel(
+        h[pix], fps, p0[s], p1[s], width[s], depth[s], alpha[s]))
+    rho = np.asarray(cull.cull_ratio(pairs, p0, p1, width, depth, alpha, h))
+    assert np.all(d_hat <= rho * area / (np.pi * alpha[s] ** 2) * (1 + 1e-6) + 1e-18)
+    assert int((valid & (rho < 1e-3)).sum()) > 100 and float(d_hat.max()) > 0
+
+
 @pytest.mark.float64
 def test_cull_coverage_bound_through_the_renderer():
     # Coverage from the culled list (cull.cull_coverage) against the unculled one, float64, a view

@@ -19,7 +19,6 @@ import numpy as np
 import pytest
 
 from jscratch import arc, brute, bvh, native, ndf
-from jscratch.errors import InputError
 from jscratch import render
 
 BOARD = render.Board(shape=(10, 10), Sx=0.01, Sy=0.01)  # 1 mm pixels
@@ -532,9 +531,3 @@ def test_arc_profile_gradients_match_finite_differences_and_jnp_path():
         assert np.max(np.abs(np.asarray(r1) - np.asarray(r0))) <= 1e-12 * np.max(np.abs(r0))
         for a, b in zip(jax.tree_util.tree_leaves(g1), jax.tree_util.tree_leaves(g0)):
             assert np.max(np.abs(a - b)) <= 1e-10 * np.max(np.abs(b))
-
-
-def test_arc_profile_refuses_culling():
-    s, v = _arc_scene(jnp.float32)
-    with pytest.raises(InputError, match="culling .* paper profile"):
-        render.render(s, v, BOARD, eps=1e-3)

@@ -197,9 +197,6 @@ class DesignConfig:
         except (TypeError, ValueError) as e:
             raise DesignError(str(e)) from None
         object.__setattr__(self, "machine", prof.to_dict())
-        if self.cull_eps > 0 and self.groove == "carvable" and prof.groove_fit == "arc":
-            raise DesignError("DesignConfig.cull_eps must be 0 for arc grooves (carvable, machine "
-                              "groove_fit 'arc'): the culling bound covers the paper profile only")
         for name in ("prune_fraction", "prune_until", "lr_final"):
             number(name, 0.0, 1.0, "in [0, 1]")
         if self.target_ssim is not None:
