@@ -35,7 +35,7 @@ def _render_kept(params, keep, views, board):
     """Display images of the kept scratches alone, through the public renderer."""
     p0, p1, w, d, a, inten = (np.asarray(x) for x in solver.physical(params))
     k = np.asarray(keep)
-    s = render.Scratches(p0[k], p1[k], w[k], d[k], a[k])
+    s = render.Scratches(p0[k], p1[k], w[k], d[k], a[k], profile=params.scratches().profile)
     v = render.Views(np.asarray(views.camera), np.asarray(views.light), inten)
     return np.asarray(display(render.render(s, v, board)))
 

@@ -314,7 +314,7 @@ def test_gradient_tests_run_chunks_with_several_piece_budgets():
     s, v = _scene()
     pairs = _pairs(s)
     cfg = render._Cfg(BOARD.H, BOARD.W, BOARD.Sx, BOARD.Sy, CHUNK, None, (), BOARD.n_pixels, False,
-                 True, True)
+                      True, True, "paper")
     params = (s.p0, s.p1, s.width, s.depth, s.alpha)
     klass = render._pair_classes(cfg, params, pairs.pixel, pairs.scratch, pairs.valid)
     _, _, valid = render._sort_pairs(pairs.pixel, pairs.scratch, pairs.valid, klass, 1)
@@ -394,7 +394,7 @@ def test_gradient_memory_does_not_grow_with_pairs(monkeypatch):
             z = jnp.sin(z) * w + jnp.exp(-z * z)
         return Geometry(jnp.where(valid, jnp.cos(z), 0), z), jnp.int32(0)
 
-    def lit(pieces, g, valid, a, h):
+    def lit(profile, pieces, g, valid, a, h):
         z = g.z[None] * h[..., 2] / a
         for _ in range(12):
             z = jnp.sin(z) * a + jnp.exp(-z * z)
