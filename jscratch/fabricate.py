@@ -201,7 +201,8 @@ def _design_fit(design: Design, idx, cfg: MachineProfile) -> dict:
     out = (p < cfg.plunge_min_mm * (1 - 1e-6)) | (p > cfg.plunge_max_mm * (1 + 1e-6))
     return {
         "mode": "design",
-        "slope_rms_deg_max": gmap.rms_deg,
+        "groove": design.profile,  # "arc": the design rendered the ball's own cut
+        "slope_rms_deg_max": 0.0 if design.profile == "arc" else gmap.rms_deg,
         "width_rel_err_max": float(np.max(np.abs(cut_w / groove_w - 1.0))) if len(p) else 0.0,
         "groove_width_mm": [float(groove_w.min()), float(groove_w.max())] if len(p) else [0.0, 0.0],
         "cut_width_mm": [float(cut_w.min()), float(cut_w.max())] if len(p) else [0.0, 0.0],
@@ -416,8 +417,9 @@ def summarize(info: dict) -> str:
     if f and f.get("mode") == "design":
         out.append(
             f"cutter fit       carvable design ({info.get('machine', '?')}): recorded plunges, 0 fitted; "
-            f"wall-slope RMS error of the groove map <= {f['slope_rms_deg_max']:.2f} deg; "
-            f"cut width {f['cut_width_mm'][0]:.4f}-{f['cut_width_mm'][1]:.4f} mm "
+            + ("designed with the ball's own arc; " if f.get("groove") == "arc" else
+               f"wall-slope RMS error of the groove map <= {f['slope_rms_deg_max']:.2f} deg; ")
+            + f"cut width {f['cut_width_mm'][0]:.4f}-{f['cut_width_mm'][1]:.4f} mm "
             f"(groove width error {100 * f['width_rel_err_max']:.4f}%); {f['unreachable']} unreachable grooves")
         if f["unreachable"]:
             out.append(f"WARNING          {f['unreachable']} recorded plunges lie outside the cutter's range")
