@@ -335,14 +335,6 @@ class Scratches(eqx.Module):
                                    tuple(float(x) for x in length), jnp.dtype(dtype))
         return Scratches(p0, p1, width, depth, alpha)
 
-    def replace(self, **arrays) -> "Scratches":
-        """A copy with some of ``p0, p1, width, depth, alpha`` replaced, the profile kept."""
-        fields = {k: getattr(self, k) for k in ("p0", "p1", "width", "depth", "alpha")}
-        unknown = set(arrays) - set(fields)
-        if unknown:
-            raise InputError(f"Scratches.replace: unknown fields {sorted(unknown)}")
-        return Scratches(**{**fields, **arrays}, profile=self.profile)
-
 
 @functools.partial(jax.jit, static_argnums=(1, 2, 3, 4, 5))
 def _random_endpoints(key, n: int, Sx: float, Sy: float, length: tuple, dtype):

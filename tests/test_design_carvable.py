@@ -121,3 +121,19 @@ def test_carvable_bounds_never_violated_during_optimisation(lr, start, seed):
         p_ = new
     if abs(start) <= 10:  # the plunges are optimised, not frozen (past ~17 the float32 map is
         assert moved > 0  # saturated against its bound: a zero gradient, which Adam leaves alone)
+
+
+def test_arc_map_renders_the_ball_itself():
+    """`groove_fit = "arc"` (the default): no fit; a plunge maps to ``w = 2R``,
+    ``d = -2R log(1 - p/R)`` (written out here), rendered with the arc profile; the fitted maps
+    render the paper's profile."""
+    R_, lo, hi = 1.25e-4, 5e-6, 1e-4
+    g = groove_map(R_, lo, hi)
+    assert g.fit == "arc" and g.scratch_profile == "arc" and g.rms_deg == 0.0 and g.t_grid == ()
+    assert groove_map(R_, lo, hi, "height").scratch_profile == "paper"
+    p = np.linspace(lo, hi, 7)
+    w, d = (np.asarray(v, np.float64) for v in g.profile_of_plunge(jnp.asarray(p, jnp.float32)))
+    np.testing.assert_allclose(w, 2 * R_, rtol=1e-7)
+    np.testing.assert_allclose(d, -2 * R_ * np.log1p(-p / R_), rtol=1e-5)
+    np.testing.assert_allclose(g.plunge_of_profile(w, d), p, rtol=1e-4)
+    assert DesignConfig().machine_profile().groove_fit == "arc"

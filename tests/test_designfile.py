@@ -121,3 +121,19 @@ def test_save_design_respects_the_umask(tmp_path):
             assert stat.S_IMODE(os.stat(f).st_mode) == mode, (oct(mask), oct(os.stat(f).st_mode))
     finally:
         os.umask(old)
+
+
+def test_groove_profile_round_trip(tmp_path):
+    """``profile`` is stored and read back; a file without it is the paper's profile; anything
+    else is refused in one line naming the field."""
+    a = _arrays()
+    path = tmp_path / "arc.npz"
+    assert save_design(path, **a, profile="arc").profile == "arc"
+    assert load_design(path).profile == "arc"
+    with np.load(path) as z:
+        plain = {k: z[k] for k in z.files if k != "profile"}
+    np.savez(tmp_path / "old.npz", **plain)
+    assert load_design(tmp_path / "old.npz").profile == "paper"
+    with pytest.raises(DesignError, match="profile must be one of"):
+        save_design(tmp_path / "bad.npz", **a, profile="ball")
+    assert not (tmp_path / "bad.npz").exists()

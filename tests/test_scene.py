@@ -120,3 +120,14 @@ def test_views_on_circle_float32_and_even_count():
     # even M: the light's mirror azimuth (pi) lies midway between two cameras
     az = np.sort(np.mod(np.arctan2(c[:, 1], c[:, 0]), 2 * np.pi))
     np.testing.assert_allclose(az, np.pi / 4 + np.arange(4) * np.pi / 2, atol=1e-6)
+
+
+def test_groove_profile_is_checked_and_kept():
+    """`Scratches.profile` (static): one of `PROFILES`, kept by pytree maps and through jit."""
+    p0, p1 = jnp.zeros((2, 2)), jnp.full((2, 2), 0.01)
+    s = Scratches(p0, p1, profile="arc")
+    assert s.profile == "arc" and Scratches(p0, p1).profile == "paper"
+    assert jax.tree_util.tree_map(lambda x: 2 * x, s).profile == "arc"
+    assert jax.jit(lambda t: t)(s).profile == "arc"
+    with pytest.raises(scene.InputError, match="profile.*one of"):
+        Scratches(p0, p1, profile="ball")
