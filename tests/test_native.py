@@ -375,6 +375,22 @@ def _kinks(fp, p0, p1, w, d, a, valid, H):
     return np.asarray(jnp.any(k, axis=0))
 
 
+def _assert_gradients_close(got, ref, D, args, valid, checked):
+    """float64 gradient rows ``got`` against ``ref`` (each ``(n, ...)``): finite, zero on padding,
+    nonzero somewhere, and within 1e-10 of each row's scale plus 1e-14 of what a gradient cancels
+    from (a sharp peak of width ``alpha w`` moves with the scratch's axis: ``D / (alpha w)`` per
+    metre) on the ``checked`` rows."""
+    w, a = np.asarray(args[3]), np.asarray(args[5])
+    cancels = np.sum(np.abs(np.asarray(D)), axis=0) / (a * w)
+    for k, (x, r) in enumerate(zip(got, ref)):
+        assert np.all(np.isfinite(x)) and np.all(x[~valid] == 0), k
+        scale = np.max(np.abs(r), axis=1)
+        tol = 1e-10 * scale + 1e-14 * cancels + 1e-15 * np.percentile(scale[valid], 90)
+        err = (np.max(np.abs(x - r), axis=1) / np.where(tol > 0, tol, 1))[checked]
+        assert err.max() <= 1, (k, err.max(), int(np.argmax(err)))
+        assert np.any(np.abs(r) > 0), k
+
+
 def _rows(g, n):
     """Per-pair rows of a reverse pass's outputs (`d_h`'s view axis moved behind the pair)."""
     return [np.asarray(jnp.moveaxis(x, 0, 1) if x.ndim == 3 else x, np.float64).reshape(n, -1)
@@ -405,17 +421,7 @@ def test_pair_kernel_equals_jnp_path_float64():
     ref = _rows(_pair_vjps(args, ct, False), n)
     kink = _kinks(*args)
     assert 0 < kink.sum() < 0.05 * n
-    # What a gradient cancels from: a sharp peak of width alpha w moves with the scratch's axis
-    # (D / (alpha w) per metre) while the lit part of the groove stays inside the footprint.
-    w, a = np.asarray(args[3]), np.asarray(args[5])
-    cancels = np.sum(np.abs(np.asarray(D)), axis=0) / (a * w)
-    for k, (a, b) in enumerate(zip(got, ref)):
-        assert np.all(np.isfinite(a)) and np.all(a[~valid] == 0), k
-        scale = np.max(np.abs(b), axis=1)
-        tol = 1e-10 * scale + 1e-14 * cancels + 1e-15 * np.percentile(scale[valid], 90)
-        err = (np.max(np.abs(a - b), axis=1) / np.where(tol > 0, tol, 1))[~kink]
-        assert err.max() <= 1, (k, err.max(), int(np.argmax(err)))
-        assert np.any(np.abs(b) > 0), k
+    _assert_gradients_close(got, ref, D, args, valid, ~kink)
 
 
 @needs_native
@@ -613,15 +619,7 @@ def test_arc_pair_kernel_equals_jnp_float64():
     ct = (jnp.asarray(rng.normal(size=D.shape)), jnp.asarray(rng.normal(size=A.shape)))
     got = _rows(native.pair_vjp(ng, *args, *ct, profile="arc"), n)
     ref = _rows(jax.jit(_arc_vjps)(args, ct), n)
-    w, a = np.asarray(args[3]), np.asarray(args[5])
-    cancels = np.sum(np.abs(np.asarray(D)), axis=0) / (a * w)
-    for k, (x, r) in enumerate(zip(got, ref)):
-        assert np.all(np.isfinite(x)) and np.all(x[~valid] == 0), k
-        scale = np.max(np.abs(r), axis=1)
-        tol = 1e-10 * scale + 1e-14 * cancels + 1e-15 * np.percentile(scale[valid], 90)
-        err = np.max(np.abs(x - r), axis=1) / np.where(tol > 0, tol, 1)
-        assert err.max() <= 1, (k, err.max(), int(np.argmax(err)))
-        assert np.any(np.abs(r) > 0), k
+    _assert_gradients_close(got, ref, D, args, valid, np.ones(n, bool))
 
 
 @needs_native
