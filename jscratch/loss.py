@@ -54,23 +54,22 @@ BLUR_SIGMA = 1.0
 #: Default ``lambda_g`` for the default ``FilterBank`` features (with ``lambda_p = 1``), measured
 #: (benchmarks/RESULTS.md): ``E_g`` trades SSIM for texture (``metrics.texture_distance``)
 #: monotonically; at 256 px / 20k free grooves 0 gives SSIM 0.801 / texture 0.246, **20 gives
-#: 0.815 / 0.226**, 200 gives 0.755 / 0.202. With prune/re-seed and ``LAMBDA_X`` it raised SSIM
-#: and lowered ghosting on three target sets, seeds 0 and 1, at 20k scratches; at 60k it trades
-#: 0.033 SSIM for 0.057 less ghosting. Not valid for VGG features (see ``calibrate_lambda_g``).
+#: 0.815 / 0.226**, 200 gives 0.755 / 0.202. Not valid for VGG features (``calibrate_lambda_g``).
 LAMBDA_G = 20.0
 
 #: Default ``lambda_x``: the weight of ``E_x`` against a zero baseline (the raw cross-view SSIM,
 #: the ghosting of docs/model.md §7); 0.01 cut ghosting further but lost much SSIM.
 LAMBDA_X = 1e-3
 
-#: ``LossConfig.ghost_scale = "relative"``: the per-view ``E_p`` at and above which ``E_x`` has its
-#: full weight ``lambda_x`` (the default design's, 3 views / 20,000 scratches, never goes below it).
+#: ``LossConfig.ghost_scale`` ``"relative"`` / ``"squared"``: the per-view ``E_p`` at and above
+#: which ``E_x`` has its full weight (the default design's, 3 views / 20,000 scratches, never goes
+#: below it).
 GHOST_EP_REF = 2.5e-3
 
 #: Allowed ``LossConfig.kind`` values.
 LOSS_KINDS = ("l2", "perceptual", "perceptual+gram")
 #: Allowed ``LossConfig.ghost_scale`` values (see `ghost_weight_factor`).
-GHOST_SCALES = ("relative", "fixed")
+GHOST_SCALES = ("relative", "squared", "fixed")
 
 
 def _check_images(render, target, name: str = "render") -> tuple[Array, Array]:
@@ -219,16 +218,19 @@ def ghost_loss(render: Float[Array, "M H W"], target: Float[Array, "M H W"],
 
 
 def ghost_weight_factor(rule: str, e_p, m: int):
-    """The factor on ``lambda_x`` (a scalar, no gradient): 1 for ``"fixed"``; for ``"relative"``
-    ``min(1, E_p / (M GHOST_EP_REF)) * 2 / (M - 1)``. ``E_x`` stays near the targets' own
-    cross-view SSIM while ``E_p`` falls as the render approaches its target (more scratches), so a
-    fixed weight lets ghosting take a growing share of the loss and costs picture; and ``E_x`` sums
-    ``M - 1`` view pairs per view (`ghost_loss`), ``E_p`` one. Below the reference the rule keeps
-    ``E_x``'s share of the loss per view pair what it is at the reference (docs/model.md §6)."""
+    """The factor on ``lambda_x`` (a scalar, no gradient): 1 for ``"fixed"``; ``s * 2 / (M - 1)``
+    with ``s = min(1, E_p / (M GHOST_EP_REF))`` for ``"relative"`` and ``s^2`` for ``"squared"``
+    (the default). ``E_x`` stays near the targets' own cross-view SSIM while ``E_p`` falls as the
+    render approaches its target (more scratches), so a fixed weight lets ghosting take a growing
+    share of the loss and costs picture; ``E_x`` sums ``M - 1`` view pairs per view, ``E_p`` one.
+    Below the reference ``"relative"`` keeps ``E_x``'s share of the loss what it is at the
+    reference, ``"squared"`` lets it fall with ``E_p`` (docs/model.md §6)."""
     if rule == "fixed" or m < 2:
         return 1.0
-    share = jax.lax.stop_gradient(e_p) / (m * GHOST_EP_REF)
-    return jnp.minimum(1.0, share) * (2.0 / (m - 1))
+    share = jnp.minimum(1.0, jax.lax.stop_gradient(e_p) / (m * GHOST_EP_REF))
+    if rule == "squared":
+        share = share * share
+    return share * (2.0 / (m - 1))
 
 
 def l2_loss(render: Float[Array, "M H W"], target: Float[Array, "M H W"]) -> Array:
@@ -650,9 +652,9 @@ class LossConfig:
     ghost_baseline: str = option("zero", "E_x penalises all of the cross-view SSIM (zero: the "
                                  "ghosting itself) or only what exceeds the targets' own (targets)",
                                  choices=("targets", "zero"))
-    ghost_scale: str = option("relative", "E_x's weight: lambda_x (fixed), or lambda_x times "
-                              "min(1, E_p per view / GHOST_EP_REF) times 2 / (views - 1) (relative)",
-                              choices=GHOST_SCALES)
+    ghost_scale: str = option("squared", "E_x's weight: lambda_x (fixed), or lambda_x times "
+                              "min(1, E_p per view / GHOST_EP_REF) (relative) or its square "
+                              "(squared), times 2 / (views - 1)", choices=GHOST_SCALES)
 
     def __post_init__(self):
         if self.kind not in LOSS_KINDS:

@@ -22,7 +22,7 @@ SIZE = 32
 def _config(**kw):
     base = dict(n_scratches=300, iterations=6, cull_eps=0.0, checkpoint_every=2, prune_every=2,
                 prune_fraction=0.1, prune_per_pixel=0.0, prune_until=1.0,
-                groove="free")  # re-seeded widths: init_width
+                prune_max_density=0.0, groove="free")  # re-seeded widths: init_width
     base.update(kw)
     return DesignConfig(**base)
 
@@ -127,6 +127,20 @@ def test_resume_across_a_round_is_bitwise(tmp_path, two_view_scene):
         np.testing.assert_array_equal(cp[k], cf[k], err_msg=k)
 
 
+def test_dense_design_makes_no_round(two_view_scene):
+    """At ``prune_max_density`` scratches per pixel or more a design records no round and equals
+    the same design with ``prune_every = 0``; just below, the rounds run."""
+    targets, views, board = two_view_scene
+    dense = int(np.ceil(0.4 * board.n_pixels))  # 410 at 32 x 32
+    cfg = _config(n_scratches=dense, prune_max_density=0.4)
+    res = design(targets, views, board, cfg)
+    assert res.metrics["prune"] == []
+    off = design(targets, views, board, _config(n_scratches=dense, prune_every=0))
+    np.testing.assert_array_equal(np.asarray(res.params.geom), np.asarray(off.params.geom))
+    below = design(targets, views, board, _config(n_scratches=dense - 1, prune_max_density=0.4))
+    assert below.metrics["prune"] == [[2, 41], [4, 41]]
+
+
 def test_schedule():
     cfg = _config(iterations=100, prune_every=20, prune_until=0.6)
     assert [i for i in range(100) if prune.due(i, cfg)] == [20, 40, 60]
@@ -135,10 +149,28 @@ def test_schedule():
 
 def test_moved_count_is_capped_per_pixel():
     """A round moves ``prune_fraction`` of the scratches, at most ``prune_per_pixel`` per pixel:
-    the default moves 1,000 of 20,000 at 256 x 256 px (5 %), 1,049 of 60,000 (1.7 %)."""
+    the default moves 1,000 of 20,000 at 256 x 256 px (5 %); without the density limit 1,049 of
+    60,000 (1.7 %)."""
     cfg = DesignConfig()
     assert prune.moved_count(20_000, 256 * 256, cfg) == 1000
-    assert prune.moved_count(60_000, 256 * 256, cfg) == round(0.016 * 256 * 256) == 1049
     assert prune.moved_count(5_000, 128 * 128, cfg) == 250
-    assert prune.moved_count(60_000, 256 * 256, DesignConfig(prune_per_pixel=0.0)) == 3000
+    free = DesignConfig(prune_max_density=0.0)
+    assert prune.moved_count(60_000, 256 * 256, free) == round(0.016 * 256 * 256) == 1049
+    assert prune.moved_count(60_000, 256 * 256,
+                             DesignConfig(prune_per_pixel=0.0, prune_max_density=0.0)) == 3000
 
+
+def test_no_rounds_at_or_above_the_density_limit():
+    """``prune_max_density`` scratches per image pixel or more: no round moves anything, whatever
+    the image size; just below it the fraction and the cap apply."""
+    cfg = DesignConfig()
+    lim = cfg.prune_max_density
+    for side in (64, 256, 300):
+        px = side * side
+        at = int(np.ceil(lim * px))
+        assert prune.moved_count(at, px, cfg) == 0
+        assert prune.moved_count(3 * at, px, cfg) == 0
+        below = at - 1
+        assert prune.moved_count(below, px, cfg) == min(round(0.05 * below), round(0.016 * px)) > 0
+    assert prune.moved_count(60_000, 256 * 256, cfg) == 0
+    assert prune.moved_count(80_000, 256 * 256, cfg) == 0

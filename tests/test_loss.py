@@ -250,9 +250,9 @@ def test_make_loss_kinds_and_bind():
     assert float(loss(i, t)) == pytest.approx(expected, rel=1e-13)
     no_x = loss_mod.make_loss(loss_mod.LossConfig(lambda_x=0.0))
     assert float(no_x(i, t)) == pytest.approx(float(ep) + loss_mod.LAMBDA_G * float(eg), 1e-13)
-    with_x = loss_mod.make_loss().terms(i, t)  # the default adds LAMBDA_X E_x, "relative"
+    with_x = loss_mod.make_loss().terms(i, t)  # the default adds LAMBDA_X E_x, "squared"
     m = t.shape[0]
-    wx = loss_mod.LAMBDA_X * min(1.0, float(ep) / (m * loss_mod.GHOST_EP_REF)) * 2 / (m - 1)
+    wx = loss_mod.LAMBDA_X * min(1.0, float(ep) / (m * loss_mod.GHOST_EP_REF)) ** 2 * 2 / (m - 1)
     assert float(with_x["total"]) == pytest.approx(
         float(ep) + loss_mod.LAMBDA_G * float(eg) + wx * float(with_x["E_x"]), 1e-12)
     fixed = loss_mod.make_loss(loss_mod.LossConfig(ghost_scale="fixed")).terms(i, t)
@@ -525,8 +525,9 @@ def test_ghost_baseline_zero_penalises_raw_cross_ssim(smooth_images):
 @pytest.mark.float64
 def test_ghost_weight_factor_rule_and_no_gradient():
     """`ghost_weight_factor`: 1 for "fixed"; "relative": 2 / (M - 1) at or above the reference E_p
-    per view, times E_p / (M E_ref) below it; its value carries no gradient, so the total's
-    gradient is E_p's (and E_g's) plus the factor times E_x's."""
+    per view, times E_p / (M E_ref) below it ("squared", the default: times its square); its
+    value carries no gradient, so the total's gradient is E_p's (and E_g's) plus the factor times
+    E_x's."""
     f = loss_mod.ghost_weight_factor
     ref = loss_mod.GHOST_EP_REF
     assert f("fixed", jnp.asarray(1e-9), 3) == 1.0
@@ -535,11 +536,16 @@ def test_ghost_weight_factor_rule_and_no_gradient():
     assert float(f("relative", jnp.asarray(3 * ref / 4), 3)) == pytest.approx(0.25, rel=1e-14)
     assert float(f("relative", jnp.asarray(5 * ref / 3), 5)) == pytest.approx(0.5 / 3, rel=1e-14)
     assert float(jax.grad(lambda e: f("relative", e, 3))(jnp.asarray(ref / 10))) == 0.0
+    # "squared": the same at and above the reference, the square of the share below it
+    assert float(f("squared", jnp.asarray(50 * ref), 5)) == pytest.approx(0.5, rel=1e-15)
+    assert float(f("squared", jnp.asarray(3 * ref / 4), 3)) == pytest.approx(0.0625, rel=1e-14)
+    assert float(f("squared", jnp.asarray(5 * ref / 3), 5)) == pytest.approx(0.5 / 9, rel=1e-14)
+    assert float(jax.grad(lambda e: f("squared", e, 3))(jnp.asarray(ref / 10))) == 0.0
     t = jnp.asarray(_smooth(9))
     i = t * 1.05 + 0.01 * jnp.asarray(_smooth(10))  # close to the target: E_p below the reference
     loss = loss_mod.make_loss(loss_mod.LossConfig(kind="perceptual", lambda_x=0.01))
     ep = float(loss_mod.perceptual_loss(i, t))
-    w = 0.01 * float(f("relative", jnp.asarray(ep), t.shape[0]))
+    w = 0.01 * float(f("squared", jnp.asarray(ep), t.shape[0]))
     assert 0 < w < 0.01 * 2 / (t.shape[0] - 1)  # below the reference: scaled down
     zero = jnp.zeros((t.shape[0],) * 2)
     g = jax.grad(lambda r: loss(r, t))(i)

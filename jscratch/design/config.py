@@ -120,6 +120,10 @@ class DesignConfig:
     prune_per_pixel: float = option(0.016, "at most this many scratches per image pixel moved per "
                                     "round (0: no cap); the round's count is the smaller of the two")
     prune_until: float = option(0.6, "no prune/re-seed round after this fraction of the iterations")
+    prune_max_density: float = option(
+        0.4, "no prune/re-seed rounds when there are this many scratches per image pixel or more "
+        "(0: no limit): dense designs come close to their targets, and a round then costs more "
+        "picture than it brings")
     target_ssim: float | None = option(
         None, "instead of the discard, keep the fewest scratches whose mean SSIM over the views "
         "(docs/model.md §7, 0-1) stays at least this (all when the full design is below it)")
@@ -182,7 +186,8 @@ class DesignConfig:
                 raise DesignError(f"DesignConfig.loss: unknown fields {unknown}") from None
         if not isinstance(self.loss, loss_mod.LossConfig):
             bad("loss", "a jscratch.loss.LossConfig")
-        for name in ("cull_eps", "coverage_eps", "skin", "discard_tol", "prune_per_pixel"):
+        for name in ("cull_eps", "coverage_eps", "skin", "discard_tol", "prune_per_pixel",
+                     "prune_max_density"):
             number(name, 0.0, what="finite and >= 0")
         for name in ("adam_b1", "adam_b2"):
             number(name, 0.0, 1.0, "in [0, 1)")

@@ -293,7 +293,8 @@ def _iterate(state, optimizer, ctx, config, n_iter, checkpoint, thash, progress)
     try:
         while state.iteration < n_iter:
             t0 = time.perf_counter()
-            if prune_mod.due(state.iteration, config) and not any(
+            if prune_mod.due(state.iteration, config) and prune_mod.moved_count(
+                    config.n_scratches, ctx.board.n_pixels, config) and not any(
                     r[0] == state.iteration for r in state.history.get("prune", [])):
                 state = _prune(state, ctx, config)
                 parts["prune"] += time.perf_counter() - t0
