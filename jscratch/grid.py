@@ -45,8 +45,8 @@ each strip's cells that writes the kept pairs straight into the list, instead of
 `(strip_capacity, rows_per_strip)` candidate array, its cumsum, scatter and gathers. The
 per-scratch quantities (`_strip_setup`) stay jnp, and the loop evaluates `_bin`'s tests with its
 formulas in its order (and XLA's fused multiply-adds), so both paths give the same `Pairs`, bit
-for bit (`tests/test_grid.py`). `allocate` measures with the jnp path. The native call is not
-vmappable.
+for bit (`tests/test_grid.py`). `allocate` measures with the jnp path. Under `jax.vmap` the
+native stage runs once per batch element.
 
 Imports: `jscratch.ndf`, `jscratch.native`.
 """
@@ -448,7 +448,7 @@ def update(
     `Pairs` with `pair_capacity` slots. If any capacity was too small, `overflow` is true and
     the list is incomplete: re-allocate (or use `build_pairs`). Floats follow the inputs'
     dtype; gradients are stopped (binning is piecewise constant). On the CPU with the native
-    kernel the strip and cell stage runs natively (the same result; not vmappable).
+    kernel the strip and cell stage runs natively (the same result).
     """
     p0, p1, width, depth = checked_scratches(p0, p1, width, depth)
     p0, p1, width, depth = jax.lax.stop_gradient((p0, p1, width, depth))

@@ -613,8 +613,8 @@ def test_native_bin_overflow_is_bit_identical(dtype):
 
 @needs_native
 def test_update_runs_native_inside_jit_and_cond():
-    """`update` (and `maybe_update`'s `lax.cond`, jitted) run the native pass: no scatter left in
-    the compiled program, the result equal to the jnp path's."""
+    """`update` (and `maybe_update`'s `lax.cond`, jitted; and vmapped) runs the native pass: no
+    scatter left in the program, the result equal to the jnp path's."""
     board, shape = BOARD, (64, 64)
     sc = tuple(np.asarray(a, np.float32) for a in make_scene(np.random.default_rng(9), 320,
                                                                  board, shape))
@@ -634,6 +634,10 @@ def test_update_runs_native_inside_jit_and_cond():
     for force in (True, False):
         assert_same_pairs(step(ref, *moved, force), ref_moved)  # 1 mm > skin: rebinned
         assert_same_pairs(step(ref, *sc, force), ref)  # unmoved (or rebinned to the same)
+    batched = jax.vmap(bvh.update, in_axes=(None, 0, 0, None, None))(
+        spec, np.stack([sc[0], moved[0]]), np.stack([sc[1], moved[1]]), sc[2], sc[3])
+    for i, r in enumerate((ref, ref_moved)):  # vmapped: one native call per element
+        assert_same_pairs(jax.tree_util.tree_map(lambda x: x[i], batched), r)
     with native.override(enabled=False):  # traced anew: the jnp path
         text = jax.jit(lambda *a: grid.update.__wrapped__(spec, *a)).lower(*sc).as_text()
     assert "jscratch_bin" not in text and "scatter" in text

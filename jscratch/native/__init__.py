@@ -564,14 +564,15 @@ def bin_cells(fl, ints, *, shape, strip_capacity: int, rows: int, pair_capacity:
     k_hi, n_strips, col_major``. ``shape`` ``(H, W)``; the capacities; the slacks ``tol``
     (metres) and ``tolg`` (grid units); the pixel pitch ``csx = Sx / W``, ``csy = Sy / H``, half
     pitch ``hx, hy`` and board height ``sy`` (metres), as Python floats (rounded to the dtype
-    inside, as jnp rounds them). Jittable; not vmappable. Needs `available`."""
+    inside, as jnp rounds them). Jittable; under `jax.vmap` one call per batch element. Needs
+    `available`."""
     dt = jnp.dtype(fl.dtype)
     L = int(pair_capacity)
     out = (jax.ShapeDtypeStruct((L,), jnp.int32), jax.ShapeDtypeStruct((L,), jnp.int32),
            jax.ShapeDtypeStruct((L,), jnp.bool_), jax.ShapeDtypeStruct((), jnp.bool_),
            jax.ShapeDtypeStruct((3,), jnp.int32))
     f64 = lambda v: np.float64(float(v))
-    return jax.ffi.ffi_call(_BIN_TARGETS[dt][0], out)(
+    return jax.ffi.ffi_call(_BIN_TARGETS[dt][0], out, vmap_method="sequential")(
         fl, ints.astype(jnp.int32), h_px=int(shape[0]), w_px=int(shape[1]),
         strip_capacity=int(strip_capacity), rows=int(rows), pair_capacity=L, tol=f64(tol),
         tolg=f64(tolg), csx=f64(csx), csy=f64(csy), hx=f64(hx), hy=f64(hy), sy=f64(sy))
