@@ -17,11 +17,9 @@ each with a values-only and a reverse-pass variant:
   slab, lobe, cut and piece integrals and their partials; one SIMD lane per pair-view.
 
 Same results up to rounding (`tests/test_native.py` compares them with the jnp path in float64
-and float32).
-
-- the grid binning's strip and cell stage (`bin_cells`; what `jscratch.grid.update` runs): one
-  pass over scratches, strips and cells writing the pair list; the same bits as the jnp path
-  (`tests/test_grid.py`).
+and float32). A third kernel, the grid binning's strip and cell stage (`bin_cells`, what
+`jscratch.grid.update` runs: one pass over scratches, strips and cells writing the pair list),
+gives the same bits as its jnp path (`tests/test_grid.py`).
 
 - `prepare()`: start the build on a background thread (the design does, before its setup).
 - `available(dtype) -> bool`: whether the kernels can run for arrays of `dtype` here: the
@@ -35,13 +33,14 @@ and float32).
   (D, A)`, `pair_vjp(..., ct_D, ct_A, profile=...)`, `pairs(..., profile)`: the whole pair;
   `pair_jacobian(..., profile=...)`: its values and Jacobians in one pass (the renderer's
   gradient on one device keeps them).
+- `bin_cells(fl, ints, *, shape, ...)`: the grid binning's strip and cell stage.
 - `status()`: what runs and why, a JSON-friendly dict (the design writes it to metrics.json);
   ``python -m jscratch.native [--json]`` prints it (and builds the kernel if needed).
 
 Build. The kernels (native_lit.cc, which includes native_arc.h, and native_bin.cc; one library)
 are compiled on first use with the system's C++ compiler (``$CXX``, else ``g++``, ``c++`` or
-``clang++`` on ``PATH``; 5-8 s) into ``native_lit-<key>.so`` in ``$JSCRATCH_CACHE`` (else ``$XDG_CACHE_HOME/jscratch`` or
-``~/.cache/jscratch``). The key (`_key`) covers everything the binary depends on: the text of
+``clang++`` on ``PATH``; 5-8 s) into ``native_lit-<key>.so`` in ``$JSCRATCH_CACHE`` (else
+``$XDG_CACHE_HOME/jscratch`` or ``~/.cache/jscratch``). The key (`_key`) covers everything the binary depends on: the text of
 the three source files, the compiler's path and its ``--version`` output, the flags
 (``-march=native``), the CPU's model and features, the jaxlib version and a hash of the XLA FFI headers under ``jax.ffi.include_dir()``. After a build the
 cache's other ``native_lit-*.so`` (stale keys) are deleted. Nothing is downloaded.
@@ -91,10 +90,8 @@ import numpy as np
 from jscratch.errors import InputError, error_line
 
 __all__ = ["PROFILES", "NativeKernelWarning", "available", "bin_cells", "enabled", "lit",
-           "lit_partials",
-           "lit_values",
-           "main", "override", "pair_jacobian", "pair_values", "pair_vjp", "pairs", "prepare", "status",
-           "threads"]
+           "lit_partials", "lit_values", "main", "override", "pair_jacobian", "pair_values",
+           "pair_vjp", "pairs", "prepare", "status", "threads"]
 
 _SOURCE = Path(__file__).with_name("native_lit.cc")
 #: The arc groove's per-view stage, included by `_SOURCE` (one library; the key covers both).
