@@ -9,7 +9,7 @@
 // path's exactly (same pairs, same order, same overflow flag and counts), so every comparison
 // below is computed with `_bin`'s formulas in its order. XLA's CPU backend contracts a multiply
 // feeding an add or subtract into a fused multiply-add where the product has no other use in its
-// fusion; `std::fma` stands exactly where it does (`tests/test_grid.py` compares the two paths).
+// fusion; `fused` stands exactly where it does (`tests/test_grid.py` compares the two paths).
 //
 // Attributes: h_px, w_px (image rows, columns), strip_capacity, rows (cells per strip),
 // pair_capacity; tol, tolg (slack of the exact test, metres, and of candidate generation, grid
@@ -30,6 +30,18 @@
 namespace ffi = xla::ffi;
 
 namespace {
+
+// a * b + c as XLA's CPU backend computes a product whose only use is that add: one rounding
+// where the CPU has fused multiply-add instructions (XLA compiles for the host's features, as
+// -march=native does here), two where it has none.
+template <typename T>
+inline T fused(T a, T b, T c) {
+#if defined(__FMA__) || defined(__ARM_FEATURE_FMA)
+  return std::fma(a, b, c);
+#else
+  return a * b + c;
+#endif
+}
 
 // `grid._floor_index`: floor(clip(g, -1, n)) as int32 (XLA: maximum, then minimum).
 template <typename T>
@@ -91,24 +103,24 @@ ffi::Error BinImpl(ffi::Buffer<DT> fl, ffi::Buffer<ffi::DataType::S32> ints, int
     const int32_t n_u = col_major ? W : H, n_v = col_major ? H : W;
     const T abu = std::abs(bu), abv = std::abs(bv), atx = std::abs(tx), aty = std::abs(ty);
     // Per-strip thresholds of the four separating axes (`_bin`'s sep_x, sep_y, sep_b, sep_t).
-    const T thr_x = std::fma(half_l, atx, std::fma(half_w, aty, hx)) + tol;
-    const T thr_y = std::fma(half_l, aty, std::fma(half_w, atx, hy)) + tol;
+    const T thr_x = fused(half_l, atx, fused(half_w, aty, hx)) + tol;
+    const T thr_y = fused(half_l, aty, fused(half_w, atx, hy)) + tol;
     const T thr_b = (square ? (half_w + hx * aty) + hy * atx
-                            : std::fma(hy, atx, std::fma(hx, aty, half_w))) + tol;
+                            : fused(hy, atx, fused(hx, aty, half_w))) + tol;
     const T thr_t = (square ? (half_l + hx * atx) + hy * aty
-                            : std::fma(hy, aty, std::fma(hx, atx, half_l))) + tol;
-    const T spread = std::fma(half_w, abv, tolg);
+                            : fused(hy, aty, fused(hx, atx, half_l))) + tol;
+    const T spread = fused(half_w, abv, tolg);
     for (int32_t s = 0; s < n_strips && slot < strip_capacity; ++s, ++slot) {
       const int32_t k = k_lo + s;
       if (!(k >= 0 && k <= k_hi && k < n_u)) continue;  // the spare strip (`_strip_setup`)
       const T kf = static_cast<T>(k);
       // Along-scratch parameter range whose cross-section reaches the strip [k, k + 1].
-      const T lo = std::fma(-half_w, abu, kf - mu) - tolg;
-      const T hi = std::fma(half_w, abu, (kf + one) - mu) + tolg;
+      const T lo = fused(-half_w, abu, kf - mu) - tolg;
+      const T hi = fused(half_w, abu, (kf + one) - mu) + tolg;
       const T tau1 = lo / tu, tau2 = hi / tu;
       const T tau_a = std::min(half_l, std::max(-half_l, std::min(tau1, tau2)));
       const T tau_b = std::min(half_l, std::max(-half_l, std::max(tau1, tau2)));
-      const T va = std::fma(tau_a, tv, mv), vb = std::fma(tau_b, tv, mv);
+      const T va = fused(tau_a, tv, mv), vb = fused(tau_b, tv, mv);
       const int32_t r_lo = std::max(floor_index(std::min(va, vb) - spread, n_v), 0);
       const int32_t r_hi = std::min(floor_index(std::max(va, vb) + spread, n_v), n_v - 1);
       const int32_t n_rows = std::max(r_hi - r_lo + 1, 0);
@@ -117,11 +129,11 @@ ffi::Error BinImpl(ffi::Buffer<DT> fl, ffi::Buffer<ffi::DataType::S32> ints, int
       for (int32_t j = 0; j < m; ++j) {
         const int32_t minor = r_lo + j;
         const int32_t col = col_major ? k : minor, row = col_major ? minor : k;
-        const T dx = std::fma(static_cast<T>(col) + half, csx, -cx);
-        const T dy = std::fma(-(static_cast<T>(row) + half), csy, sy) - cy;
+        const T dx = fused(static_cast<T>(col) + half, csx, -cx);
+        const T dy = fused(-(static_cast<T>(row) + half), csy, sy) - cy;
         if (!(std::abs(dx) <= thr_x) || !(std::abs(dy) <= thr_y)) continue;
-        const T d_b = std::fma(dx, ty, -(dy * tx));
-        const T d_t = std::fma(dx, tx, dy * ty);
+        const T d_b = fused(dx, ty, -(dy * tx));
+        const T d_t = fused(dx, tx, dy * ty);
         if (!(std::abs(d_b) <= thr_b) || !(std::abs(d_t) <= thr_t)) continue;
         if (pos < pair_capacity) {
           const bool on = row >= 0 && row < H && col >= 0 && col < W;
