@@ -38,7 +38,17 @@ public face: it takes `scene.Scratches` and `scene.Board`, owns the multi-view `
 (this shared list, the per-view culled lists of `jscratch.cull`, capacities and overflow) and the
 host layout for the renderer.
 
-Imports: `jscratch.ndf`.
+**Natively on the CPU.** Where the native kernel is available (`jscratch.native.available`:
+enabled, CPU backend, built), `update` runs the strip and cell stage as one custom call
+(`native.bin_cells`, `jscratch/native/native_bin.cc`): a loop over scratches, their strips and
+each strip's cells that writes the kept pairs straight into the list, instead of the padded
+`(strip_capacity, rows_per_strip)` candidate array, its cumsum, scatter and gathers. The
+per-scratch quantities (`_strip_setup`) stay jnp, and the loop evaluates `_bin`'s tests with its
+formulas in its order (and XLA's fused multiply-adds), so both paths give the same `Pairs`, bit
+for bit (`tests/test_grid.py`). `allocate` measures with the jnp path. Under `jax.vmap` the
+native stage runs once per batch element.
+
+Imports: `jscratch.ndf`, `jscratch.native`.
 """
 
 from __future__ import annotations
@@ -52,6 +62,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from jscratch import native
 from jscratch.errors import InputError
 from jscratch.ndf import groove_half_width, local_frame
 
@@ -436,11 +447,13 @@ def update(
 
     `Pairs` with `pair_capacity` slots. If any capacity was too small, `overflow` is true and
     the list is incomplete: re-allocate (or use `build_pairs`). Floats follow the inputs'
-    dtype; gradients are stopped (binning is piecewise constant).
+    dtype; gradients are stopped (binning is piecewise constant). On the CPU with the native
+    kernel the strip and cell stage runs natively (the same result).
     """
     p0, p1, width, depth = checked_scratches(p0, p1, width, depth)
     p0, p1, width, depth = jax.lax.stop_gradient((p0, p1, width, depth))
-    pairs, _ = _bin(
+    binner = _bin_native if native.available(p0.dtype) else _bin
+    pairs, _ = binner(
         p0, p1, width, depth,
         board=spec.board, shape=spec.shape, skin=spec.skin,
         strip_capacity=spec.strip_capacity, rows=spec.rows_per_strip,
@@ -450,6 +463,38 @@ def update(
 
 
 _update_jit = update  # already jitted; the name marks host-driver calls
+
+
+def _bin_native(p0, p1, width, depth, *, board, shape, skin, strip_capacity, rows, pair_capacity):
+    """`_bin` with the strip and cell stage run by `native.bin_cells` (same arguments, same
+    `Pairs` and stats, bit for bit)."""
+    dtype = p0.dtype
+    sx_m, sy_m = (float(s) for s in board)
+    h_px, w_px = (int(v) for v in shape)
+    g = _strip_setup(p0, p1, width, depth, board, shape, skin)
+    fl = jnp.stack(
+        [g.tu, g.tv, g.bu, g.bv, g.mu, g.mv, g.half_w, g.half_l,
+         g.centre[:, 0], g.centre[:, 1], g.t[:, 0], g.t[:, 1]],
+        axis=-1,
+    )  # fmt: skip
+    ints = jnp.stack([g.k_lo, g.k_hi, g.n_strips, g.col_major.astype(jnp.int32)], axis=-1)
+    pixel, scratch, valid, overflow, stats = native.bin_cells(
+        fl, ints, shape=(h_px, w_px), strip_capacity=strip_capacity, rows=rows,
+        pair_capacity=pair_capacity, tol=g.tol, tolg=g.tolg, csx=sx_m / w_px, csy=sy_m / h_px,
+        hx=0.5 * sx_m / w_px, hy=0.5 * sy_m / h_px, sy=sy_m,
+    )  # fmt: skip
+    pairs = Pairs(
+        pixel=pixel,
+        scratch=scratch,
+        valid=valid,
+        overflow=overflow,
+        bin_p0=p0,
+        bin_p1=p1,
+        bin_half_width=g.half_w,
+        bin_extend=jnp.asarray(skin, dtype),
+        bin_tol=jnp.asarray(g.tol, dtype),
+    )
+    return pairs, (stats[0], stats[1], stats[2])
 
 
 @eqx.filter_jit

@@ -1,7 +1,8 @@
 """Tests of jscratch.grid (through `jscratch.bvh`, its public face): the pair list against an
 all-pairs brute force (separating axes, checked itself against polygon clipping), in float64 and
 float32 under jit; overflow and regrowth; the skin's rebin test; compaction; the groove half width;
-a groove ending on the board's edge; the input errors."""
+a groove ending on the board's edge; the input errors; the native strip and cell stage against the
+jnp one, bit for bit."""
 
 import equinox as eqx
 import jax
@@ -9,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jscratch import bvh
+from jscratch import bvh, grid, native
 
 BOARD = (0.3, 0.3)
 
@@ -464,3 +465,179 @@ def test_groove_at_bottom_edge_stays_on_the_grid():
                                skin=0.0)
     pix = np.asarray(pairs.pixel)[np.asarray(pairs.valid)]
     assert pix.size > 0 and pix.max() < 256 * 256
+
+
+# ---------------------------------------------------------------------------------------------
+# The native strip and cell stage (`native.bin_cells`) equals the jnp one, bit for bit
+
+needs_native = pytest.mark.skipif(not native.available(jnp.float32),
+                                  reason=f"native kernel unavailable: {native.status()['why']}")
+
+
+def _binner(native_path, spec):
+    """`grid.update`'s binning at `spec`'s capacities, jitted, by the native or the jnp path:
+    ``(Pairs, stats)``."""
+    binner = grid._bin_native if native_path else grid._bin
+
+    @jax.jit
+    def f(p0, p1, width, depth):
+        p0, p1, width, depth = grid.checked_scratches(p0, p1, width, depth)
+        return binner(p0, p1, width, depth, board=spec.board, shape=spec.shape, skin=spec.skin,
+                      strip_capacity=spec.strip_capacity, rows=spec.rows_per_strip,
+                      pair_capacity=spec.pair_capacity)
+
+    return f
+
+
+def assert_same_pairs(a, b):
+    """Every field of two `Pairs` the same bits (and dtypes)."""
+    for name in ("pixel", "scratch", "valid", "overflow", "bin_p0", "bin_p1", "bin_half_width",
+                 "bin_extend", "bin_tol"):
+        x, y = np.asarray(getattr(a, name)), np.asarray(getattr(b, name))
+        assert x.dtype == y.dtype and x.shape == y.shape, name
+        bad = np.flatnonzero(x.reshape(-1) != y.reshape(-1))
+        assert bad.size == 0, f"{name} differs at {bad.size} slots, first {bad[:5]}"
+
+
+def assert_native_equals_jnp(spec, *scene):
+    (a, sa), (b, sb) = (_binner(nat, spec)(*scene) for nat in (False, True))
+    assert_same_pairs(a, b)
+    assert tuple(map(int, sa)) == tuple(map(int, sb))
+    return a, tuple(map(int, sa))
+
+
+def _edge_scene(rng, n, board, shape):
+    """Endpoints on and within a few rounding steps of the board's edges and corners, grooves
+    ending exactly on cell boundaries, zero-length and zero-depth scratches."""
+    sx, sy = board
+    h_px, w_px = shape
+    tiny = rng.choice([0.0, 1e-12, 3e-9, 2.8e-7, 1e-5], (n, 2))
+    on = rng.integers(0, 2, (n, 2))  # 0: the low edge, 1: the high edge
+    p0 = np.where(on == 0, tiny, [sx, sy] - tiny)
+    free = rng.integers(0, 2, n).astype(bool)  # half of them slide along their edge
+    p0[free, 0] = rng.uniform(0, sx, free.sum())
+    ang = rng.uniform(0, 2 * np.pi, n)
+    length = rng.choice([0.0, sx / w_px, 3 * sy / h_px, 0.02], n)
+    p1 = np.clip(p0 + length[:, None] * np.stack([np.cos(ang), np.sin(ang)], -1), 0, board)
+    k = n // 4  # grooves from cell corner to cell corner
+    c = rng.integers(0, w_px + 1, (k, 2)) * (sx / w_px)
+    r = sy - rng.integers(0, h_px + 1, (k, 2)) * (sy / h_px)
+    p0[:k], p1[:k] = np.stack([c[:, 0], r[:, 0]], -1), np.stack([c[:, 1], r[:, 1]], -1)
+    width = np.full(n, 2.5e-4)
+    depth = np.where(rng.uniform(size=n) < 0.1, 0.0, 1.28e-4)
+    return p0, p1, width, depth
+
+
+@needs_native
+@pytest.mark.parametrize("dtype", [np.float32, pytest.param(np.float64, marks=pytest.mark.float64)])
+@pytest.mark.parametrize("board, shape", [(BOARD, (64, 64)), ((0.4, 0.25), (48, 96))])
+def test_native_bin_is_bit_identical(dtype, board, shape):
+    """Native and jnp binning give the same `Pairs` and stats on mixed scenes (short, long,
+    board-crossing, on-cell-edge, zero-length, zero-depth, wide grooves), on scenes at the
+    board's edges and corners, with and without skin, square and non-square pixels."""
+    rng = np.random.default_rng(5)
+    scenes = [make_scene(rng, 400, board, shape), make_scene(rng, 240, board, shape, wide=True),
+              _edge_scene(rng, 400, board, shape)]
+    sc = tuple(np.concatenate([s[i] for s in scenes]).astype(dtype) for i in range(4))
+    for skin in (0.0, 3e-4):
+        spec = bvh.allocate(*sc, board=board, shape=shape, skin=skin)
+        pairs, stats = assert_native_equals_jnp(spec, *sc)
+        assert not bool(pairs.overflow) and stats[2] > 1000, (skin, stats)
+
+
+# Scratches (float32, 256 x 256 px, width 2.5e-4 m, depth 1.28e-4 m; found by search) on which a
+# native pass that leaves out one of XLA's fused multiply-adds, or adds one XLA does not make,
+# keeps or drops a cell the jnp path does not. Each is sensitive to at least one of: the
+# thresholds of the x and y tests, the b and t tests' thresholds (fused on non-square pixels; on
+# square ones XLA shares hx |ty| and hx |tx| between them and does not fuse), the cell's offsets
+# dx and dy, the across- and along-groove distances d_b and d_t (which product is fused).
+_FMA_SENSITIVE = {
+    (0.3, 0.3): [  # square pixels
+        ((0.28939956426620483, 0.06447827816009521), (0.08814550191164017, 0.16357623040676117)),
+        ((0.14187341928482056, 0.07636111974716187), (0.30000001192092896, 0.27460142970085144)),
+        ((0.27088093757629395, 0.10414189100265503), (0.2931610345840454, 0.17575038969516754)),
+        ((0.11098752915859222, 0.10339796543121338), (0.30000001192092896, 0.14483962953090668)),
+        ((0.2647748291492462, 0.20767663419246674), (0.16449899971485138, 0.30000001192092896)),
+        ((0.26325929164886475, 0.19442053139209747), (0.1827825903892517, 0.06916120648384094)),
+        ((0.0, 0.15855808556079865), (0.08205462992191315, 0.08440258353948593)),
+    ],
+    (0.3, 0.2): [  # non-square pixels
+        ((0.062092375010252, 0.08305155485868454), (0.0, 0.0867336094379425)),
+        ((0.1593717634677887, 0.20000000298023224), (0.30000001192092896, 0.016131943091750145)),
+        ((0.22572647035121918, 0.09679306298494339), (0.09239745140075684, 0.0)),
+        ((0.0, 0.0), (0.1264769732952118, 0.20000000298023224)),
+        ((0.09292838722467422, 0.0), (0.22809024155139923, 0.18341410160064697)),
+        ((0.011074230074882507, 0.06948401778936386), (0.2497318983078003, 0.0)),
+        ((0.023150337859988213, 0.17319762706756592), (0.1964128017425537, 0.031087450683116913)),
+        ((0.18726807832717896, 0.0), (0.2850271165370941, 0.11275522410869598)),
+    ],
+}
+
+
+@needs_native
+@pytest.mark.parametrize("board", sorted(_FMA_SENSITIVE))
+def test_native_bin_follows_xla_fused_multiply_adds(board):
+    """On scratches where the contraction decides a borderline cell, the native pass still
+    equals the jnp one (a port with plain products, or fused ones where XLA does not fuse, would
+    not)."""
+    scratches = _FMA_SENSITIVE[board]
+    p0, p1 = (np.asarray([s[i] for s in scratches], np.float32) for i in (0, 1))
+    n = len(p0)
+    width, depth = np.full(n, 2.5e-4, np.float32), np.full(n, 1.28e-4, np.float32)
+    spec = bvh.allocate(p0, p1, width, depth, board=board, shape=(256, 256))
+    assert_native_equals_jnp(spec, p0, p1, width, depth)
+
+
+@needs_native
+@pytest.mark.parametrize("dtype", [np.float32, pytest.param(np.float64, marks=pytest.mark.float64)])
+def test_native_bin_overflow_is_bit_identical(dtype):
+    """Each of the three capacities too small: the same overflow flag, stats and (truncated)
+    list from both paths."""
+    board, shape = BOARD, (64, 64)
+    sc = tuple(np.asarray(a, dtype) for a in make_scene(np.random.default_rng(8), 320, board,
+                                                            shape, wide=True))
+    spec = bvh.allocate(*sc, board=board, shape=shape, margin=1.0)
+    _, (strips, rows, pairs) = assert_native_equals_jnp(spec, *sc)
+    for small in (dict(strip_capacity=strips // 2), dict(rows_per_strip=rows - 1),
+                  dict(pair_capacity=pairs // 3), dict(strip_capacity=64, rows_per_strip=1,
+                                                        pair_capacity=64)):
+        tight = bvh.GridSpec(**{**dict(board=board, shape=shape,
+                                       strip_capacity=spec.strip_capacity,
+                                       rows_per_strip=spec.rows_per_strip,
+                                       pair_capacity=spec.pair_capacity), **small})
+        got, stats = assert_native_equals_jnp(tight, *sc)
+        assert bool(got.overflow), small
+        if "pair_capacity" in small and len(small) == 1:
+            assert stats == (strips, rows, pairs) and bool(np.all(np.asarray(got.valid)))
+
+
+@needs_native
+def test_update_runs_native_inside_jit_and_cond():
+    """`update` (and `maybe_update`'s `lax.cond`, jitted; and vmapped) runs the native pass: no
+    scatter left in the program, the result equal to the jnp path's."""
+    board, shape = BOARD, (64, 64)
+    sc = tuple(np.asarray(a, np.float32) for a in make_scene(np.random.default_rng(9), 320,
+                                                                 board, shape))
+    spec = bvh.allocate(*sc, board=board, shape=shape, skin=2e-4)
+    ref, _ = _binner(False, spec)(*sc)
+    text = jax.jit(grid.update).lower(spec, *sc).as_text()
+    assert "jscratch_bin_f32" in text and "scatter" not in text
+    assert_same_pairs(bvh.update(spec, *sc), ref)
+    moved = (sc[0] + np.float32(1e-3), sc[1] + np.float32(1e-3), sc[2], sc[3])
+    ref_moved, _ = _binner(False, spec)(*moved)
+
+    @jax.jit
+    def step(pairs, p0, p1, width, depth, force):
+        return jax.lax.cond(force, lambda: bvh.update(spec, p0, p1, width, depth),
+                            lambda: bvh.maybe_update(spec, pairs, p0, p1, width, depth))
+
+    for force in (True, False):
+        assert_same_pairs(step(ref, *moved, force), ref_moved)  # 1 mm > skin: rebinned
+        assert_same_pairs(step(ref, *sc, force), ref)  # unmoved (or rebinned to the same)
+    batched = jax.vmap(bvh.update, in_axes=(None, 0, 0, None, None))(
+        spec, np.stack([sc[0], moved[0]]), np.stack([sc[1], moved[1]]), sc[2], sc[3])
+    for i, r in enumerate((ref, ref_moved)):  # vmapped: one native call per element
+        assert_same_pairs(jax.tree_util.tree_map(lambda x: x[i], batched), r)
+    with native.override(enabled=False):  # traced anew: the jnp path
+        text = jax.jit(lambda *a: grid.update.__wrapped__(spec, *a)).lower(*sc).as_text()
+    assert "jscratch_bin" not in text and "scatter" in text

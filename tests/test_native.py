@@ -202,7 +202,7 @@ def test_compiler_lookup_without_compilers(monkeypatch, tmp_path):
 
 
 def test_cache_key_covers_source_compiler_jaxlib_and_ffi_headers(monkeypatch, tmp_path):
-    """The key changes with the source text (either file), the compiler's path and version, the
+    """The key changes with the source text (any of the three files), the compiler's path and version, the
     jaxlib
     version and the FFI headers, and is the same for the same inputs."""
     monkeypatch.setattr(native, "_compiler_version", lambda cxx: "g++ (X) 12.2.0")
@@ -223,11 +223,15 @@ def test_cache_key_covers_source_compiler_jaxlib_and_ffi_headers(monkeypatch, tm
     arc_src.write_text(native._ARC_SOURCE.read_text() + "\n// one more line\n")
     monkeypatch.setattr(native, "_ARC_SOURCE", arc_src)
     keys.add(key())
+    bin_src = tmp_path / "native_bin.cc"
+    bin_src.write_text(native._BIN_SOURCE.read_text() + "\n// one more line\n")
+    monkeypatch.setattr(native, "_BIN_SOURCE", bin_src)
+    keys.add(key())
     (tmp_path / "include" / "xla").mkdir(parents=True)
     (tmp_path / "include" / "xla" / "ffi.h").write_text("// other headers\n")
     monkeypatch.setattr(jax.ffi, "include_dir", lambda: str(tmp_path / "include"))
     keys.add(key())
-    assert len(keys) == 7, keys
+    assert len(keys) == 8, keys
     parts = native._key_parts("/usr/bin/g++")
     assert {"source", "compiler", "compiler_version", "flags", "cpu", "cpu_features", "jaxlib",
             "ffi_headers"} <= set(parts), parts

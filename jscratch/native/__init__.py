@@ -1,5 +1,6 @@
 """The pair kernel as native CPU kernels (XLA FFI custom calls, `native_lit.cc` and the arc
-groove's `native_arc.h`, which it includes).
+groove's `native_arc.h`, which it includes), and the grid binning's strip and cell stage
+(`native_bin.cc`, in the same library).
 
 `jscratch.ndf` evaluates a pair with jnp (XLA's CPU backend evaluates the many gradient outputs
 in separate fusions that each recompute the shared arithmetic); where this module is available,
@@ -16,7 +17,9 @@ each with a values-only and a reverse-pass variant:
   slab, lobe, cut and piece integrals and their partials; one SIMD lane per pair-view.
 
 Same results up to rounding (`tests/test_native.py` compares them with the jnp path in float64
-and float32).
+and float32). A third kernel, the grid binning's strip and cell stage (`bin_cells`, what
+`jscratch.grid.update` runs: one pass over scratches, strips and cells writing the pair list),
+gives the same bits as its jnp path (`tests/test_grid.py`).
 
 - `prepare()`: start the build on a background thread (the design does, before its setup).
 - `available(dtype) -> bool`: whether the kernels can run for arrays of `dtype` here: the
@@ -30,14 +33,15 @@ and float32).
   (D, A)`, `pair_vjp(..., ct_D, ct_A, profile=...)`, `pairs(..., profile)`: the whole pair;
   `pair_jacobian(..., profile=...)`: its values and Jacobians in one pass (the renderer's
   gradient on one device keeps them).
+- `bin_cells(fl, ints, *, shape, ...)`: the grid binning's strip and cell stage.
 - `status()`: what runs and why, a JSON-friendly dict (the design writes it to metrics.json);
   ``python -m jscratch.native [--json]`` prints it (and builds the kernel if needed).
 
-Build. The kernel (native_lit.cc, which includes native_arc.h) is compiled on first use with
-the system's C++ compiler (``$CXX``, else ``g++``, ``c++`` or ``clang++`` on ``PATH``; 5-8 s)
-into ``native_lit-<key>.so`` in ``$JSCRATCH_CACHE`` (else ``$XDG_CACHE_HOME/jscratch`` or
-``~/.cache/jscratch``). The key (`_key`) covers everything the binary depends on: the text of
-both source files, the compiler's path and its ``--version`` output, the flags
+Build. The kernels (native_lit.cc, which includes native_arc.h, and native_bin.cc; one library)
+are compiled on first use with the system's C++ compiler (``$CXX``, else ``g++``, ``c++`` or
+``clang++`` on ``PATH``; 5-8 s) into ``native_lit-<key>.so`` in ``$JSCRATCH_CACHE`` (else
+``$XDG_CACHE_HOME/jscratch`` or ``~/.cache/jscratch``). The key (`_key`) covers everything the binary depends on: the text of
+the three source files, the compiler's path and its ``--version`` output, the flags
 (``-march=native``), the CPU's model and features, the jaxlib version and a hash of the XLA FFI headers under ``jax.ffi.include_dir()``. After a build the
 cache's other ``native_lit-*.so`` (stale keys) are deleted. Nothing is downloaded.
 
@@ -81,17 +85,19 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import jaxlib
+import numpy as np
 
 from jscratch.errors import InputError, error_line
 
-__all__ = ["PROFILES", "NativeKernelWarning", "available", "enabled", "lit", "lit_partials",
-           "lit_values",
-           "main", "override", "pair_jacobian", "pair_values", "pair_vjp", "pairs", "prepare", "status",
-           "threads"]
+__all__ = ["PROFILES", "NativeKernelWarning", "available", "bin_cells", "enabled", "lit",
+           "lit_partials", "lit_values", "main", "override", "pair_jacobian", "pair_values",
+           "pair_vjp", "pairs", "prepare", "status", "threads"]
 
 _SOURCE = Path(__file__).with_name("native_lit.cc")
 #: The arc groove's per-view stage, included by `_SOURCE` (one library; the key covers both).
 _ARC_SOURCE = Path(__file__).with_name("native_arc.h")
+#: The grid binning's strip and cell stage (`bin_cells`), compiled into the same library.
+_BIN_SOURCE = Path(__file__).with_name("native_bin.cc")
 #: The whole-pair kernels' groove profiles (docs/model.md §2, §13) -> their ``profile`` attribute.
 PROFILES = {"paper": 0, "arc": 1}
 #: (dtype, with partials) -> (FFI target name, symbol in the library).
@@ -106,6 +112,9 @@ _PAIR_TARGETS = {(jnp.dtype(dt), vjp): (f"jscratch_pairs{'_vjp' if vjp else ''}_
                  for vjp in (True, False)}
 #: dtype -> (FFI target name, symbol) of the whole-pair kernel's Jacobian mode.
 _JAC_TARGETS = {jnp.dtype(dt): (f"jscratch_pairs_jac_{name}", f"JscratchPairsJac{name.upper()}")
+                for dt, name in ((jnp.float32, "f32"), (jnp.float64, "f64"))}
+#: dtype -> (FFI target name, symbol) of the grid binning's strip and cell stage.
+_BIN_TARGETS = {jnp.dtype(dt): (f"jscratch_bin_{name}", f"JscratchBin{name.upper()}")
                 for dt, name in ((jnp.float32, "f32"), (jnp.float64, "f64"))}
 _FLAGS = ("-O3", "-march=native", "-fno-math-errno", "-ffp-contract=off", "-std=c++17", "-shared",
           "-fPIC", "-pthread", "-w")
@@ -230,7 +239,8 @@ def _ffi_headers() -> str:
 def _key_parts(cxx: str) -> dict:
     """What the library depends on, as strings: the cache key's inputs (`_key`)."""
     model, features = _cpu()
-    return {"source": _sha(_SOURCE.read_bytes() + b"\0" + _ARC_SOURCE.read_bytes()),
+    return {"source": _sha(_SOURCE.read_bytes() + b"\0" + _ARC_SOURCE.read_bytes() + b"\0"
+                           + _BIN_SOURCE.read_bytes()),
             "compiler": cxx,
             "compiler_version": _compiler_version(cxx), "flags": " ".join(_FLAGS),
             "cpu": f"{platform.machine()} {model}", "cpu_features": _sha(features.encode()),
@@ -269,11 +279,12 @@ def _compile() -> dict:
     lib.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=lib.parent) as tmp:
         out = Path(tmp) / lib.name
-        proc = subprocess.run([cxx, *_FLAGS, f"-I{jax.ffi.include_dir()}", str(_SOURCE), "-o",
-                               str(out)], capture_output=True, text=True)
+        proc = subprocess.run([cxx, *_FLAGS, f"-I{jax.ffi.include_dir()}", str(_SOURCE),
+                               str(_BIN_SOURCE), "-o", str(out)], capture_output=True, text=True)
         if proc.returncode != 0:
             last = (proc.stderr.strip().splitlines() or ["?"])[-1]
-            raise RuntimeError(f"{Path(cxx).name} failed on {_SOURCE.name}: {last}")
+            raise RuntimeError(f"{Path(cxx).name} failed on {_SOURCE.name} and "
+                               f"{_BIN_SOURCE.name}: {last}")
         os.replace(out, lib)  # atomic: concurrent processes see a whole library or none
     _prune(lib)
     return info | {"built": True, "seconds": round(time.perf_counter() - t0, 1)}
@@ -339,7 +350,7 @@ def _load_once() -> bool:
             raise RuntimeError(_build["error"])
         handle = _build["info"]["handle"]
         for target, symbol in (*_TARGETS.values(), *_PAIR_TARGETS.values(),
-                               *_JAC_TARGETS.values()):
+                               *_JAC_TARGETS.values(), *_BIN_TARGETS.values()):
             jax.ffi.register_ffi_target(target, jax.ffi.pycapsule(getattr(handle, symbol)),
                                         platform="cpu")
     except Exception as e:  # no compiler, a failed build, an FFI this jaxlib lacks: jnp path
@@ -538,8 +549,33 @@ def _pairs_bwd(n_gl, profile, args, ct):
 
 pairs.defvjp(_pairs_fwd, _pairs_bwd)
 
+
+def bin_cells(fl, ints, *, shape, strip_capacity: int, rows: int, pair_capacity: int,
+              tol: float, tolg: float, csx: float, csy: float, hx: float, hy: float,
+              sy: float):
+    """The strip and cell stage of `jscratch.grid`'s binning, natively (`native_bin.cc`): the
+    same ``(pixel, scratch, valid, overflow, stats)`` as the jnp path (``(L,)`` int32, int32,
+    bool, ``()`` bool, ``(3,)`` int32 = strips needed, most cells in a strip, pairs needed;
+    ``L = pair_capacity``). ``fl`` ``(N, 12)`` float32 or float64: ``tu, tv, bu, bv, mu, mv,
+    half_w, half_l, cx, cy, tx, ty`` of `grid._strip_setup`; ``ints`` ``(N, 4)`` int32: ``k_lo,
+    k_hi, n_strips, col_major``. ``shape`` ``(H, W)``; the capacities; the slacks ``tol``
+    (metres) and ``tolg`` (grid units); the pixel pitch ``csx = Sx / W``, ``csy = Sy / H``, half
+    pitch ``hx, hy`` and board height ``sy`` (metres), as Python floats (rounded to the dtype
+    inside, as jnp rounds them). Jittable; under `jax.vmap` one call per batch element. Needs
+    `available`."""
+    dt = jnp.dtype(fl.dtype)
+    L = int(pair_capacity)
+    out = (jax.ShapeDtypeStruct((L,), jnp.int32), jax.ShapeDtypeStruct((L,), jnp.int32),
+           jax.ShapeDtypeStruct((L,), jnp.bool_), jax.ShapeDtypeStruct((), jnp.bool_),
+           jax.ShapeDtypeStruct((3,), jnp.int32))
+    f64 = lambda v: np.float64(float(v))
+    return jax.ffi.ffi_call(_BIN_TARGETS[dt][0], out, vmap_method="sequential")(
+        fl, ints.astype(jnp.int32), h_px=int(shape[0]), w_px=int(shape[1]),
+        strip_capacity=int(strip_capacity), rows=int(rows), pair_capacity=L, tol=f64(tol),
+        tolg=f64(tolg), csx=f64(csx), csy=f64(csy), hx=f64(hx), hy=f64(hy), sy=f64(sy))
+
 #: How the CLI names the key's inputs.
-_COVERS = {"source": "native_lit.cc and native_arc.h sha256", "compiler": "compiler",
+_COVERS = {"source": "native_lit.cc, native_arc.h and native_bin.cc sha256", "compiler": "compiler",
            "compiler_version": "its --version", "flags": "flags", "cpu": "CPU",
            "cpu_features": "CPU features sha256", "jaxlib": "jaxlib",
            "ffi_headers": "XLA FFI headers sha256"}
