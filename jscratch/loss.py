@@ -632,8 +632,8 @@ class LossConfig:
       ``FilterBank``.
     - `lambda_x`: weight of the cross-view ghosting term ``E_x`` (``ghost_loss``), ``>= 0``;
       added to any kind; default `LAMBDA_X`; 0 leaves it out.
-    - `ghost_scale`: ``"relative"`` (default) or ``"fixed"``: the rule for ``E_x``'s weight
-      (`ghost_weight_factor`).
+    - `ghost_scale`: ``"squared"`` (default), ``"relative"`` or ``"fixed"``: the rule for
+      ``E_x``'s weight (`ghost_weight_factor`).
     - `ghost_baseline`: ``"zero"`` (default): ``E_x`` is the raw cross-view SSIM, the ghosting of
       docs/model.md §7 itself; ``"targets"``: only the resemblance beyond the targets' own.
 
