@@ -319,6 +319,24 @@ def _strip_setup(p0, p1, width, depth, board, shape, skin) -> _StripSetup:
                        k_hi, n_strips, rows_bound, length, tol, tolg)
 
 
+def _strip_floats(g: _StripSetup) -> Array:
+    """``(N, 12)``: the floats a strip needs from its scratch, in the order `_bin` and the native
+    stage (`native.bin_cells`) read them."""
+    return jnp.stack(
+        [g.tu, g.tv, g.bu, g.bv, g.mu, g.mv, g.half_w, g.half_l,
+         g.centre[:, 0], g.centre[:, 1], g.t[:, 0], g.t[:, 1]],
+        axis=-1,
+    )  # fmt: skip
+
+
+def _binned_pairs(p0, p1, g: _StripSetup, skin, pixel, scratch, valid, overflow) -> Pairs:
+    """The `Pairs` of one binning pass: its slots and the envelope it binned (for `needs_rebin`)."""
+    dtype = p0.dtype
+    return Pairs(pixel=pixel, scratch=scratch, valid=valid, overflow=overflow, bin_p0=p0,
+                 bin_p1=p1, bin_half_width=g.half_w, bin_extend=jnp.asarray(skin, dtype),
+                 bin_tol=jnp.asarray(g.tol, dtype))
+
+
 def _floor_index(g, n):
     """floor(g) as int32, clipped to [-1, n] first so that huge coordinates cannot overflow."""
     return jnp.floor(jnp.clip(g, -1.0, n.astype(g.dtype))).astype(jnp.int32)
@@ -344,11 +362,7 @@ def _bin(p0, p1, width, depth, *, board, shape, skin, strip_capacity, rows, pair
     owner = jax.lax.cummax(owner)
     strip_ok = slot < strips_needed
     # One gather of everything a strip needs (floats stacked, then the ints/bools).
-    fl = jnp.stack(
-        [g.tu, g.tv, g.bu, g.bv, g.mu, g.mv, g.half_w, g.half_l,
-         g.centre[:, 0], g.centre[:, 1], g.t[:, 0], g.t[:, 1]],
-        axis=-1,
-    )[owner]  # fmt: skip
+    fl = _strip_floats(g)[owner]
     tu, tv, bu, bv, mu, mv, half_w, half_l, cx_m, cy_m, tx, ty = (fl[:, j] for j in range(12))
     k = g.k_lo[owner] + slot - offsets[owner]
     n_u = jnp.where(g.col_major[owner], w_px, h_px)
@@ -413,17 +427,7 @@ def _bin(p0, p1, width, depth, *, board, shape, skin, strip_capacity, rows, pair
     overflow = (
         (strips_needed > strip_capacity) | (max_rows > rows) | (pairs_needed > pair_capacity)
     )
-    pairs = Pairs(
-        pixel=pix_out,
-        scratch=scr_out,
-        valid=valid,
-        overflow=overflow,
-        bin_p0=p0,
-        bin_p1=p1,
-        bin_half_width=g.half_w,
-        bin_extend=jnp.asarray(skin, dtype),
-        bin_tol=jnp.asarray(tol, dtype),
-    )
+    pairs = _binned_pairs(p0, p1, g, skin, pix_out, scr_out, valid, overflow)
     return pairs, (strips_needed, max_rows, pairs_needed)
 
 
@@ -468,32 +472,17 @@ _update_jit = update  # already jitted; the name marks host-driver calls
 def _bin_native(p0, p1, width, depth, *, board, shape, skin, strip_capacity, rows, pair_capacity):
     """`_bin` with the strip and cell stage run by `native.bin_cells` (same arguments, same
     `Pairs` and stats, bit for bit)."""
-    dtype = p0.dtype
     sx_m, sy_m = (float(s) for s in board)
     h_px, w_px = (int(v) for v in shape)
     g = _strip_setup(p0, p1, width, depth, board, shape, skin)
-    fl = jnp.stack(
-        [g.tu, g.tv, g.bu, g.bv, g.mu, g.mv, g.half_w, g.half_l,
-         g.centre[:, 0], g.centre[:, 1], g.t[:, 0], g.t[:, 1]],
-        axis=-1,
-    )  # fmt: skip
+    fl = _strip_floats(g)
     ints = jnp.stack([g.k_lo, g.k_hi, g.n_strips, g.col_major.astype(jnp.int32)], axis=-1)
     pixel, scratch, valid, overflow, stats = native.bin_cells(
         fl, ints, shape=(h_px, w_px), strip_capacity=strip_capacity, rows=rows,
         pair_capacity=pair_capacity, tol=g.tol, tolg=g.tolg, csx=sx_m / w_px, csy=sy_m / h_px,
         hx=0.5 * sx_m / w_px, hy=0.5 * sy_m / h_px, sy=sy_m,
     )  # fmt: skip
-    pairs = Pairs(
-        pixel=pixel,
-        scratch=scratch,
-        valid=valid,
-        overflow=overflow,
-        bin_p0=p0,
-        bin_p1=p1,
-        bin_half_width=g.half_w,
-        bin_extend=jnp.asarray(skin, dtype),
-        bin_tol=jnp.asarray(g.tol, dtype),
-    )
+    pairs = _binned_pairs(p0, p1, g, skin, pixel, scratch, valid, overflow)
     return pairs, (stats[0], stats[1], stats[2])
 
 
