@@ -26,7 +26,8 @@ rounds), ``pieces`` (the baseline ``E_p + 200 E_g`` without prune or ``E_x``, ea
 the shipped defaults alone, then ``E_p + 20 E_g`` with prune), ``s9`` (the shipped defaults built up
 from that baseline: ``lambda_g`` 20 alone, prune alone, both, both with ``E_x`` at the ``--lx``
 values, and with the raw-ghosting ``E_x`` (``ghost_baseline = "zero"``) at the ``--lx`` values;
-the shipped defaults are ``--lx 0.001 --only 5``). ``--sets`` picks target sets (``default``: camera/astronaut/chelsea; ``other``:
+the shipped defaults are ``--lx 0.001 --only 4``: that row leaves ``lambda_g`` to the design, 20 or,
+for a dense design, ``DesignConfig.dense_lambda_g``). ``--sets`` picks target sets (``default``: camera/astronaut/chelsea; ``other``:
 coins/clock/line art; ``other2``: text/brick/page).
 """
 
@@ -189,8 +190,9 @@ def suite(name: str, lx=(0.003, 0.01, 0.03), prune=((10, 0.05), (20, 0.1)), lg_n
             (f"prune every {pe}, {pf:.0%} alone (E_p + 200 E_g)", {**old, **pr}),
             (f"proposal: E_p + 20 E_g, prune every {pe}, {pf:.0%}", {"loss": g20, **pr}),
         ]
-        for x in lx:
-            rows.append((f"proposal + {x} E_x", {"loss": {**g20, "lambda_x": x}, **pr}))
+        for x in lx:  # lambda_g left to the design: 20, or `dense_lambda_g` for a dense design
+            rows.append((f"proposal + {x} E_x", {"loss": {"kind": "perceptual+gram",
+                                                          "lambda_x": x}, **pr}))
         for x in lx:
             rows.append((f"proposal + {x} E_x raw (zero baseline)",
                          {"loss": {**g20, "lambda_x": x, "ghost_baseline": "zero"}, **pr}))

@@ -61,6 +61,7 @@ def test_cli_end_to_end_resume_and_nan(tmp_path, capsys):
     assert metrics["pair_views_evaluated"] == 4 * 2 * metrics["pairs_total"] > 0 or (
         metrics["rebins"] > 0 and metrics["pair_views_evaluated"] > 0)
     assert metrics["pairs_total"] <= metrics["pair_capacity"]
+    assert metrics["dense"] is False and metrics["lambda_g"] is None
     assert set(metrics["time_parts"]) == {"setup", "initial_state", "steps", "prune",
                                           "rebuild_overflow", "checkpoint", "finish"}
     assert sum(metrics["time_parts"].values()) <= metrics["time_total"]

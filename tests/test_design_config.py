@@ -3,6 +3,7 @@ command line is generated; every field has a flag that sets it; configs round-tr
 bad values are refused with one-line `InputError`s naming the field."""
 
 import dataclasses
+import math
 import json
 import typing
 
@@ -204,3 +205,23 @@ def test_scene_views_match_views_on_circle():
     default = jscratch.views_on_circle(3, board=board)  # the default polar angle is 50 degrees
     np.testing.assert_array_equal(np.asarray(SceneConfig(size=32).make_views().camera),
                                   np.asarray(default.camera))
+
+
+def test_dense_design_weighs_the_gram_term_by_dense_lambda_g():
+    """From ``dense_from`` scratches per pixel on, the design's loss takes ``dense_lambda_g`` for
+    ``E_g`` unless ``lambda_g`` is given; below it, or with a given weight, the loss is unchanged."""
+
+    px = 256 * 256
+    assert DesignConfig().design_loss(px) == DesignConfig().loss  # 20,000: 0.31 per pixel
+    assert not DesignConfig().is_dense(px)
+    dense = DesignConfig(n_scratches=60_000)
+    assert dense.is_dense(px) and dense.design_loss(px).lambda_g == 60.0
+    assert loss_mod.make_loss(dense.design_loss(px)).lambda_g == 60.0
+    at = DesignConfig(n_scratches=math.ceil(0.4 * px))
+    assert at.is_dense(px) and not DesignConfig(n_scratches=at.n_scratches - 1).is_dense(px)
+    given = DesignConfig(n_scratches=60_000, loss={"lambda_g": 200.0})
+    assert given.design_loss(px).lambda_g == 200.0
+    never = DesignConfig(n_scratches=60_000, dense_from=0.0)
+    assert not never.is_dense(px) and never.design_loss(px).lambda_g is None
+    assert DesignConfig(n_scratches=60_000, loss={"kind": "perceptual"}).design_loss(px) == \
+        DesignConfig(loss={"kind": "perceptual"}).loss

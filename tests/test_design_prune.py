@@ -23,7 +23,7 @@ SIZE = 32
 def _config(**kw):
     base = dict(n_scratches=300, iterations=6, cull_eps=0.0, checkpoint_every=2, prune_every=2,
                 prune_fraction=0.1, prune_per_pixel=0.0, prune_until=1.0,
-                prune_max_density=0.0, groove="free")  # re-seeded widths: init_width
+                dense_from=0.0, groove="free")  # re-seeded widths: init_width
     base.update(kw)
     return DesignConfig(**base)
 
@@ -129,17 +129,17 @@ def test_resume_across_a_round_is_bitwise(tmp_path, two_view_scene):
 
 
 def test_dense_design_makes_no_round(two_view_scene):
-    """At ``prune_max_density`` scratches per pixel or more a design records no round and equals
+    """At ``dense_from`` scratches per pixel or more a design records no round and equals
     the same design with ``prune_every = 0``; with the limit just above, the round runs."""
     targets, views, board = two_view_scene
     dense = int(np.ceil(0.4 * board.n_pixels))  # 410 at 32 x 32
-    cfg = _config(n_scratches=dense, iterations=3, prune_max_density=0.4)
+    cfg = _config(n_scratches=dense, iterations=3, dense_from=0.4)
     res = design(targets, views, board, cfg)
     assert res.metrics["prune"] == []
-    off = design(targets, views, board, _config(n_scratches=dense, iterations=3, prune_every=0))
+    off = design(targets, views, board, dataclasses.replace(cfg, prune_every=0))
     np.testing.assert_array_equal(np.asarray(res.params.geom), np.asarray(off.params.geom))
     # just below the limit the same run makes its round (410 scratches at 0.401 per pixel)
-    below = design(targets, views, board, dataclasses.replace(cfg, prune_max_density=0.401))
+    below = design(targets, views, board, dataclasses.replace(cfg, dense_from=0.401))
     assert below.metrics["prune"] == [[2, 41]]
 
 
@@ -156,17 +156,17 @@ def test_moved_count_is_capped_per_pixel():
     cfg = DesignConfig()
     assert prune.moved_count(20_000, 256 * 256, cfg) == 1000
     assert prune.moved_count(5_000, 128 * 128, cfg) == 250
-    free = DesignConfig(prune_max_density=0.0)
+    free = DesignConfig(dense_from=0.0)
     assert prune.moved_count(60_000, 256 * 256, free) == round(0.016 * 256 * 256) == 1049
     assert prune.moved_count(60_000, 256 * 256,
-                             DesignConfig(prune_per_pixel=0.0, prune_max_density=0.0)) == 3000
+                             DesignConfig(prune_per_pixel=0.0, dense_from=0.0)) == 3000
 
 
 def test_no_rounds_at_or_above_the_density_limit():
-    """``prune_max_density`` scratches per image pixel or more: no round moves anything, whatever
+    """``dense_from`` scratches per image pixel or more: no round moves anything, whatever
     the image size; just below it the fraction and the cap apply."""
     cfg = DesignConfig()
-    lim = cfg.prune_max_density
+    lim = cfg.dense_from
     for side in (64, 256, 300):
         px = side * side
         at = int(np.ceil(lim * px))

@@ -120,10 +120,12 @@ class DesignConfig:
     prune_per_pixel: float = option(0.016, "at most this many scratches per image pixel moved per "
                                     "round (0: no cap); the round's count is the smaller of the two")
     prune_until: float = option(0.6, "no prune/re-seed round after this fraction of the iterations")
-    prune_max_density: float = option(
-        0.4, "no prune/re-seed rounds when there are this many scratches per image pixel or more "
-        "(0: no limit): dense designs come close to their targets, and a round then costs more "
-        "picture than it brings")
+    dense_from: float = option(
+        0.4, "scratches per image pixel from which a design is dense (0: never): a dense design "
+        "comes close to its targets, so it makes no prune/re-seed rounds (they would cost more "
+        "picture than they bring) and weighs E_g by dense_lambda_g when lambda_g is not given")
+    dense_lambda_g: float = option(60.0, "E_g's weight in a dense design when loss.lambda_g is "
+                                   "not given (the filter bank's LAMBDA_G otherwise)")
     target_ssim: float | None = option(
         None, "instead of the discard, keep the fewest scratches whose mean SSIM over the views "
         "(docs/model.md §7, 0-1) stays at least this (all when the full design is below it)")
@@ -187,7 +189,7 @@ class DesignConfig:
         if not isinstance(self.loss, loss_mod.LossConfig):
             bad("loss", "a jscratch.loss.LossConfig")
         for name in ("cull_eps", "coverage_eps", "skin", "discard_tol", "prune_per_pixel",
-                     "prune_max_density"):
+                     "dense_from", "dense_lambda_g"):
             number(name, 0.0, what="finite and >= 0")
         for name in ("adam_b1", "adam_b2"):
             number(name, 0.0, 1.0, "in [0, 1)")
@@ -208,6 +210,20 @@ class DesignConfig:
             number("target_ssim", 0.0, 1.0, "None or a mean SSIM in (0, 1]")
             if self.target_ssim <= 0:
                 bad("target_ssim", "None or a mean SSIM in (0, 1]")
+
+    def is_dense(self, pixels: int) -> bool:
+        """Whether ``n_scratches`` is at least ``dense_from`` per image pixel (``pixels`` per
+        view)."""
+        return self.dense_from > 0 and self.n_scratches >= self.dense_from * pixels
+
+    def design_loss(self, pixels: int) -> loss_mod.LossConfig:
+        """The `loss` a design runs: ``lambda_g`` = ``dense_lambda_g`` for a dense design with the
+        filter bank and no ``lambda_g`` given (docs/model.md §6), else `loss` as it is."""
+        lc = self.loss
+        if (lc.lambda_g is None and lc.vgg_weights is None and lc.kind == "perceptual+gram"
+                and self.is_dense(pixels)):
+            return dataclasses.replace(lc, lambda_g=float(self.dense_lambda_g))
+        return lc
 
     def machine_profile(self):
         """The `jscratch.machine.MachineProfile` of `machine`."""

@@ -26,7 +26,7 @@ Measured (benchmarks/RESULTS.md): 128 px / 5k scratches, ``E_p``: mean SSIM 0.73
 0.768 at equal wall time; 256 px / 20k: 0.801 -> 0.813; with carvable grooves and ``E_p + 200 E_g``
 0.746 -> 0.758. The moved scratches end up useful, so the final discard keeps more of them
 (+9-20 %), which is part of the price. On by default (every 10 iterations) below
-``config.prune_max_density`` scratches per image pixel (0.4); off above it, where rounds were
+``config.dense_from`` scratches per image pixel (0.4); off above it, where rounds were
 measured to cost 0.03-0.04 mean SSIM.
 """
 
@@ -58,12 +58,12 @@ def due(iteration: int, config) -> bool:
 
 def moved_count(n: int, pixels: int, config) -> int:
     """Scratches moved per round: ``prune_fraction * n``, at most ``prune_per_pixel * pixels``
-    (``pixels`` per view), and none at ``prune_max_density * pixels`` scratches or more. The
+    (``pixels`` per view), and none at ``dense_from * pixels`` scratches or more. The
     re-seeded scratches go where a view is too dark, which is a matter of image area, not of the
     scratch count: above about 0.3 scratches per pixel a fixed fraction moves more scratches than
     the dark areas need and costs picture; and a dense design is close to its targets, where any
     round costs more than it brings (docs/model.md §6)."""
-    if config.prune_max_density > 0 and n >= config.prune_max_density * pixels:
+    if config.dense_from > 0 and n >= config.dense_from * pixels:  # `DesignConfig.is_dense`
         return 0
     k = int(round(config.prune_fraction * n))
     if config.prune_per_pixel > 0:

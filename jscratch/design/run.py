@@ -184,7 +184,7 @@ def setup(tnp, views, board, config, mesh=None):
     cam = jnp.asarray(views.camera, dt)
     lig = jnp.asarray(views.light, dt)
     hs = half_vectors(Views(cam, lig), board, dt)
-    bound = loss_mod.make_loss(config.loss).bind(jnp.asarray(tnp, dt))
+    bound = loss_mod.make_loss(config.design_loss(board.n_pixels)).bind(jnp.asarray(tnp, dt))
     ndf_max = jnp.max(board_ndf(Views(cam, lig), board, dt), axis=0)  # (P,)
     ctx = Context(cam, lig, hs, ndf_max, bound, lrs, board, int(config.chunk), mesh)
     return mesh_mod.place(params, mesh), optimizer, mesh_mod.place(ctx, mesh)
@@ -398,6 +398,8 @@ def _finish(state, ctx, tnp, config, *, discard_now: bool) -> DesignResult:
         "time_discard": t_discard,
         "intensity": [float(x) for x in inten],
         "prune": state.history.get("prune", []),
+        "dense": config.is_dense(ctx.board.n_pixels),
+        "lambda_g": config.design_loss(ctx.board.n_pixels).lambda_g,  # None: the loss's default
     })
     if target is not None:
         mets["target"] = target
