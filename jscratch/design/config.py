@@ -211,10 +211,11 @@ class DesignConfig:
             if self.target_ssim <= 0:
                 bad("target_ssim", "None or a mean SSIM in (0, 1]")
 
-    def is_dense(self, pixels: int) -> bool:
-        """Whether ``n_scratches`` is at least ``dense_from`` per image pixel (``pixels`` per
-        view)."""
-        return self.dense_from > 0 and self.n_scratches >= self.dense_from * pixels
+    def is_dense(self, pixels: int, n: int | None = None) -> bool:
+        """Whether ``n`` scratches (default ``n_scratches``) are at least ``dense_from`` per image
+        pixel (``pixels`` per view)."""
+        n = self.n_scratches if n is None else n
+        return self.dense_from > 0 and n >= self.dense_from * pixels
 
     def design_loss(self, pixels: int) -> loss_mod.LossConfig:
         """The `loss` a design runs: ``lambda_g`` = ``dense_lambda_g`` for a dense design with the

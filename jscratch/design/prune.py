@@ -63,7 +63,7 @@ def moved_count(n: int, pixels: int, config) -> int:
     scratch count: above about 0.3 scratches per pixel a fixed fraction moves more scratches than
     the dark areas need and costs picture; and a dense design is close to its targets, where any
     round costs more than it brings (docs/model.md §6)."""
-    if config.dense_from > 0 and n >= config.dense_from * pixels:  # `DesignConfig.is_dense`
+    if config.is_dense(pixels, n):
         return 0
     k = int(round(config.prune_fraction * n))
     if config.prune_per_pixel > 0:
