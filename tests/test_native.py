@@ -690,3 +690,104 @@ def test_pair_kernels_refuse_an_unknown_profile():
             native.pair_values(4, *args, profile=bad)
     with pytest.raises(InputError, match="profile='Arc'"):
         native.pairs(4, *args, "Arc")
+
+
+_SIMD_HARNESS = r"""
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <cstdio>
+#include <cstring>
+#include <random>
+#include "native_simd.h"
+
+static long ulps(float a, float b) {  // distance in float32 steps; 0 for equal or both NaN
+  if (a == b || (std::isnan(a) && std::isnan(b))) return 0;
+  int32_t ia, ib;
+  std::memcpy(&ia, &a, 4);
+  std::memcpy(&ib, &b, 4);
+  if ((ia < 0) != (ib < 0)) return 1L << 40;
+  return std::labs(long(ia) - long(ib));
+}
+
+int main() {
+  typedef Vec<float>::type V;
+  std::mt19937 g(7);
+  std::uniform_real_distribution<float> u(-1, 1);
+  long wa = 0, wl = 0;
+  for (long it = 0; it < 200000; ++it) {
+    V y, x, q;
+    for (int l = 0; l < 8; ++l) {
+      y[l] = u(g) * std::pow(10.f, 6 * u(g));
+      x[l] = it % 5 == 0 ? 1 + 1e-3f * u(g) : u(g) * std::pow(10.f, 6 * u(g));
+      q[l] = it % 7 == 0 ? 1e-7f * std::fabs(u(g)) : std::fabs(u(g)) * std::pow(10.f, 8 * u(g));
+    }
+    V r = vatan2<float>(y, x), s = vlog1p<float>(q);
+    for (int l = 0; l < 8; ++l) {
+      wa = std::max(wa, ulps(r[l], std::atan2(y[l], x[l])));
+      wl = std::max(wl, ulps(s[l], std::log1p(q[l])));
+    }
+  }
+  const float inf = INFINITY, nan = NAN;
+  V ys = {0.f, -0.f, 0.f, -0.f, 1.f, -1.f, nan, 1.f}, xs = {1.f, 1.f, -1.f, -1.f, 0.f, 0.f, 1.f, -0.f};
+  V qs = {0.f, 1e-30f, 1e-8f, inf, 3e38f, 1e20f, 0.5f, nan};
+  V r = vatan2<float>(ys, xs), s = vlog1p<float>(qs);
+  long special = 0;
+  for (int l = 0; l < 8; ++l)
+    special = std::max({special, ulps(r[l], std::atan2(ys[l], xs[l])),
+                        ulps(s[l], std::log1p(qs[l]))});
+  std::printf("%ld %ld %ld\n", wa, wl, special);
+}
+"""
+
+
+def test_simd_atan2_and_log1p_against_libm(tmp_path):
+    # The kernels' float32 atan2 and log1p (native_simd.h) against the C library's, on
+    # 1.6 million random arguments over twelve decades and at signed zeros, infinities and NaN.
+    try:
+        cxx = native._compiler()
+    except RuntimeError as e:
+        pytest.skip(str(e))
+    src = tmp_path / "simd.cc"
+    src.write_text(_SIMD_HARNESS)
+    exe = tmp_path / "simd"
+    flags = [f for f in native._FLAGS if f not in ("-shared", "-fPIC")]
+    built = subprocess.run([cxx, *flags, f"-I{native._SIMD_SOURCE.parent}", str(src), "-o",
+                            str(exe)], capture_output=True, text=True, timeout=300)
+    assert built.returncode == 0, built.stderr[-2000:]
+    out = subprocess.run([str(exe)], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    atan2_ulps, log1p_ulps, special_ulps = map(int, out.stdout.split())
+    assert atan2_ulps <= 3 and log1p_ulps <= 1 and special_ulps == 0, out.stdout
+
+
+_MEMORY_PROBE = r"""
+import json, os, numpy as np
+from jscratch import native
+def rss():  # resident pages, in MB
+    return int(open("/proc/self/statm").read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+out = native.keep_freed_memory()
+before = rss()
+x = np.ones(96 * 2**20 // 8)  # 96 MB, every page touched
+del x
+print(json.dumps({"memory": out, "again": native.keep_freed_memory(),
+                  "status": native.status()["memory"], "kept_mb": rss() - before}))
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's allocator")
+def test_keep_freed_memory_keeps_a_freed_block_and_can_be_turned_off():
+    def probe(value):
+        env = dict(os.environ, JSCRATCH_KEEP_MEMORY=value)
+        out = subprocess.run([sys.executable, "-c", _MEMORY_PROBE], capture_output=True,
+                             text=True, timeout=300, env=env)
+        return out
+    on, off, bad = probe("1"), probe("0"), probe("2")
+    assert on.returncode == 0 and off.returncode == 0, on.stderr[-2000:] + off.stderr[-2000:]
+    on, off = json.loads(on.stdout), json.loads(off.stdout)
+    assert off["memory"] == {"kept": False, "why": "JSCRATCH_KEEP_MEMORY=0"} == off["status"]
+    assert off["kept_mb"] < 16  # the 96 MB block went back to the system (munmap)
+    if on["memory"]["kept"]:  # glibc
+        assert on["memory"] == on["again"] == on["status"]
+        assert on["kept_mb"] > 80  # ... and stays in the process when kept
+    assert bad.returncode != 0 and "JSCRATCH_KEEP_MEMORY='2'" in bad.stderr

@@ -84,6 +84,7 @@ def design(
     t_start = time.perf_counter()
     parts = {}  # wall time per part of the run (s): `metrics["time_parts"]`
     native.prepare()  # the native kernel builds (first run only) while the setup goes on
+    native.keep_freed_memory()  # the steps reuse their large buffers (`native.keep_freed_memory`)
     config = DesignConfig() if config is None else config
     tnp, views, board = check_inputs(targets, views, board, config, checkpoint, resume)
     checkpoint = None if checkpoint is None else os.fspath(checkpoint)

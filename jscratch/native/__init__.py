@@ -37,11 +37,12 @@ gives the same bits as its jnp path (`tests/test_grid.py`).
 - `status()`: what runs and why, a JSON-friendly dict (the design writes it to metrics.json);
   ``python -m jscratch.native [--json]`` prints it (and builds the kernel if needed).
 
-Build. The kernels (native_lit.cc, which includes native_arc.h, and native_bin.cc; one library)
+Build. The kernels (native_lit.cc, which includes native_arc.h and native_simd.h, and
+native_bin.cc; one library)
 are compiled on first use with the system's C++ compiler (``$CXX``, else ``g++``, ``c++`` or
 ``clang++`` on ``PATH``; 5-8 s) into ``native_lit-<key>.so`` in ``$JSCRATCH_CACHE`` (else
 ``$XDG_CACHE_HOME/jscratch`` or ``~/.cache/jscratch``). The key (`_key`) covers everything the binary depends on: the text of
-the three source files, the compiler's path and its ``--version`` output, the flags
+the four source files, the compiler's path and its ``--version`` output, the flags
 (``-march=native``), the CPU's model and features, the jaxlib version and a hash of the XLA FFI headers under ``jax.ffi.include_dir()``. After a build the
 cache's other ``native_lit-*.so`` (stale keys) are deleted. Nothing is downloaded.
 
@@ -53,6 +54,8 @@ the process changes nothing):
 - ``JSCRATCH_NATIVE_THREADS``: the most threads one kernel call uses (the calling thread and XLA's
   intra-op pool, whose size also caps it); default: the CPUs this process may run on. The
   results are the same bits for any value.
+- ``JSCRATCH_KEEP_MEMORY``: ``1`` (default) `keep_freed_memory` tunes glibc's allocator when a
+  design runs on the CPU; ``0`` leaves it alone.
 
 `enabled()` and `threads()` give the decisions; `override(enabled=..., threads=...)` changes them
 for what is traced inside it (tests and benchmarks that compare the two paths in one process).
@@ -89,7 +92,8 @@ import numpy as np
 
 from jscratch.errors import InputError, error_line
 
-__all__ = ["PROFILES", "NativeKernelWarning", "available", "bin_cells", "enabled", "lit",
+__all__ = ["PROFILES", "NativeKernelWarning", "available", "bin_cells", "enabled",
+           "keep_freed_memory", "lit",
            "lit_partials", "lit_values", "main", "override", "pair_jacobian", "pair_values",
            "pair_vjp", "pairs", "prepare", "status", "threads"]
 
@@ -98,6 +102,8 @@ _SOURCE = Path(__file__).with_name("native_lit.cc")
 _ARC_SOURCE = Path(__file__).with_name("native_arc.h")
 #: The grid binning's strip and cell stage (`bin_cells`), compiled into the same library.
 _BIN_SOURCE = Path(__file__).with_name("native_bin.cc")
+#: The SIMD vector type and per-lane elementary functions, included by `_SOURCE`.
+_SIMD_SOURCE = Path(__file__).with_name("native_simd.h")
 #: The whole-pair kernels' groove profiles (docs/model.md §2, §13) -> their ``profile`` attribute.
 PROFILES = {"paper": 0, "arc": 1}
 #: (dtype, with partials) -> (FFI target name, symbol in the library).
@@ -122,7 +128,8 @@ _FLAGS = ("-O3", "-march=native", "-fno-math-errno", "-ffp-contract=off", "-std=
 _COST = "the jnp path runs instead, about 5x slower per design step"
 
 # The settings, read once (module docstring); validated on first use by `_settings`.
-_ENV = {k: os.environ.get(k) for k in ("JSCRATCH_NATIVE", "JSCRATCH_NATIVE_THREADS")}
+_ENV = {k: os.environ.get(k) for k in ("JSCRATCH_NATIVE", "JSCRATCH_NATIVE_THREADS",
+                                       "JSCRATCH_KEEP_MEMORY")}
 _overrides: dict = {}
 
 
@@ -240,7 +247,7 @@ def _key_parts(cxx: str) -> dict:
     """What the library depends on, as strings: the cache key's inputs (`_key`)."""
     model, features = _cpu()
     return {"source": _sha(_SOURCE.read_bytes() + b"\0" + _ARC_SOURCE.read_bytes() + b"\0"
-                           + _BIN_SOURCE.read_bytes()),
+                           + _BIN_SOURCE.read_bytes() + b"\0" + _SIMD_SOURCE.read_bytes()),
             "compiler": cxx,
             "compiler_version": _compiler_version(cxx), "flags": " ".join(_FLAGS),
             "cpu": f"{platform.machine()} {model}", "cpu_features": _sha(features.encode()),
@@ -332,6 +339,46 @@ def prepare() -> None:
         _build["thread"].start()
 
 
+_memory: dict = {}  # `keep_freed_memory`'s outcome: {"kept": bool, "why": str}
+
+# glibc's mallopt parameters (malloc.h)
+_M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_MAX = -1, -2, -4
+
+
+def keep_freed_memory() -> dict:
+    """Ask the C allocator to keep the memory XLA frees, for the next step to reuse.
+
+    A design step on the CPU allocates and frees the same large buffers every step (the pairs'
+    Jacobians: tens of MB). glibc serves blocks above 32 MB by ``mmap`` and gives them back with
+    ``munmap``, so every step faults in and zeroes those pages again: about a sixth of a default
+    step's wall time on two cores (`benchmarks/RESULTS.md`). This sets glibc's ``M_MMAP_MAX`` to
+    0 (large blocks come from the heap), ``M_TRIM_THRESHOLD`` to 2 GiB (freed memory is not
+    returned below that: mallopt takes a C int) and ``M_TOP_PAD`` to 64 MiB, for the whole process, from now on: its resident
+    memory then stays at its peak. `jscratch.design` calls it; off the CPU it does nothing.
+    ``JSCRATCH_KEEP_MEMORY=0`` (read at import) leaves the allocator alone; so does another C
+    library. Returns ``{"kept": bool, "why": str}`` (also in `status`); does the work once."""
+    with _load_lock:
+        if _memory:
+            return dict(_memory)
+        raw = (_ENV["JSCRATCH_KEEP_MEMORY"] or "1").strip()
+        if raw not in ("0", "1"):
+            raise InputError(f"JSCRATCH_KEEP_MEMORY={raw!r}: expected 0 (leave the C allocator "
+                             "alone) or 1 (keep freed memory, the default)")
+        if raw == "0":
+            _memory.update(kept=False, why="JSCRATCH_KEEP_MEMORY=0")
+        elif not _on_cpu():
+            _memory.update(kept=False, why="not on the CPU")
+        elif platform.libc_ver()[0] != "glibc":
+            _memory.update(kept=False, why="not glibc: the allocator is left as it is")
+        else:
+            libc = ctypes.CDLL(None)
+            ok = all(libc.mallopt(p, v) == 1 for p, v in (
+                (_M_MMAP_MAX, 0), (_M_TRIM_THRESHOLD, 2**31 - 1), (_M_TOP_PAD, 1 << 26)))
+            _memory.update(kept=ok, why="glibc: freed memory kept (no mmap, no trim)" if ok
+                           else "glibc's mallopt refused a setting")
+        return dict(_memory)
+
+
 _loaded: dict = {}  # {"ok": bool, "why": str}, set once by `_load_once`
 _load_lock = threading.Lock()
 
@@ -380,14 +427,15 @@ def status() -> dict:
 
         {"kernel": "native" | "jnp", "why": str, "enabled": bool, "backend": str,
          "library": path or None, "key": str or None, "covers": {str: str} or None,
-         "compiler": str or None, "jaxlib": str, "threads": int}
+         "compiler": str or None, "jaxlib": str, "threads": int,
+         "memory": `keep_freed_memory`'s outcome or None}
 
     ``covers``: the key's inputs (`_key_parts`). Starts nothing; waits for a build in progress.
     ``"jnp"`` also where nothing in this process has asked for the kernel yet."""
     on, backend = enabled(), jax.default_backend()
     st = {"kernel": "jnp", "why": "", "enabled": on, "backend": backend, "library": None,
           "key": None, "covers": None, "compiler": None, "jaxlib": jaxlib.__version__,
-          "threads": threads()}
+          "threads": threads(), "memory": dict(_memory) or None}
     if not on:
         return st | {"why": "disabled (JSCRATCH_NATIVE=0)"}
     if backend != "cpu":
@@ -575,7 +623,8 @@ def bin_cells(fl, ints, *, shape, strip_capacity: int, rows: int, pair_capacity:
         tolg=f64(tolg), csx=f64(csx), csy=f64(csy), hx=f64(hx), hy=f64(hy), sy=f64(sy))
 
 #: How the CLI names the key's inputs.
-_COVERS = {"source": "native_lit.cc, native_arc.h and native_bin.cc sha256", "compiler": "compiler",
+_COVERS = {"source": "native_lit.cc, native_arc.h, native_bin.cc and native_simd.h sha256",
+           "compiler": "compiler",
            "compiler_version": "its --version", "flags": "flags", "cpu": "CPU",
            "cpu_features": "CPU features sha256", "jaxlib": "jaxlib",
            "ffi_headers": "XLA FFI headers sha256"}

@@ -67,9 +67,13 @@ inline Cx<V> cinv(const Cx<V>& a) {
 // One piece per lane: J (value), and with kPartials its partials with respect to the ends (u),
 // the ends' Y and (accumulated into dp) the lobe parameters (`lobe.lobe_params`' layout; g has
 // none). A point (ua == ub, Ya == Yb) has zero partials.
-template <typename T, typename V, bool kPartials>
-V arc_piece(int n_gl, const double* xs, const double* ws, V ua, V ub, V Ya, V Yb, const V* p,
-            V* d_ua, V* d_ub, V* d_Ya, V* d_Yb, V* dp) {
+//
+// `kSub` false: no lane subtracts (`sub` false in all of them), so H, its closed form and their
+// partials are zero and are not computed (the same results: only zeros are left out of sums).
+template <typename T, typename V, bool kPartials, bool kSub>
+V arc_piece_impl(int n_gl, const double* xs, const double* ws, V ua, V ub, V Ya, V Yb,
+                 const V* p, decltype(V{} < V{}) sub, V* d_ua, V* d_ub, V* d_Ya, V* d_Yb,
+                 V* dp) {
   const V c0 = p[0], c10 = p[1], c11 = p[2], c20 = p[3], c21 = p[4], u1 = p[5], q1 = p[6],
           k = p[8], hx = p[9], hz = p[10];
   const V zero = V{}, one = splat<V>(1), four = splat<V>(4);
@@ -78,51 +82,49 @@ V arc_piece(int n_gl, const double* xs, const double* ws, V ua, V ub, V Ya, V Yb
   const V den = 4 * (1 - 4 * ub * ua) / ((1 + 4 * ub * ub) * Ba);  // `arc._vdd(ub, ua)`
   const auto denp = den > 0;
   const V den1 = sel<V>(denp, den, one), dYden = dY / den1;
-  // Where the sharp lobe's poles are subtracted (`arc._piece_integrals`).
-  const V ds = du / q1, sa = (ua - u1) / q1, sm = sa + ds / 2;
-  const auto sub = (q1 < splat<V>(kQSub)) &
-                   (vabs<T>(ds) >= vmax<T>(one, splat<V>(0.5) * vabs<T>(sm)));
+  const V ds = du / q1, sa = (ua - u1) / q1;
   const V ds_s = sel<V>(sub, ds, one), sa_s = sel<V>(sub, sa, zero), du_s = sel<V>(sub, du, one);
   const V q1_s = sel<V>(sub, q1, splat<V>(kQSub / 2)), idu = 1 / du_s;
-
-  // Hermite data at z: v' (vp), v'' (vpp), v''' (vppp); Y(z) = Ya + dYden mu(z).
-  const Cx<V> z{u1, q1_s}, z2 = z * z;
-  const Cx<V> iB = cinv(radd(one, rmul(four, z2))), iB2 = iB * iB;
-  const Cx<V> vp = rmul(four, radd(one, rmul(splat<V>(-4), z2))) * iB2;
-  const Cx<V> vpp = rmul(splat<V>(-32), z * radd(splat<V>(3), rmul(splat<V>(-4), z2))) * iB2 * iB;
-  const Cx<V> muz = rmul(idu, (z - Cx<V>{ua, zero}) *
-                                  rmul(four / Ba, radd(one, rmul(-4 * ua, z)) * iB));
-  const Cx<V> Yz = radd(Ya, rmul(dYden, muz));
   const V dYdv = dYden * idu;
-  const Cx<V> wz = Yz * vp, wpz = rmul(dYdv, vp * vp) + Yz * vpp;
   const Cx<V> Pi{c20, c21}, dPi{c21 - 2 * c11, 2 * c10};
-  // H's coefficients (al0, al1, ga0, ga1) from Φ(i) = F and Φ'(i) = G; zero where nothing is
-  // subtracted.
+  // H's coefficients (al0, al1, ga0, ga1) from PHI(i) = F and PHI'(i) = G; zero where nothing
+  // is subtracted.
   auto coef = [&](const Cx<V>& F, const Cx<V>& G, V* a) {
     a[0] = sel<V>(sub, F.re, zero);
     a[1] = sel<V>(sub, F.im, zero);
     a[2] = sel<V>(sub, G.im / 2, zero);
     a[3] = sel<V>(sub, -(G.re - F.im) / 2, zero);
   };
-  V h[4];
-  coef(wz * Pi, rmul(q1_s, wpz * Pi) + wz * dPi, h);
+  // Hermite data at z: v' (vp), v'' (vpp), v''' (vppp); Y(z) = Ya + dYden mu(z).
+  Cx<V> z{u1, q1_s}, z2{}, iB{}, iB2{}, vp{}, vpp{}, muz{}, Yz{}, wz{}, wpz{};
+  V h[4] = {zero, zero, zero, zero};
   // The closed form's basis integrals (`arc._basis`).
   const V sb_s = sa_s + ds_s, ea = 1 / (1 + sa_s * sa_s), eb = 1 / (1 + sb_s * sb_s);
-  V I0, lg;
-  {
+  V I0 = zero, I1 = zero, K0 = zero, K1 = zero;
+  if constexpr (kSub) {
+    z2 = z * z;
+    iB = cinv(radd(one, rmul(four, z2)));
+    iB2 = iB * iB;
+    vp = rmul(four, radd(one, rmul(splat<V>(-4), z2))) * iB2;
+    vpp = rmul(splat<V>(-32), z * radd(splat<V>(3), rmul(splat<V>(-4), z2))) * iB2 * iB;
+    muz = rmul(idu, (z - Cx<V>{ua, zero}) * rmul(four / Ba, radd(one, rmul(-4 * ua, z)) * iB));
+    Yz = radd(Ya, rmul(dYden, muz));
+    wz = Yz * vp;
+    wpz = rmul(dYdv, vp * vp) + Yz * vpp;
+    coef(wz * Pi, rmul(q1_s, wpz * Pi) + wz * dPi, h);
     const V y0 = 1 + sa_s * sb_s, ps = ds_s * (sa_s + sb_s);
     const auto up = ps >= 0;
     const V larg = sel<V>(up, ps * ea, -ps * eb);
-    for (int l = 0; l < Vec<T>::L; ++l) {
-      I0[l] = std::atan2(ds_s[l], y0[l]);
-      lg[l] = std::log1p(larg[l]);
-    }
-    lg = sel<V>(up, lg, -lg);
+    I0 = vatan2<T>(ds_s, y0);
+    const V lg = vlog1p<T>(larg);
+    I1 = splat<V>(0.5) * sel<V>(up, lg, -lg);
+    K0 = splat<V>(0.5) * I0 + splat<V>(0.5) * (ds_s * ea) * ((1 - sa_s * sb_s) * eb);
+    K1 = splat<V>(0.5) * (ds_s * ea) * ((sa_s + sb_s) * eb);
   }
-  const V I1 = splat<V>(0.5) * lg;
-  const V K0 = splat<V>(0.5) * I0 + splat<V>(0.5) * (ds_s * ea) * ((1 - sa_s * sb_s) * eb);
-  const V K1 = splat<V>(0.5) * (ds_s * ea) * ((sa_s + sb_s) * eb);
-  auto closed = [&](const V* a) { return q1_s * (a[0] * K0 + a[1] * K1 + a[2] * I0 + a[3] * I1); };
+  auto closed = [&](const V* a) {
+    if constexpr (kSub) return q1_s * (a[0] * K0 + a[1] * K1 + a[2] * I0 + a[3] * I1);
+    return zero;
+  };
 
   // Gauss-Legendre in u on the rest: r = w (c0 + F2) + (w P - H) e^2 at the nodes.
   V gl = zero;
@@ -170,7 +172,8 @@ V arc_piece(int n_gl, const double* xs, const double* ws, V ua, V ub, V Ya, V Yb
       S_hz += f * (k * (1 - 4 * u2));
     }
   }
-  const V value = half * gl + sel<V>(sub, closed(h), zero);
+  V value = half * gl;
+  if constexpr (kSub) value = value + sel<V>(sub, closed(h), zero);
   if constexpr (!kPartials) return value;
 
   // H's share of the rule's sum, and of its derivative in s (times s for q1).
@@ -183,18 +186,46 @@ V arc_piece(int n_gl, const double* xs, const double* ws, V ua, V ub, V Ya, V Yb
     return closed(a) - half * hsum(a);
   };
   // The two bases of Y: 1 and mu.
-  const Cx<V> F1 = vp * Pi, G1 = rmul(q1_s, vpp * Pi) + vp * dPi;
-  const Cx<V> wm = muz * vp, wmp = rmul(idu, vp * vp) + muz * vpp;
-  const Cx<V> Fm = wm * Pi, Gm = rmul(q1_s, wmp * Pi) + wm * dPi;
-  V a1[4], am[4];
-  coef(F1, G1, a1);
-  coef(Fm, Gm, am);
-  const V J1 = closed(a1) - half * hsum(a1) + half * S_vD;
-  const V Jm = closed(am) - half * hsum(am) + half * S_mD;
+  V J1 = half * S_vD, Jm = half * S_mD, M1 = S_vD / 2, Mm = S_mD / 2;
+  V gu1 = half * (-S_Rp / q1), gq1 = half * (-S_sRp / q1);
+  V gc[5] = {half * S_w, half * S_we, half * S_wse, half * S_wee, half * S_wsee};
+  Cx<V> dFu{}, dGu{};
+  if constexpr (kSub) {
+    const Cx<V> F1 = vp * Pi, G1 = rmul(q1_s, vpp * Pi) + vp * dPi;
+    const Cx<V> wm = muz * vp, wmp = rmul(idu, vp * vp) + muz * vpp;
+    const Cx<V> Fm = wm * Pi, Gm = rmul(q1_s, wmp * Pi) + wm * dPi;
+    V a1[4], am[4];
+    coef(F1, G1, a1);
+    coef(Fm, Gm, am);
+    J1 = closed(a1) - half * hsum(a1) + half * S_vD;
+    Jm = closed(am) - half * hsum(am) + half * S_mD;
+    // The ends: J_1 / du and J_mu / du, then the integral's derivatives.
+    M1 = sel<V>(sub, closed(a1) * idu, zero) + (S_vD - hsum(a1)) / 2;
+    Mm = sel<V>(sub, closed(am) * idu, zero) + (S_mD - hsum(am)) / 2;
+    // u1 and q1: H moves with z (w' and w'' at z), the nodes' s and the closed form's ends
+    // move.
+    const Cx<V> vppp =
+        rmul(splat<V>(-96), radd(one, rmul(splat<V>(-24), z2) + rmul(splat<V>(16), z2 * z2))) *
+        iB2 * iB2;
+    const Cx<V> wppz = rmul(3 * dYdv, vp * vpp) + Yz * vppp;
+    const V eb2 = eb * eb, ea2 = ea * ea;
+    const V kin_sa = q1_s * (h[0] * (eb2 - ea2) + h[1] * (sb_s * eb2 - sa_s * ea2) +
+                             h[2] * (eb - ea) + h[3] * (sb_s * eb - sa_s * ea));
+    const V kin_ds = q1_s * (h[0] * eb2 + h[1] * sb_s * eb2 + h[2] * eb + h[3] * sb_s * eb);
+    dFu = wpz * Pi;
+    dGu = rmul(q1_s, wppz * Pi) + wpz * dPi;
+    gu1 = lfull(dFu, dGu) + sel<V>(sub, -kin_sa / q1, zero) + half * (-S_Rp / q1);
+    gq1 = lfull(times_i(dFu), dFu + times_i(dGu)) +
+          sel<V>(sub, closed(h) / q1_s + (-sa_s * kin_sa - ds_s * kin_ds) / q1, zero) +
+          half * (-S_sRp / q1);
+    // The sharp lobe's coefficients.
+    const Cx<V> zc{zero, zero};
+    gc[1] = lfull(zc, rmul(splat<V>(2), times_i(wz))) + half * S_we;
+    gc[2] = lfull(zc, rmul(splat<V>(-2), wz)) + half * S_wse;
+    gc[3] = lfull(wz, rmul(q1_s, wpz)) + half * S_wee;
+    gc[4] = lfull(times_i(wz), times_i(rmul(q1_s, wpz)) + wz) + half * S_wsee;
+  }
   V gYb = Jm / den1, gYa = J1 - gYb;
-  // The ends: J_1 / du and J_mu / du, then the integral's derivatives.
-  const V M1 = sel<V>(sub, closed(a1) * idu, zero) + (S_vD - hsum(a1)) / 2;
-  const V Mm = sel<V>(sub, closed(am) * idu, zero) + (S_mD - hsum(am)) / 2;
   auto at_end = [&](V u, V* vpe) {
     const V B = 1 + 4 * u * u, N = hz * (1 - 4 * u * u) - 4 * hx * u, T2 = B / (B + k * N);
     const V s = (u - u1) / q1, e = 1 / (1 + s * s);
@@ -205,26 +236,6 @@ V arc_piece(int n_gl, const double* xs, const double* ws, V ua, V ub, V Ya, V Yb
   const V Da = at_end(ua, &vpa), Db = at_end(ub, &vpb);
   V gub = vpb * (Yb * Db - dYden * Mm / den1);
   V gua = -vpa * (Ya * Da + dYden * (M1 - Mm / den1));
-  // u1 and q1: H moves with z (w' and w'' at z), the nodes' s and the closed form's ends move.
-  const Cx<V> vppp =
-      rmul(splat<V>(-96), radd(one, rmul(splat<V>(-24), z2) + rmul(splat<V>(16), z2 * z2))) *
-      iB2 * iB2;
-  const Cx<V> wppz = rmul(3 * dYdv, vp * vpp) + Yz * vppp;
-  const V eb2 = eb * eb, ea2 = ea * ea;
-  const V kin_sa = q1_s * (h[0] * (eb2 - ea2) + h[1] * (sb_s * eb2 - sa_s * ea2) +
-                           h[2] * (eb - ea) + h[3] * (sb_s * eb - sa_s * ea));
-  const V kin_ds = q1_s * (h[0] * eb2 + h[1] * sb_s * eb2 + h[2] * eb + h[3] * sb_s * eb);
-  const Cx<V> dFu = wpz * Pi, dGu = rmul(q1_s, wppz * Pi) + wpz * dPi;
-  V gu1 = lfull(dFu, dGu) + sel<V>(sub, -kin_sa / q1, zero) + half * (-S_Rp / q1);
-  V gq1 = lfull(times_i(dFu), dFu + times_i(dGu)) +
-          sel<V>(sub, closed(h) / q1_s + (-sa_s * kin_sa - ds_s * kin_ds) / q1, zero) +
-          half * (-S_sRp / q1);
-  // The sharp lobe's coefficients.
-  const Cx<V> zc{zero, zero};
-  V gc[5] = {half * S_w, lfull(zc, rmul(splat<V>(2), times_i(wz))) + half * S_we,
-             lfull(zc, rmul(splat<V>(-2), wz)) + half * S_wse,
-             lfull(wz, rmul(q1_s, wpz)) + half * S_wee,
-             lfull(times_i(wz), times_i(rmul(q1_s, wpz)) + wz) + half * S_wsee};
   // A point's partials are zero.
   const auto point = (ua == ub) & (Ya == Yb);
   *d_ua = sel<V>(point, zero, gua);
@@ -238,6 +249,24 @@ V arc_piece(int n_gl, const double* xs, const double* ws, V ua, V ub, V Ya, V Yb
   dp[9] += sel<V>(point, zero, half * S_hx);
   dp[10] += sel<V>(point, zero, half * S_hz);
   return value;
+}
+
+// `arc_piece_impl`, without the subtraction's work where no lane subtracts.
+template <typename T, typename V, bool kPartials>
+V arc_piece(int n_gl, const double* xs, const double* ws, V ua, V ub, V Ya, V Yb, const V* p,
+            V* d_ua, V* d_ub, V* d_Ya, V* d_Yb, V* dp) {
+  const V q1 = p[6], one = splat<V>(1);
+  const V ds = (ub - ua) / q1, sa = (ua - p[5]) / q1, sm = sa + ds / 2;
+  // Where the sharp lobe's poles are subtracted (`arc._piece_integrals`).
+  const auto sub = (q1 < splat<V>(kQSub)) &
+                   (vabs<T>(ds) >= vmax<T>(one, splat<V>(0.5) * vabs<T>(sm)));
+  bool any = false;
+  for (int l = 0; l < Vec<T>::L; ++l) any = any || sub[l];
+  if (any)
+    return arc_piece_impl<T, V, kPartials, true>(n_gl, xs, ws, ua, ub, Ya, Yb, p, sub, d_ua,
+                                                 d_ub, d_Ya, d_Yb, dp);
+  return arc_piece_impl<T, V, kPartials, false>(n_gl, xs, ws, ua, ub, Ya, Yb, p, sub, d_ua, d_ub,
+                                                d_Ya, d_Yb, dp);
 }
 
 // `arc.u_of_v(2 c)` and its derivative in c (as autodiff of `u_of_v` gives it: 1 where the

@@ -52,41 +52,7 @@ constexpr int kMaxNodes = 32;
 constexpr int kMaxPieces = 8;
 constexpr int kTan = 9;  // tangents of the view algebra: X, h (3), b (2), t (2), alpha
 
-// One lane per pair-view: GCC/Clang vector extensions (32 bytes: 8 floats or 4 doubles); the
-// compiler emits SIMD code for every operation below, branches become selects (`sel`).
-template <typename T>
-struct Vec {
-  typedef T type __attribute__((vector_size(32)));
-  static constexpr int L = 32 / sizeof(T);
-};
-
-template <typename V>
-inline V sel(decltype(V{} < V{}) m, V a, V b) {
-  return m ? a : b;
-}
-template <typename V>
-inline V splat(double x) {
-  return V{} + static_cast<decltype(V{}[0])>(x);
-}
-
-template <typename T, typename V>
-inline V vsqrt(V x) {
-  V r;
-  for (int l = 0; l < Vec<T>::L; ++l) r[l] = std::sqrt(x[l]);
-  return r;
-}
-template <typename T, typename V>
-inline V vabs(V x) {
-  return sel<V>(x < 0, -x, x);
-}
-template <typename T, typename V>
-inline V vmax(V a, V b) {
-  return sel<V>(a > b, a, b);
-}
-template <typename T, typename V>
-inline V vmin(V a, V b) {
-  return sel<V>(a < b, a, b);
-}
+#include "native_simd.h"
 
 // Forward-mode number with N tangents: the view algebra's Jacobian (N = kTan, a few dozen
 // operations per pair-view, as jax's autodiff of the same jnp code computes it) and the pair
@@ -277,10 +243,8 @@ V piece(int n_gl, const double* xs, const double* ws, V ua, V ub, V Ya, V Yb, co
     auto up = ps >= 0;
     V larg = sel<V>(up, ps * ea, -ps * eb);
     V I0, lg;
-    for (int l = 0; l < Vec<T>::L; ++l) {
-      I0[l] = std::atan2(s_d[l], y0[l]);
-      lg[l] = std::log1p(larg[l]);
-    }
+    I0 = vatan2<T>(s_d, y0);
+    lg = vlog1p<T>(larg);
     V I1 = splat<V>(0.5) * sel<V>(up, one, -one) * lg;
     V K1 = splat<V>(0.5) * (s_d * ea) * ((s_a + s_b) * eb);
     V K0 = splat<V>(0.5) * I0 + splat<V>(0.5) * (s_d * ea) * ((1 - s_a * s_b) * eb);
