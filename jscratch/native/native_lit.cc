@@ -1050,8 +1050,10 @@ ffi::Error run_pairs(ffi::ThreadPool& pool, int64_t n_gl, int64_t profile, int64
                       "jscratch pairs: inputs must be (n, 4, 2) footprints, (n, 2) p0 and p1, "
                       "(n,) width, depth, alpha and valid, (V, n, 3) h (and (V, n) ctD, (n,) ctA), "
                       "profile 0 (paper) or 1 (arc)");
-  double xs[kMaxNodes], ws[kMaxNodes];
+  // The n_gl-point rule, then (for the arc's far pieces, `arc_piece`) the n_gl / 2-point rule.
+  double xs[2 * kMaxNodes], ws[2 * kMaxNodes];
   gauss_legendre(static_cast<int>(n_gl), xs, ws);
+  if (n_gl % 2 == 0) gauss_legendre(static_cast<int>(n_gl / 2), xs + n_gl, ws + n_gl);
   parallel(pool, n, kPairChunk, threads, [&](size_t i0, size_t i1) {
     pairs_range<T, kGrad, kJac>(static_cast<int>(n_gl), xs, ws, i0, i1, a, profile == 1);
   });
