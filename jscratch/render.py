@@ -361,8 +361,11 @@ def _jac_fwd(cfg: _Cfg, params, h_loc, out, scr, valid):
     return (Ds.reshape(-1, cfg.Pb), As.reshape(-1, cfg.Pb)), J
 
 
-def _jac_bwd(cfg: _Cfg, params, h_loc, out, scr, valid, J, gD, gA):
-    """The reverse pass from `_jac_fwd`'s Jacobians (cotangents times Jacobians, scatter-added)."""
+def _jac_bwd(cfg: _Cfg, params, h_loc, out, scr, valid, J, gD, gA, need_h: bool = True):
+    """The reverse pass from `_jac_fwd`'s Jacobians (cotangents times Jacobians, scatter-added);
+    the half vectors' cotangent only when `need_h` (zeros otherwise: a design's half vectors are
+    constants, and their scatter-add costs ~6 % of the default design's render value and
+    gradient)."""
     h_rows = _flat_h(cfg, h_loc)
     gD, gA = gD.reshape(h_rows.shape[:2]), gA.reshape(-1)
 
@@ -375,7 +378,8 @@ def _jac_bwd(cfg: _Cfg, params, h_loc, out, scr, valid, J, gD, gA):
             g = g.at[:, :6].add(jnp.where(vc, gA.at[local].get(mode="clip"), 0)[:, None] * JA)
         out = tuple(x.at[sc].add(y, mode="drop") for x, y in zip(
             carry[:5], (g[:, 0:2], g[:, 2:4], g[:, 4], g[:, 5], g[:, 6])))
-        gh = carry[5].at[:, local].add(ctD[..., None] * Jh, mode="drop") if cfg.need_D else carry[5]
+        gh = carry[5].at[:, local].add(ctD[..., None] * Jh, mode="drop") if (
+            cfg.need_D and need_h) else carry[5]
         return out + (gh,)
 
     init = tuple(jnp.zeros_like(x) for x in params) + (jnp.zeros_like(h_rows),)
@@ -383,20 +387,40 @@ def _jac_bwd(cfg: _Cfg, params, h_loc, out, scr, valid, J, gD, gA):
     return grads[:5], grads[5].reshape(h_loc.shape)
 
 
+def _primal(x):
+    """The value of a `jax.custom_derivatives.CustomVJPPrimal` (symbolic zeros: `_pair_sums`)."""
+    return x.value if isinstance(x, jax.custom_derivatives.CustomVJPPrimal) else x
+
+
+def _dense(g):
+    """A cotangent with a `jax.custom_derivatives.SymbolicZero` made an array of zeros."""
+    if isinstance(g, jax.custom_derivatives.SymbolicZero):
+        return jnp.zeros(g.aval.shape, g.aval.dtype)
+    return g
+
+
 def _pair_sums_fwd(cfg, params, h_views, out, scr, valid):
+    # (symbolic zeros: the arguments come wrapped, with whether they are perturbed; a design's
+    # half vectors are not, and then the reverse pass leaves their cotangent out)
+    need_h = bool(getattr(h_views, "perturbed", True))
+    params, h_views, out, scr, valid = jax.tree_util.tree_map(
+        _primal, (params, h_views, out, scr, valid),
+        is_leaf=lambda x: isinstance(x, jax.custom_derivatives.CustomVJPPrimal))
     res = (params, h_views, out, scr, valid)
-    # One device with the native kernel: keep the pairs' Jacobians (the module docstring)
+    # One device with the native kernel: keep the pairs' Jacobians (the module docstring); the
+    # last residual is `(J,)` when the half vectors' cotangent is wanted, `(J, None)` when not
     if cfg.mesh is None and native.available(params[2].dtype):
         sums, J = _jac_fwd(cfg, *res)
-        return sums, res + (J,)
+        return sums, res + ((J,) if need_h else (J, None),)
     return _pair_sums(cfg, *res), res + (None,)
 
 
 def _pair_sums_bwd(cfg, res, g):
     params, h_views, out, scr, valid, J = res
-    gD, gA = g
+    gD, gA = (_dense(x) for x in g)
     if J is not None:
-        dparams, dh = _jac_bwd(cfg, params, h_views, out, scr, valid, J, gD, gA)
+        dparams, dh = _jac_bwd(cfg, params, h_views, out, scr, valid, J[0], gD, gA,
+                               need_h=len(J) == 1)
         return dparams, dh, None, None, None
     fn = _maybe_shard(cfg, functools.partial(_bwd_local, cfg),
                       (_REP, _HV, _PAIRS, _PAIRS, _PAIRS, _PIX, _PIX), (_REP, _HV))
@@ -404,7 +428,7 @@ def _pair_sums_bwd(cfg, res, g):
     return dparams, dh, None, None, None
 
 
-_pair_sums.defvjp(_pair_sums_fwd, _pair_sums_bwd)
+_pair_sums.defvjp(_pair_sums_fwd, _pair_sums_bwd, symbolic_zeros=True)
 
 
 def _mesh_axes(mesh, axis_names) -> tuple:

@@ -30,12 +30,14 @@ NDF bound is below ``cull_eps`` of their possible maximum) and compacted to a pe
 and with ``coverage_eps > 0`` the coverage pass keeps only the pairs `bvh.cull_coverage` keeps. Both
 are off by default: culling bounds the forward error but removes the small gradients that turn
 unlit grooves towards a view, and Adam's per-parameter scaling makes those matter (measured on the
-default run: loss 0.0136 unculled vs 0.0323 at ``cull_eps = 1e-3``, 1.9x slower; see
-`benchmarks/RESULTS.md`). The renderer (`render.render_pairs`) gives radiance, `render.display`
-gives display values, and the loss (`loss.make_loss`) its value and gradient; Adam updates the
-parameters; `bvh.needs_rebin` says whether the shared list still holds every pair. The list is
-rebuilt on the host (`bvh.rebin_lists`, outside the jitted step, same capacities, so no
-recompilation) only when it says so. Capacity overflows (shared list or per-view lists:
+default run: loss 0.0136 unculled against 0.0323 at ``cull_eps = 1e-3``); a cull relative to each
+pair's brightest view keeps those but raises the ghosting, since what it drops is the ghost image
+itself (docs/model.md §11, `benchmarks/RESULTS.md`). The renderer (`render.render_pairs`) gives
+radiance, `render.display` gives display values, and the loss (`loss.make_loss`) its value and
+gradient; Adam updates the parameters. Inside the same jitted step `bvh.needs_rebin` says whether
+the shared list still holds every pair for the new parameters and, only when it does not, the list
+is rebuilt there at the same capacities (no host round trip, no recompilation); the host rebuilds
+it with larger capacities when that list overflows. Capacity overflows (shared list or per-view lists:
 `bvh.grow_lists`) re-allocate and recompile; they are rare (margins 1.25).
 
 **Discard** (paper Fig. 21): after the optimisation each scratch gets a score, the largest over
