@@ -24,6 +24,7 @@ of ``LAMBDA_G`` next to it. NaN detection is the optimiser's job: these function
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import os
 from collections.abc import Sequence
@@ -38,7 +39,7 @@ from jscratch.errors import InputError
 from jscratch.features import (VGG19_LAYERS, VGG19_TAPS, Features, FilterBank, VGG19Features,
                                gram, load_vgg19, separable3)
 from jscratch.options import option
-from jscratch.ssim import ssim_mean
+from jscratch.ssim import ssim_mean, ssim_moments
 
 __all__ = [
     "BLUR_SIGMA", "GHOST_EP_REF", "GHOST_SCALES", "LAMBDA_G", "LOSS_KINDS", "VGG19_LAYERS",
@@ -185,12 +186,31 @@ def ghost_loss(render: Float[Array, "M H W"], target: Float[Array, "M H W"],
     **Returns:** scalar (0 for ``M = 1``).
     """
     render, target = _check_images(render, target)
-    m = render.shape[0]
-    if baseline is None:
-        baseline = cross_ssim(target, target)
-    j, k = np.nonzero(~np.eye(m, dtype=bool))  # only the pairs j != k of `cross_ssim`
-    s = ssim_mean(blur3(render)[j], blur3(target)[k])
-    return jnp.sum(jax.nn.relu(s - baseline.astype(render.dtype)[j, k]))
+    baseline = None if baseline is None else baseline.astype(render.dtype)
+    return _ghost(render, *_ghost_target(target, baseline))
+
+
+def _ghost_target(target, baseline=None) -> tuple[Array, Array, Array, Array]:
+    """What ``E_x`` needs of the target alone: ``g * T``, its ``ssim_moments`` and ``B``
+    (``cross_ssim(target, target)`` unless given)."""
+    bt = blur3(target)
+    return (bt, *ssim_moments(bt), cross_ssim(target, target) if baseline is None else baseline)
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _bind_ghost(target, zero: bool) -> tuple[Array, Array, Array, Array]:
+    """`Loss.bind`'s `_ghost_target`, in one compiled call; ``zero``: a zero baseline."""
+    m = target.shape[0]
+    return _ghost_target(target, jnp.zeros((m, m), target.dtype) if zero else None)
+
+
+def _ghost(render, bt, my, vy, baseline) -> Array:
+    """``E_x`` of ``render`` from `_ghost_target`'s arrays (in ``render``'s dtype)."""
+    j, k = np.nonzero(~np.eye(render.shape[0], dtype=bool))  # only the pairs j != k
+    br = blur3(render)
+    mx, vx = ssim_moments(br)  # once per view, not per pair
+    s = ssim_mean(br[j], bt[k], (mx[j], vx[j]), (my[k], vy[k]))
+    return jnp.sum(jax.nn.relu(s - baseline[j, k]))
 
 
 def ghost_weight_factor(rule: str, e_p, m: int):
@@ -375,22 +395,25 @@ class LossConfig:
 
 
 class BoundLoss(eqx.Module):
-    """A ``Loss`` with the target and its Gram matrices precomputed: ``__call__(render)``.
+    """A ``Loss`` with the target, its Gram matrices and what ``E_x`` needs of it precomputed:
+    ``__call__(render)``.
 
-    Saves the target's feature pass at every optimisation step.
+    Saves the target's feature pass, blur and SSIM moments at every optimisation step.
     """
 
     loss: Loss
     target: Float[Array, "M H W"]
     target_grams: tuple[Array, ...] | None
+    # ``g * T``, its local means and variances (`jscratch.ssim.ssim_moments`), the baseline ``B``
+    target_ghost: tuple[Array, Array, Array, Array] | None = None
 
     def __call__(self, render: Float[Array, "M H W"]) -> Array:
         """Total loss of ``render`` against the bound target (scalar, ``render``'s dtype)."""
-        return self.loss._combine(render, self.target, self.target_grams)
+        return self.terms(render)["total"]
 
     def terms(self, render: Float[Array, "M H W"]) -> dict[str, Array]:
         """The terms of the loss (see ``Loss.terms``)."""
-        return self.loss._terms(render, self.target, self.target_grams)
+        return self.loss._terms(render, self.target, self.target_grams, self.target_ghost)
 
 
 class Loss(eqx.Module):
@@ -434,12 +457,14 @@ class Loss(eqx.Module):
         **Returns:** A ``BoundLoss``; ``bound(render) == loss(render, target)`` up to rounding.
         """
         target, _ = _check_images(target, target, name="target")
-        grams = None
+        grams = ghost = None
         if self.kind == "perceptual+gram":
             grams = _target_grams(self.features, target)
-        return BoundLoss(self, target, grams)
+        if self.lambda_x > 0 and self.kind != "l2":
+            ghost = _bind_ghost(target, self.ghost_baseline == "zero")
+        return BoundLoss(self, target, grams, ghost)
 
-    def _terms(self, render, target, target_grams) -> dict[str, Array]:
+    def _terms(self, render, target, target_grams, target_ghost=None) -> dict[str, Array]:
         render, target = _check_images(render, target)
         if self.kind == "l2":
             e = l2_loss(render, target)
@@ -456,8 +481,10 @@ class Loss(eqx.Module):
             out["total"] = out["total"] + self.lambda_g * eg
         if self.lambda_x > 0:
             m = render.shape[0]
-            zero = jnp.zeros((m, m), render.dtype) if self.ghost_baseline == "zero" else None
-            ex = ghost_loss(render, target, zero)
+            if target_ghost is None:
+                zero = jnp.zeros((m, m), render.dtype) if self.ghost_baseline == "zero" else None
+                target_ghost = _ghost_target(target, zero)
+            ex = _ghost(render, *(a.astype(render.dtype) for a in target_ghost))
             out["E_x"] = ex
             wx = self.lambda_x * ghost_weight_factor(self.ghost_scale, ep, m)
             out["total"] = out["total"] + wx * ex
