@@ -141,29 +141,27 @@ def _stencil_maps(x: Array) -> tuple[list[Array], list[Array]]:
 
 
 def _level_kernels() -> np.ndarray:
-    """``(8, 9)``: the 3x3 cross-correlation kernels of ``D1_0..3, D2_0..3`` (row ``k``: kernel
-    ``K[a, b]`` at ``3 a + b``, weighing the padded pixel at row offset ``a - 1``, column offset
-    ``b - 1``), the outer products of `_stencil_maps`' stencils."""
+    """``(8, 1, 3, 3)``: the 3x3 cross-correlation kernels of ``D1_0..3, D2_0..3`` (``K[a, b]``
+    weighs the padded pixel at row offset ``a - 1``, column offset ``b - 1``), the outer products
+    of `_stencil_maps`' stencils."""
     s, d, dd = np.array(_S3), np.array(_D3), np.array(_DD3)
     gx, gy = np.outer(s, d), -np.outer(d, s)
     gxx, gyy, gxy = np.outer(s, dd), np.outer(dd, s), -np.outer(d, d)
     cs = list(zip(_COS8[:4], _SIN8[:4]))
     ks = [c * gx + s_ * gy for c, s_ in cs] + [c * c * gxx + 2.0 * c * s_ * gxy + s_ * s_ * gyy
                                               for c, s_ in cs]
-    return np.stack(ks).reshape(8, 9)
+    return np.stack(ks)[:, None]
 
 
 _LEVEL_KERNELS = _level_kernels()
 
 
-def _shifted_maps(x: Array) -> tuple[list[Array], list[Array]]:
-    """`_stencil_maps` as one product of `_LEVEL_KERNELS` with the 9 shifted copies of the
-    edge-padded level."""
-    p = _pad1(x)
-    h, w = x.shape[-2:]
-    shifted = jnp.stack([p[..., a:a + h, b:b + w] for a in range(3) for b in range(3)], axis=-3)
-    y = jnp.einsum("ok,...khw->...ohw", jnp.asarray(_LEVEL_KERNELS, x.dtype), shifted)
-    return [y[..., k, :, :] for k in range(4)], [y[..., k, :, :] for k in range(4, 8)]
+def _conv_maps(x: Array) -> tuple[list[Array], list[Array]]:
+    """`_stencil_maps` as one 3x3 convolution (`_LEVEL_KERNELS`) of the edge-padded level."""
+    kernels = jnp.asarray(_LEVEL_KERNELS, x.dtype)
+    y = jax.lax.conv_general_dilated(_pad1(x)[:, None], kernels, (1, 1), "VALID",
+                                     dimension_numbers=("NCHW", "OIHW", "NCHW"))
+    return [y[:, i] for i in range(4)], [y[:, i] for i in range(4, 8)]
 
 
 class FilterBank(eqx.Module):
@@ -212,15 +210,15 @@ class FilterBank(eqx.Module):
         """The 17 feature channels of one pyramid level ``x``.
 
         The 8 linear maps ``D1_0..3, D2_0..3`` (``D1_{k+4} = -D1_k`` exactly) are computed in one
-        of two ways, equal to rounding and on the CPU both several times faster (value and
-        gradient) than a 3x3 convolution: on a level of more than ``_STENCIL_PIXELS`` pixels (the
-        finest of a 256 px image), where most of the time goes, by `_stencil_maps` (fastest to
-        run); on smaller ones by `_shifted_maps` (fewer ops: about half the compile time).
+        of two ways, equal to rounding: on a level of more than ``_STENCIL_PIXELS`` pixels (the
+        finest of a 256 px image), where most of the time goes, by `_stencil_maps` (on the CPU
+        several times faster, value and gradient, than the convolution); on smaller ones by
+        `_conv_maps`, one 3x3 convolution (few ops: faster to compile).
         """
         if x.shape[-2] * x.shape[-1] > _STENCIL_PIXELS:
             d1, d2 = _stencil_maps(x)
         else:
-            d1, d2 = _shifted_maps(x)
+            d1, d2 = _conv_maps(x)
         relu = jax.nn.relu
         ridge_valley = [r for d in d2 for r in (relu(-d), relu(d))]
         return jnp.stack([x] + [relu(d) for d in d1] + [relu(-d) for d in d1] + ridge_valley, axis=1)
