@@ -1,8 +1,8 @@
 """Feature maps and Gram matrices for the texture term ``E_g`` of ``jscratch.loss``
 (docs/model.md §6): ``gram``, the weight-free ``FilterBank`` (default ``phi``) and ``VGG19Features``
-read from a local weights file by ``load_vgg19``. Also the 3-tap stencils on edge-padded images that
-the filter bank and ``jscratch.loss.blur3`` are built from. Pure jax, jittable, differentiable in
-the images.
+read from a local weights file by ``load_vgg19``. Also ``separable3``, the separable 3x3 stencil of
+edge-padded images that the filter bank and ``jscratch.loss.blur3`` are built from. Pure jax,
+jittable, differentiable in the images.
 """
 
 from __future__ import annotations
