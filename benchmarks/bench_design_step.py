@@ -1,6 +1,7 @@
 """Where one step of the default design goes: the render forward, the render value + VJP, the loss
-value + gradient and a host rebin, timed apart on the default scene (3 views, 20k scratches,
-256x256, unculled, initial layout). Medians of 3 after a warm-up.
+value + gradient (and of each of its terms) and a host rebin, timed apart on the default scene
+(3 views, 20k scratches, 256x256, unculled, initial layout). Medians of 3 after a warm-up. The
+bound loss is an argument of the jitted functions, as in the design step.
 
     python benchmarks/bench_design_step.py
 """
@@ -34,10 +35,18 @@ def rend(s, v):
 f_fwd = jax.jit(rend)
 f_vjp = jax.jit(lambda s, v: jax.vjp(rend, s, v)[1](jnp.ones((3, 256, 256), jnp.float32)))
 disp = jnp.asarray(render.display(f_fwd(s, v)))
-f_loss = jax.jit(jax.value_and_grad(lambda d: bound.terms(d)["total"]))
+
+
+def loss_vg(term):
+    return jax.jit(lambda b, d: jax.value_and_grad(lambda d: b.terms(d)[term])(d))
+
+
+f_loss = {term: loss_vg(term) for term in ("total", "E_p", "E_g", "E_x")}
 for name, fn in (("render forward", lambda: f_fwd(s, v)),
                  ("render value + VJP", lambda: f_vjp(s, v)),
-                 ("loss value + gradient", lambda: f_loss(disp))):
+                 ("loss value + gradient", lambda: f_loss["total"](bound, disp)),
+                 *((f"  the loss's {t} alone", lambda t=t: f_loss[t](bound, disp))
+                   for t in ("E_p", "E_g", "E_x"))):
     print(f"{name}: {time_median(fn, 3):.3f} s")
 t0 = time.perf_counter()
 render.bin_pairs(s, board)

@@ -11,7 +11,8 @@ differentiable in ``render``.
 - ``l2_loss``: plain ``sum_j mean((I_j - T_j)^2)`` for ablations.
 - ``gram_loss``: ``E_g = sum_j mean_l ||Gram(phi_l(I_j)) - Gram(phi_l(T_j))||_F^2`` with Gatys-style
   Gram matrices normalised by channels times positions; ``phi`` is ``FilterBank`` (weight-free,
-  default) or ``VGG19Features`` (from a local weights file, ``load_vgg19``).
+  default) or ``VGG19Features`` (from a local weights file, ``load_vgg19``), both of
+  ``jscratch.features`` and importable from here too.
 - ``ghost_loss``: ``E_x``, cross-view ghosting beyond a baseline (``jscratch.ssim``).
 - ``total_loss``, ``LossConfig``, ``make_loss``: ``lambda_p E_p + lambda_g E_g + w_x E_x``
   (``w_x`` from ``lambda_x`` by ``ghost_weight_factor``).
@@ -23,9 +24,10 @@ of ``LAMBDA_G`` next to it. NaN detection is the optimiser's job: these function
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import equinox as eqx
 import jax
@@ -33,9 +35,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from jscratch.errors import DesignFileError, InputError, error_line
+from jscratch.errors import InputError
+from jscratch.features import (VGG19_LAYERS, VGG19_TAPS, Features, FilterBank, VGG19Features,
+                               gram, load_vgg19, separable3)
 from jscratch.options import option
-from jscratch.ssim import ssim_mean
+from jscratch.ssim import ssim_mean, ssim_moments
 
 __all__ = [
     "BLUR_SIGMA", "GHOST_EP_REF", "GHOST_SCALES", "LAMBDA_G", "LOSS_KINDS", "VGG19_LAYERS",
@@ -125,32 +129,6 @@ def gaussian_kernel3(sigma: float = BLUR_SIGMA, dtype=None) -> Array:
     return jnp.asarray(np.outer(k, k), dtype=dtype)
 
 
-def _pad1(x: Array) -> Array:
-    """Edge-replicate padding by one pixel on the last two axes."""
-    pad = [(0, 0)] * (x.ndim - 2) + [(1, 1), (1, 1)]
-    return jnp.pad(x, pad, mode="edge")
-
-
-def _cols(p: Array, a: float, b: float, c: float) -> Array:
-    """3-tap stencil ``a x[c-1] + b x[c] + c x[c+1]`` along the last axis (drops 2 columns)."""
-    out = a * p[..., :, :-2] if a else 0.0
-    if b:
-        out = out + b * p[..., :, 1:-1]
-    if c:
-        out = out + c * p[..., :, 2:]
-    return out
-
-
-def _rows(p: Array, a: float, b: float, c: float) -> Array:
-    """3-tap stencil along the second-to-last axis (drops 2 rows)."""
-    out = a * p[..., :-2, :] if a else 0.0
-    if b:
-        out = out + b * p[..., 1:-1, :]
-    if c:
-        out = out + c * p[..., 2:, :]
-    return out
-
-
 def blur3(images: Float[Array, "... H W"], sigma: float = BLUR_SIGMA) -> Float[Array, "... H W"]:
     """Convolve with the 3x3 Gaussian ``gaussian_kernel3(sigma)`` (``g`` of ``E_p``).
 
@@ -165,9 +143,8 @@ def blur3(images: Float[Array, "... H W"], sigma: float = BLUR_SIGMA) -> Float[A
 
     **Returns:** ``(..., H, W)`` blurred images.
     """
-    k = _gauss1(sigma)  # separable
-    p = _pad1(images)
-    return _rows(_cols(p, *k), *k)
+    k = _gauss1(sigma)
+    return separable3(images, k, k)
 
 
 def perceptual_loss(render: Float[Array, "M H W"], target: Float[Array, "M H W"]) -> Array:
@@ -209,12 +186,31 @@ def ghost_loss(render: Float[Array, "M H W"], target: Float[Array, "M H W"],
     **Returns:** scalar (0 for ``M = 1``).
     """
     render, target = _check_images(render, target)
-    m = render.shape[0]
-    if baseline is None:
-        baseline = cross_ssim(target, target)
-    j, k = np.nonzero(~np.eye(m, dtype=bool))  # only the pairs j != k of `cross_ssim`
-    s = ssim_mean(blur3(render)[j], blur3(target)[k])
-    return jnp.sum(jax.nn.relu(s - baseline.astype(render.dtype)[j, k]))
+    baseline = None if baseline is None else baseline.astype(render.dtype)
+    return _ghost(render, *_ghost_target(target, baseline))
+
+
+def _ghost_target(target, baseline=None) -> tuple[Array, Array, Array, Array]:
+    """What ``E_x`` needs of the target alone: ``g * T``, its ``ssim_moments`` and ``B``
+    (``cross_ssim(target, target)`` unless given)."""
+    bt = blur3(target)
+    return (bt, *ssim_moments(bt), cross_ssim(target, target) if baseline is None else baseline)
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _bind_ghost(target, zero: bool) -> tuple[Array, Array, Array, Array]:
+    """`Loss.bind`'s `_ghost_target`, in one compiled call; ``zero``: a zero baseline."""
+    m = target.shape[0]
+    return _ghost_target(target, jnp.zeros((m, m), target.dtype) if zero else None)
+
+
+def _ghost(render, bt, my, vy, baseline) -> Array:
+    """``E_x`` of ``render`` from `_ghost_target`'s arrays (in ``render``'s dtype)."""
+    j, k = np.nonzero(~np.eye(render.shape[0], dtype=bool))  # only the pairs j != k
+    br = blur3(render)
+    mx, vx = ssim_moments(br)  # once per view, not per pair
+    s = ssim_mean(br[j], bt[k], (mx[j], vx[j]), (my[k], vy[k]))
+    return jnp.sum(jax.nn.relu(s - baseline[j, k]))
 
 
 def ghost_weight_factor(rule: str, e_p, m: int):
@@ -248,287 +244,7 @@ def l2_loss(render: Float[Array, "M H W"], target: Float[Array, "M H W"]) -> Arr
 
 
 # ----------------------------------------------------------------------------------------------
-# Gram matrices and feature maps
-
-
-def gram(features: Float[Array, "... C H W"]) -> Float[Array, "... C C"]:
-    """Gatys-style normalised Gram matrix ``G = F F^T / (C N)``.
-
-    ``F`` is the feature map flattened to ``(C, N)``, ``N = H W`` positions. Dividing by ``N``
-    makes ``G`` a mean over positions (independent of image size); dividing also by ``C`` makes
-    ``||G_I - G_T||_F^2``, a sum over ``C^2`` entries, independent of the channel count.
-
-    **Arguments:**
-
-    - `features`: ``(..., C, H, W)`` feature maps.
-
-    **Returns:** ``(..., C, C)`` symmetric matrices.
-    """
-    c, h, w = features.shape[-3:]
-    f = features.reshape(*features.shape[:-3], c, h * w)
-    return jnp.einsum("...an,...bn->...ab", f, f) / (c * h * w)
-
-
-_R = math.sqrt(0.5)
-# Unit directions e_k = (cos, sin)(45 k degrees) in the displayed image plane (x = column to the
-# right, y = up = decreasing row). Written out so that 90-degree rotations permute channels exactly.
-_COS8 = (1.0, _R, 0.0, -_R, -1.0, -_R, 0.0, _R)
-_SIN8 = (0.0, _R, 1.0, _R, 0.0, -_R, -1.0, -_R)
-
-
-def _avg_pool2(x: Array) -> Array:
-    """2x2 average pooling on the last two axes; an odd last row/column is dropped."""
-    h, w = x.shape[-2] // 2, x.shape[-1] // 2
-    x = x[..., : 2 * h, : 2 * w].reshape(*x.shape[:-2], h, 2, w, 2)
-    return x.mean(axis=(-3, -1))
-
-
-def _level_kernels() -> np.ndarray:
-    """``(9, 1, 3, 3)`` cross-correlation kernels ``L, D1_0..3, D2_0..3`` of ``FilterBank``.
-
-    ``K[a, b]`` weighs the padded pixel at row offset ``a - 1``, column offset ``b - 1``; a
-    separable stencil ``row (x) col`` is ``np.outer(row, col)``.
-    """
-    s = np.array([0.25, 0.5, 0.25])
-    d = np.array([-0.5, 0.0, 0.5])
-    dd = np.array([1.0, -2.0, 1.0])
-    gx, gy = np.outer(s, d), -np.outer(d, s)  # y points up: rows grow downwards
-    gxx, gyy, gxy = np.outer(s, dd), np.outer(dd, s), -np.outer(d, d)
-    ident = np.zeros((3, 3))
-    ident[1, 1] = 1.0
-    ks = [ident]
-    ks += [c * gx + s_ * gy for c, s_ in zip(_COS8[:4], _SIN8[:4])]
-    ks += [c * c * gxx + 2.0 * c * s_ * gxy + s_ * s_ * gyy for c, s_ in zip(_COS8[:4], _SIN8[:4])]
-    return np.stack(ks)[:, None]
-
-
-_LEVEL_KERNELS = _level_kernels()
-
-
-class FilterBank(eqx.Module):
-    """Weight-free multi-scale oriented filter bank, the default ``phi`` of ``E_g``.
-
-    Pyramid: level 0 is the image; level ``s + 1`` is the 2x2 average pool of level ``s`` (an odd
-    last row/column is dropped). At each level ``L`` (edge-replicate padding, 3x3 stencils, ``s =
-    [1, 2, 1]/4`` smoothing across the derivative direction):
-
-    - ``Gx = d_col (x) s_row``, ``Gy = -d_row (x) s_col`` (``d = [-1, 0, 1]/2``; ``y`` points up);
-    - ``Gxx = dd_col (x) s_row``, ``Gyy = dd_row (x) s_col`` (``dd = [1, -2, 1]``),
-      ``Gxy = -d_col (x) d_row``;
-    - ``D1_k = cos(t_k) Gx + sin(t_k) Gy`` for ``t_k = 45 k`` degrees, ``k = 0..7`` (steered first
-      derivative along direction ``t_k``);
-    - ``D2_k = cos^2 Gxx + 2 cos sin Gxy + sin^2 Gyy`` at ``t_k``, ``k = 0..3`` (steered second
-      derivative across lines that run at ``t_k + 90`` degrees).
-
-    The 17 channels per level, in order: ``L`` (local mean intensity), ``relu(D1_k)`` for
-    ``k = 0..7`` (half-wave rectified edges, 8 directions), then ``relu(-D2_k), relu(D2_k)`` for
-    ``k = 0..3`` (bright ridges, dark valleys). Properties (tested): every channel except ``L`` is
-    zero on a constant image (to rounding: below ``1e-16`` times the intensity); rotating the
-    image by +90 degrees (``np.rot90``) maps ``D1_k -> D1_{k+2 mod 8}`` and
-    ``D2_k -> D2_{k+2 mod 4}`` (to rounding; even sizes at every level), so ``E_g`` is invariant under rotating render and target together.
-
-    **Fields:**
-
-    - `n_scales`: pyramid levels (static), default 4 (256 px images: 256, 128, 64, 32).
-    """
-
-    n_scales: int = eqx.field(static=True, default=4)
-
-    def __check_init__(self):
-        if not (isinstance(self.n_scales, int) and self.n_scales >= 1):
-            raise InputError(f"n_scales must be a positive int, got {self.n_scales!r}")
-
-    @property
-    def channels(self) -> int:
-        """Channels per level (17)."""
-        return 17
-
-    def min_size(self) -> int:
-        """Smallest allowed image side: the coarsest level must be at least 2x2."""
-        return 2**self.n_scales
-
-    def level(self, x: Float[Array, "M H W"]) -> Float[Array, "M 17 H W"]:
-        """The 17 feature channels of one pyramid level ``x``.
-
-        The 9 linear maps (``L``, ``D1_0..3``, ``D2_0..3``; ``D1_{k+4} = -D1_k`` exactly) are one
-        3x3 convolution of the edge-padded level (few XLA ops: fast to compile and to run).
-        """
-        dt = x.dtype
-        p = _pad1(x)[:, None]  # (M, 1, H+2, W+2)
-        k = jnp.asarray(_LEVEL_KERNELS, dt)  # (9, 1, 3, 3)
-        y = jax.lax.conv_general_dilated(
-            p, k, (1, 1), "VALID", dimension_numbers=("NCHW", "OIHW", "NCHW")
-        )
-        d1, d2 = y[:, 1:5], y[:, 5:9]
-        relu = jax.nn.relu
-        ridge_valley = jnp.stack([relu(-d2), relu(d2)], axis=2).reshape(d2.shape[0], 8, *d2.shape[2:])
-        return jnp.concatenate([x[:, None], relu(d1), relu(-d1), ridge_valley], axis=1)
-
-    def __call__(self, images: Float[Array, "M H W"]) -> list[Float[Array, "M 17 h w"]]:
-        """Feature maps of each view at each pyramid level.
-
-        **Arguments:**
-
-        - `images`: ``(M, H, W)`` display values; ``H, W >= 2**n_scales``.
-
-        **Returns:** A list of ``n_scales`` arrays ``(M, 17, H_s, W_s)``, ``H_s = floor(H / 2^s)``.
-        """
-        h, w = images.shape[-2:]
-        if min(h, w) < self.min_size():
-            raise InputError(
-                f"images of {h}x{w} px are too small for a {self.n_scales}-level filter bank "
-                f"(each side must be at least {self.min_size()} px)"
-            )
-        out = []
-        x = images
-        for s in range(self.n_scales):
-            if s:
-                x = _avg_pool2(x)
-            out.append(self.level(x))
-        return out
-
-
-#: VGG-19 convolution layers up to conv5_1, in order, as ``(name, torchvision features index)``.
-VGG19_LAYERS: tuple[tuple[str, int], ...] = (
-    ("conv1_1", 0),
-    ("conv1_2", 2),
-    ("conv2_1", 5),
-    ("conv2_2", 7),
-    ("conv3_1", 10),
-    ("conv3_2", 12),
-    ("conv3_3", 14),
-    ("conv3_4", 16),
-    ("conv4_1", 19),
-    ("conv4_2", 21),
-    ("conv4_3", 23),
-    ("conv4_4", 25),
-    ("conv5_1", 28),
-)
-#: Layers whose ReLU outputs are the Gram features (Gatys et al. 2015).
-VGG19_TAPS = ("conv1_1", "conv2_1", "conv3_1", "conv4_1", "conv5_1")
-_IMAGENET_MEAN = (0.485, 0.456, 0.406)
-_IMAGENET_STD = (0.229, 0.224, 0.225)
-
-
-class VGG19Features(eqx.Module):
-    """VGG-19 feature extractor (ReLU outputs of conv1_1, conv2_1, conv3_1, conv4_1, conv5_1).
-
-    Built by ``load_vgg19`` from a local ``.npz`` file (format in ``load_vgg19``). Grayscale
-    display values are replicated to RGB and normalised with the ImageNet mean/std; then the
-    torchvision ``vgg19().features`` stack: 3x3 convolutions (stride 1, zero padding 1), ReLU, and
-    2x2 max pooling (stride 2, floor) between blocks. Channel widths are whatever the file holds
-    (the real network has 64, 128, 256, 512, 512). Weights are constants here: no gradient flows to
-    them (``stop_gradient``).
-
-    **Fields:**
-
-    - `weights`: 13 arrays ``(out, in, 3, 3)`` (torch OIHW, cross-correlation).
-    - `biases`: 13 arrays ``(out,)``.
-    """
-
-    weights: tuple[Float[Array, "o i 3 3"], ...]
-    biases: tuple[Float[Array, " o"], ...]
-
-    def min_size(self) -> int:
-        """Smallest allowed image side (four 2x2 poolings leave at least one pixel)."""
-        return 16
-
-    def __call__(self, images: Float[Array, "M H W"]) -> list[Float[Array, "M C h w"]]:
-        """Feature maps of each view at the five tapped layers.
-
-        **Arguments:**
-
-        - `images`: ``(M, H, W)`` display values in ``[0, 1]``; ``H, W >= 16``.
-
-        **Returns:** A list of 5 arrays ``(M, C_l, H_l, W_l)``, ``H_l = floor(H / 2^l)``.
-        """
-        h, w = images.shape[-2:]
-        if min(h, w) < self.min_size():
-            raise InputError(f"images of {h}x{w} px are too small for VGG-19 (need >= 16 px)")
-        dt = images.dtype
-        mean = jnp.asarray(_IMAGENET_MEAN, dt)[:, None, None]
-        std = jnp.asarray(_IMAGENET_STD, dt)[:, None, None]
-        x = (images[:, None, :, :] - mean) / std  # (M, 3, H, W): gray replicated to RGB
-        out = []
-        for (name, _), wgt, b in zip(VGG19_LAYERS, self.weights, self.biases):
-            if name.endswith("_1") and name != "conv1_1":
-                m, c, hh, ww = x.shape
-                x = x[:, :, : hh // 2 * 2, : ww // 2 * 2]
-                x = x.reshape(m, c, hh // 2, 2, ww // 2, 2).max(axis=(3, 5))
-            wgt = jax.lax.stop_gradient(wgt).astype(dt)
-            b = jax.lax.stop_gradient(b).astype(dt)
-            x = jax.lax.conv_general_dilated(
-                x, wgt, (1, 1), ((1, 1), (1, 1)), dimension_numbers=("NCHW", "OIHW", "NCHW")
-            )
-            x = jax.nn.relu(x + b[:, None, None])
-            if name in VGG19_TAPS:
-                out.append(x)
-        return out
-
-
-def load_vgg19(path: str | os.PathLike) -> VGG19Features:
-    """Load VGG-19 convolution weights from a local ``.npz`` file (nothing is downloaded).
-
-    The file holds, for each layer name ``conv1_1 .. conv5_1`` of ``VGG19_LAYERS``, the keys
-    ``<name>.weight`` (``(out, in, 3, 3)``, torch OIHW layout) and ``<name>.bias`` (``(out,)``);
-    ``conv1_1`` takes 3 input channels and each layer's ``in`` equals the previous layer's ``out``.
-    Other keys (e.g. ``conv5_2`` .. ``conv5_4``) are ignored. ``scripts/convert_vgg19.py`` writes
-    such a file from torchvision's ``vgg19`` state dict.
-
-    **Arguments:**
-
-    - `path`: the ``.npz`` file.
-
-    **Returns:** A ``VGG19Features`` module (weights stored as float32, cast to the image dtype when applied).
-
-    **Raises:**
-
-    ``jscratch.errors.DesignFileError`` (a ``ValueError``), one line naming the file: a missing or
-    unreadable file, a missing key, a wrong shape or a channel mismatch, or non-finite weights.
-    """
-    path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise DesignFileError(f"VGG-19 weights file not found: {path!r}")
-    try:
-        data = np.load(path, allow_pickle=False)
-    except Exception as e:  # noqa: BLE001 - report any unreadable file the same way
-        raise DesignFileError(f"VGG-19 weights file {path!r} is not a readable .npz file ({error_line(e)})") from None
-    with data:
-        keys = set(data.files)
-        weights, biases = [], []
-        prev_out = 3
-        for name, _ in VGG19_LAYERS:
-            for suffix in ("weight", "bias"):
-                if f"{name}.{suffix}" not in keys:
-                    hint = sorted(keys)[:4]
-                    raise DesignFileError(
-                        f"VGG-19 weights file {path!r} lacks key {name}.{suffix!s} (found keys "
-                        f"{hint}...; convert torchvision weights with scripts/convert_vgg19.py)"
-                    )
-            wgt = np.asarray(data[f"{name}.weight"])
-            b = np.asarray(data[f"{name}.bias"])
-            if wgt.ndim != 4 or wgt.shape[2:] != (3, 3):
-                raise DesignFileError(
-                    f"{name}.weight must have shape (out, in, 3, 3), got {wgt.shape} in {path!r}"
-                )
-            if wgt.shape[1] != prev_out:
-                raise DesignFileError(
-                    f"{name}.weight has {wgt.shape[1]} input channels but the previous layer "
-                    f"gives {prev_out} (shape {wgt.shape}) in {path!r}"
-                )
-            if b.shape != (wgt.shape[0],):
-                raise DesignFileError(
-                    f"{name}.bias must have shape ({wgt.shape[0]},), got {b.shape} in {path!r}"
-                )
-            if not (np.all(np.isfinite(wgt)) and np.all(np.isfinite(b))):
-                raise DesignFileError(f"{name} has non-finite weights in {path!r}")
-            prev_out = wgt.shape[0]
-            weights.append(jnp.asarray(wgt, jnp.float32))
-            biases.append(jnp.asarray(b, jnp.float32))
-    return VGG19Features(tuple(weights), tuple(biases))
-
-
-Features = Callable[[Array], Sequence[Array]]
+# The Gram loss E_g
 
 
 def _grams(features: Features, images: Array) -> list[Array]:
@@ -679,22 +395,25 @@ class LossConfig:
 
 
 class BoundLoss(eqx.Module):
-    """A ``Loss`` with the target and its Gram matrices precomputed: ``__call__(render)``.
+    """A ``Loss`` with the target, its Gram matrices and what ``E_x`` needs of it precomputed:
+    ``__call__(render)``.
 
-    Saves the target's feature pass at every optimisation step.
+    Saves the target's feature pass, blur and SSIM moments at every optimisation step.
     """
 
     loss: Loss
     target: Float[Array, "M H W"]
     target_grams: tuple[Array, ...] | None
+    # ``g * T``, its local means and variances (`jscratch.ssim.ssim_moments`), the baseline ``B``
+    target_ghost: tuple[Array, Array, Array, Array] | None = None
 
     def __call__(self, render: Float[Array, "M H W"]) -> Array:
         """Total loss of ``render`` against the bound target (scalar, ``render``'s dtype)."""
-        return self.loss._combine(render, self.target, self.target_grams)
+        return self.terms(render)["total"]
 
     def terms(self, render: Float[Array, "M H W"]) -> dict[str, Array]:
         """The terms of the loss (see ``Loss.terms``)."""
-        return self.loss._terms(render, self.target, self.target_grams)
+        return self.loss._terms(render, self.target, self.target_grams, self.target_ghost)
 
 
 class Loss(eqx.Module):
@@ -738,12 +457,14 @@ class Loss(eqx.Module):
         **Returns:** A ``BoundLoss``; ``bound(render) == loss(render, target)`` up to rounding.
         """
         target, _ = _check_images(target, target, name="target")
-        grams = None
+        grams = ghost = None
         if self.kind == "perceptual+gram":
             grams = _target_grams(self.features, target)
-        return BoundLoss(self, target, grams)
+        if self.lambda_x > 0 and self.kind != "l2":
+            ghost = _bind_ghost(target, self.ghost_baseline == "zero")
+        return BoundLoss(self, target, grams, ghost)
 
-    def _terms(self, render, target, target_grams) -> dict[str, Array]:
+    def _terms(self, render, target, target_grams, target_ghost=None) -> dict[str, Array]:
         render, target = _check_images(render, target)
         if self.kind == "l2":
             e = l2_loss(render, target)
@@ -760,8 +481,10 @@ class Loss(eqx.Module):
             out["total"] = out["total"] + self.lambda_g * eg
         if self.lambda_x > 0:
             m = render.shape[0]
-            zero = jnp.zeros((m, m), render.dtype) if self.ghost_baseline == "zero" else None
-            ex = ghost_loss(render, target, zero)
+            if target_ghost is None:
+                zero = jnp.zeros((m, m), render.dtype) if self.ghost_baseline == "zero" else None
+                target_ghost = _ghost_target(target, zero)
+            ex = _ghost(render, *(a.astype(render.dtype) for a in target_ghost))
             out["E_x"] = ex
             wx = self.lambda_x * ghost_weight_factor(self.ghost_scale, ep, m)
             out["total"] = out["total"] + wx * ex

@@ -8,34 +8,45 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-__all__ = ["ssim_mean"]
+__all__ = ["ssim_mean", "ssim_moments"]
 
 SSIM_WINDOW = 7  # skimage.metrics.structural_similarity's default uniform window
 SSIM_C1, SSIM_C2 = 0.01**2, 0.03**2  # its constants for data_range 1
+_N = SSIM_WINDOW * SSIM_WINDOW
+_CN = _N / (_N - 1)  # sample covariance
 
 
-def ssim_mean(x: Float[Array, "... H W"], y: Float[Array, "... H W"]) -> Float[Array, "..."]:
+def _mean(a):
+    # The 7x7 box sum as a 7-row sum then a 7-column sum: 14 adds per pixel, not 49 (a different
+    # order of the same float sums).
+    w = SSIM_WINDOW
+    ones, lead = (1,) * a.ndim, (1,) * (a.ndim - 2)
+    a = jax.lax.reduce_window(a, 0.0, jax.lax.add, lead + (w, 1), ones, "VALID")
+    return jax.lax.reduce_window(a, 0.0, jax.lax.add, lead + (1, w), ones, "VALID") / _N
+
+
+def ssim_moments(x: Float[Array, "... H W"]) -> tuple[Float[Array, "... h w"], Float[Array, "... h w"]]:
+    """The local mean and sample variance of ``x`` over each 7x7 window inside the image
+    (``h, w = H - 6, W - 6``): what `ssim_mean` needs of one image, to compute once for an image
+    compared with several."""
+    mx = _mean(x)
+    return mx, _CN * (_mean(x * x) - mx * mx)
+
+
+def ssim_mean(x: Float[Array, "... H W"], y: Float[Array, "... H W"],
+              moments_x: tuple[Array, Array] | None = None,
+              moments_y: tuple[Array, Array] | None = None) -> Float[Array, "..."]:
     """Mean SSIM of ``x`` against ``y`` as ``skimage.metrics.structural_similarity`` computes it
     (7x7 uniform window, sample covariance, ``data_range = 1``, mean over the pixels whose window
     lies inside the image), differentiable: the measure of the ghosting of docs/model.md §7.
 
-    **Arguments:** `x`, `y`: ``(..., H, W)`` with ``H, W >= 7``. **Returns:** ``(...)``.
+    **Arguments:** `x`, `y`: ``(..., H, W)`` with ``H, W >= 7``; `moments_x`, `moments_y`:
+    their `ssim_moments` if already computed (broadcast like ``x`` and ``y``). **Returns:**
+    ``(...)``.
     """
-    w = SSIM_WINDOW
-    n = w * w
-
-    def mean(a):
-        # The 7x7 box sum as a 7-row sum then a 7-column sum: 14 adds per pixel, not 49 (a
-        # different order of the same float sums).
-        ones, lead = (1,) * a.ndim, (1,) * (a.ndim - 2)
-        a = jax.lax.reduce_window(a, 0.0, jax.lax.add, lead + (w, 1), ones, "VALID")
-        return jax.lax.reduce_window(a, 0.0, jax.lax.add, lead + (1, w), ones, "VALID") / n
-
-    mx, my = mean(x), mean(y)
-    cn = n / (n - 1)
-    vx = cn * (mean(x * x) - mx * mx)
-    vy = cn * (mean(y * y) - my * my)
-    vxy = cn * (mean(x * y) - mx * my)
+    mx, vx = ssim_moments(x) if moments_x is None else moments_x
+    my, vy = ssim_moments(y) if moments_y is None else moments_y
+    vxy = _CN * (_mean(x * y) - mx * my)
     s = ((2 * mx * my + SSIM_C1) * (2 * vxy + SSIM_C2)) / (
         (mx * mx + my * my + SSIM_C1) * (vx + vy + SSIM_C2))
     return jnp.mean(s, axis=(-2, -1))

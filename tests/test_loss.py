@@ -17,6 +17,7 @@ from skimage.metrics import structural_similarity
 
 from jscratch import loss as loss_mod
 from jscratch.errors import DesignFileError, InputError
+from jscratch.ssim import ssim_mean
 
 SHAPE = (2, 32, 32)  # one image shape for (almost) everything: few compilations
 R = math.sqrt(0.5)
@@ -500,6 +501,29 @@ def test_lambda_x_in_loss_terms(smooth_images):
     with pytest.raises(ValueError, match="lambda_x"):
         loss_mod.LossConfig(lambda_x=-1.0)
 
+
+
+@pytest.mark.float64
+@pytest.mark.parametrize("baseline", ["zero", "targets"])
+def test_bound_ghost_matches_pairwise_ssim(smooth_images, baseline):
+    """`Loss.bind` precomputes the target's blur, SSIM moments and baseline: ``E_x`` and its
+    gradient are those of the pairwise `ssim_mean` of the blurred images, computed per call."""
+    t = jnp.asarray(smooth_images())
+    r = 0.6 * t + 0.4 * jnp.roll(t, 1, axis=0)  # each view partly its neighbour: ghosts
+    cfg = loss_mod.LossConfig(kind="perceptual", lambda_x=0.1, ghost_baseline=baseline)
+    bound = loss_mod.make_loss(cfg).bind(t)
+    assert bound.target_ghost is not None
+
+    def ref(x):
+        bx, bt = loss_mod.blur3(x), loss_mod.blur3(t)
+        b = ssim_mean(bt[:, None], bt[None, :]) if baseline == "targets" else jnp.zeros((3, 3))
+        return sum(jax.nn.relu(ssim_mean(bx[j], bt[k]) - b[j, k])
+                   for j in range(3) for k in range(3) if k != j)
+
+    got = lambda x: bound.terms(x)["E_x"]  # noqa: E731
+    assert float(got(r)) == pytest.approx(float(ref(r)), rel=1e-12) and float(ref(r)) > 0
+    np.testing.assert_allclose(np.asarray(jax.grad(got)(r)), np.asarray(jax.grad(ref)(r)),
+                               rtol=1e-9, atol=1e-14)
 
 
 @pytest.mark.float64

@@ -1,6 +1,7 @@
 """Tests of jscratch.ssim: the differentiable mean SSIM against scikit-image's
 ``structural_similarity`` (7 x 7 uniform window, data range 1), in float64 and float32, batched,
-and its gradient against central finite differences."""
+and its gradient against central finite differences; the local moments against numpy's sliding
+windows."""
 
 import jax
 import jax.numpy as jnp
@@ -8,7 +9,7 @@ import numpy as np
 import pytest
 from skimage.metrics import structural_similarity
 
-from jscratch.ssim import ssim_mean
+from jscratch.ssim import ssim_mean, ssim_moments
 
 @pytest.mark.float64
 def test_ssim_mean_matches_skimage(smooth_images):
@@ -39,3 +40,19 @@ def test_ssim_mean_gradient_matches_finite_differences(smooth_images):
         h = 1e-5
         fd = (float(ssim_mean(x + h * d, y)) - float(ssim_mean(x - h * d, y))) / (2 * h)
         assert np.sum(g * d) == pytest.approx(fd, rel=1e-6, abs=1e-10)
+
+
+@pytest.mark.float64
+def test_ssim_moments_match_sliding_windows_and_feed_ssim_mean(smooth_images):
+    x, y = smooth_images(2, h=12, w=10, seed=3), smooth_images(3, h=12, w=10, seed=4)
+    win = np.lib.stride_tricks.sliding_window_view(x, (7, 7), axis=(-2, -1))  # (2, 6, 4, 7, 7)
+    mean, var = ssim_moments(jnp.asarray(x))
+    np.testing.assert_allclose(np.asarray(mean), win.mean(axis=(-2, -1)), rtol=1e-13)
+    np.testing.assert_allclose(np.asarray(var), win.reshape(*win.shape[:-2], 49).var(-1, ddof=1),
+                               rtol=1e-10, atol=1e-15)
+    # given moments (broadcast over the pairs) give the SSIM that computing them gives
+    xs, ys = jnp.asarray(x)[:, None], jnp.asarray(y)[None, :]
+    my, vy = ssim_moments(jnp.asarray(y))
+    got = ssim_mean(xs, ys, (mean[:, None], var[:, None]), (my[None], vy[None]))
+    assert got.shape == (2, 3)
+    np.testing.assert_allclose(np.asarray(got), np.asarray(ssim_mean(xs, ys)), rtol=1e-14)
