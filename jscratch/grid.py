@@ -496,7 +496,10 @@ def _setup_counts(p0, p1, width, depth, board, shape, skin):
 @eqx.filter_jit
 def _measure(p0, p1, width, depth, board, shape, skin, strip_capacity, rows, pair_capacity):
     p0, p1, width, depth = checked_scratches(p0, p1, width, depth)
-    _, stats = _bin(
+    # (the native stage where `update` runs it: the same counts, and no compilation of the jnp
+    # stage at the provable capacities, the largest part of a design's setup)
+    binner = _bin_native if native.available(p0.dtype) else _bin
+    _, stats = binner(
         p0, p1, width, depth, board=board, shape=shape, skin=skin,
         strip_capacity=strip_capacity, rows=rows, pair_capacity=pair_capacity,
     )  # fmt: skip
