@@ -57,6 +57,10 @@ def test_round_trip_is_bitwise(tmp_path):
         assert np.array_equal(np.asarray(getattr(back.lists.shared, f)),
                               np.asarray(getattr(state.lists.shared, f)))
     assert back.lists.spec == state.lists.spec and back.lists.caps == state.lists.caps
+    # every array of the lists has the shape and dtype it had (a resumed design's step then
+    # reuses the uninterrupted one's compilation)
+    like_lists = lambda t: [(x.shape, x.dtype) for x in jax.tree_util.tree_leaves(t)]  # noqa: E731
+    assert like_lists(back.lists) == like_lists(state.lists)
     assert not list(tmp_path.joinpath("sub").glob(".ckpt-*"))  # no temporary file left
 
 

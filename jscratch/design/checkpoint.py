@@ -66,6 +66,7 @@ def save_checkpoint(path: str, state: State, config: DesignConfig, thash: str) -
         "iteration": state.iteration,
         "spec": {f: getattr(state.lists.spec, f) for f in _fields(bvh.GridSpec)},
         "caps": list(state.lists.caps),
+        "n_counts": int(np.shape(state.lists.counts)[0]),
         "history": state.history,
         "rebins": state.rebins,
         "config": config.to_dict(),
@@ -122,7 +123,10 @@ def load_checkpoint(path: str, like: State, config: DesignConfig, thash: str,
     spec = bvh.GridSpec(**{f: tuple(v) if isinstance(v, list) else v
                            for f, v in meta["spec"].items()})
     caps = tuple(meta["caps"])  # (the counts are the next step's: `bvh.update_lists`)
-    lists = bvh.PairLists(pairs, spec, jnp.zeros((len(caps),), jnp.int32), caps=caps,
+    # (as many counts as the saved lists had, so that the resumed step has the shapes the
+    # uninterrupted one was compiled for)
+    n_counts = int(meta.get("n_counts", len(caps)))
+    lists = bvh.PairLists(pairs, spec, jnp.zeros((n_counts,), jnp.int32), caps=caps,
                           cull_eps=float(config.cull_eps),
                           coverage_eps=float(config.coverage_eps))
     return State(meta["iteration"], params, opt_state, lists, meta["history"], meta["rebins"])
