@@ -387,29 +387,18 @@ def _jac_bwd(cfg: _Cfg, params, h_loc, out, scr, valid, J, gD, gA, need_h: bool 
     return grads[:5], grads[5].reshape(h_loc.shape)
 
 
-def _primal(x):
-    """The value of a `jax.custom_derivatives.CustomVJPPrimal` (symbolic zeros: `_pair_sums`)."""
-    return x.value if isinstance(x, jax.custom_derivatives.CustomVJPPrimal) else x
-
-
-def _dense(g):
-    """A cotangent with a `jax.custom_derivatives.SymbolicZero` made an array of zeros."""
-    if isinstance(g, jax.custom_derivatives.SymbolicZero):
-        return jnp.zeros(g.aval.shape, g.aval.dtype)
-    return g
+_PRIMAL, _ZERO = jax.custom_derivatives.CustomVJPPrimal, jax.custom_derivatives.SymbolicZero
 
 
 def _pair_sums_fwd(cfg, params, h_views, out, scr, valid):
     # (symbolic zeros: the arguments come wrapped, with whether they are perturbed; a design's
     # half vectors are not, and then the reverse pass leaves their cotangent out)
-    need_h = bool(getattr(h_views, "perturbed", True))
-    params, h_views, out, scr, valid = jax.tree_util.tree_map(
-        _primal, (params, h_views, out, scr, valid),
-        is_leaf=lambda x: isinstance(x, jax.custom_derivatives.CustomVJPPrimal))
-    res = (params, h_views, out, scr, valid)
+    need_h, wrapped = bool(getattr(h_views, "perturbed", True)), lambda x: isinstance(x, _PRIMAL)
+    res = jax.tree_util.tree_map(lambda x: x.value if wrapped(x) else x,
+                                 (params, h_views, out, scr, valid), is_leaf=wrapped)
     # One device with the native kernel: keep the pairs' Jacobians (the module docstring); the
     # last residual is `(J,)` when the half vectors' cotangent is wanted, `(J, None)` when not
-    if cfg.mesh is None and native.available(params[2].dtype):
+    if cfg.mesh is None and native.available(res[0][2].dtype):
         sums, J = _jac_fwd(cfg, *res)
         return sums, res + ((J,) if need_h else (J, None),)
     return _pair_sums(cfg, *res), res + (None,)
@@ -417,7 +406,7 @@ def _pair_sums_fwd(cfg, params, h_views, out, scr, valid):
 
 def _pair_sums_bwd(cfg, res, g):
     params, h_views, out, scr, valid, J = res
-    gD, gA = (_dense(x) for x in g)
+    gD, gA = (jnp.zeros(x.aval.shape, x.aval.dtype) if isinstance(x, _ZERO) else x for x in g)
     if J is not None:
         dparams, dh = _jac_bwd(cfg, params, h_views, out, scr, valid, J[0], gD, gA,
                                need_h=len(J) == 1)
