@@ -89,7 +89,8 @@ _RHO_CAP = 1 - 2.0**-20
 
 
 def nodes(dtype) -> int:
-    """Gauss-Legendre nodes per boundary piece: 8 in float32, 24 in float64 (docs/model.md §13)."""
+    """Gauss-Legendre nodes per boundary piece: 8 in float32, 24 in float64 (docs/model.md §13;
+    the native kernel uses half as many on pieces far from every pole)."""
     return 8 if dtype == jnp.float32 else 24
 
 
