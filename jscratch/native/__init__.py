@@ -350,11 +350,12 @@ def keep_freed_memory() -> dict:
 
     A design step on the CPU allocates and frees the same large buffers every step (the pairs'
     Jacobians: tens of MB). glibc serves blocks above 32 MB by ``mmap`` and gives them back with
-    ``munmap``, so every step faults in and zeroes those pages again: about a sixth of a default
-    step's wall time on two cores (`benchmarks/RESULTS.md`). This sets glibc's ``M_MMAP_MAX`` to
-    0 (large blocks come from the heap), ``M_TRIM_THRESHOLD`` to 2 GiB (freed memory is not
-    returned below that: mallopt takes a C int) and ``M_TOP_PAD`` to 64 MiB, for the whole process, from now on: its resident
-    memory then stays at its peak. `jscratch.design` calls it; off the CPU it does nothing.
+    ``munmap``, so every step faults in and zeroes those pages again (on two loaded cores, 15
+    default steps took 3.9-4.0 s with this setting against 4.4-5.0 s without; in the default
+    design the difference was within the noise: `benchmarks/RESULTS.md`). This sets glibc's
+    ``M_MMAP_MAX`` to 0 (large blocks come from the heap), ``M_TRIM_THRESHOLD`` to 2 GiB (freed
+    memory is not returned below that: mallopt takes a C int) and ``M_TOP_PAD`` to 64 MiB, for
+    the whole process, from now on: its resident memory then stays at its peak. `jscratch.design` calls it; off the CPU it does nothing.
     ``JSCRATCH_KEEP_MEMORY=0`` (read at import) leaves the allocator alone; so does another C
     library. Returns ``{"kept": bool, "why": str}`` (also in `status`); does the work once."""
     with _load_lock:
