@@ -87,8 +87,8 @@ V arc_piece_impl(int n_gl, const double* xs, const double* ws, V ua, V ub, V Ya,
   const V q1_s = sel<V>(sub, q1, splat<V>(kQSub / 2)), idu = 1 / du_s;
   const V dYdv = dYden * idu;
   const Cx<V> Pi{c20, c21}, dPi{c21 - 2 * c11, 2 * c10};
-  // H's coefficients (al0, al1, ga0, ga1) from PHI(i) = F and PHI'(i) = G; zero where nothing
-  // is subtracted.
+  // H's coefficients (al0, al1, ga0, ga1) from Φ(i) = F and Φ'(i) = G; zero where nothing is
+  // subtracted.
   auto coef = [&](const Cx<V>& F, const Cx<V>& G, V* a) {
     a[0] = sel<V>(sub, F.re, zero);
     a[1] = sel<V>(sub, F.im, zero);
