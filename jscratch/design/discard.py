@@ -3,7 +3,7 @@ target-quality variant: drop them while the mean SSIM stays at a requested value
 
 from __future__ import annotations
 
-
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
@@ -12,12 +12,17 @@ from jscratch.shading import display
 from jscratch.design import solver
 
 
+@eqx.filter_jit
+def _contributions(params, lists, ctx):
+    """`solver.contributions` over `solver.view_lists`' lists, one compiled call."""
+    return solver.contributions(params, solver.view_lists(params, lists, ctx), ctx)
+
+
 def scores(params, lists, ctx) -> np.ndarray:
     """``(N,)`` each scratch's score: ``max_j contribution[j, i] / mean_i contribution[j, i]``
     (`solver.contributions` over the `bvh.PairLists` ``lists``); the discard and the
     prune/re-seed rounds drop the lowest."""
-    culled = solver.view_lists(params, lists, ctx)
-    contrib = np.asarray(solver.contributions(params, culled, ctx), np.float64)  # (M, N)
+    contrib = np.asarray(_contributions(params, lists, ctx), np.float64)  # (M, N)
     mean = contrib.mean(axis=1, keepdims=True)
     return (contrib / np.where(mean > 0, mean, 1.0)).max(axis=0)
 

@@ -186,11 +186,19 @@ def setup(tnp, views, board, config, mesh=None):
     lig = jnp.asarray(views.light, dt)
     hs = half_vectors(Views(cam, lig), board, dt)
     bound = loss_mod.make_loss(config.design_loss(board.n_pixels)).bind(jnp.asarray(tnp, dt))
-    ndf_max = jnp.max(board_ndf(Views(cam, lig), board, dt), axis=0)  # (P,)
+    ndf_max = _board_ndf_max(Views(cam, lig), board, dt)  # (P,)
     ctx = Context(cam, lig, hs, ndf_max, bound, lrs, board, int(config.chunk), mesh)
     return mesh_mod.place(params, mesh), optimizer, mesh_mod.place(ctx, mesh)
 
 
+@eqx.filter_jit
+def _board_ndf_max(views, board, dtype):
+    """The flat board's GGX, largest over the views, ``(P,)`` (one compiled call, not an eager op
+    per line)."""
+    return jnp.max(board_ndf(views, board, dtype), axis=0)
+
+
+@eqx.filter_jit
 def _scratches(params) -> Scratches:
     return params.scratches()
 
