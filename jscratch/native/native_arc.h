@@ -76,7 +76,7 @@ V arc_piece_impl(int n_gl, const double* xs, const double* ws, V ua, V ub, V Ya,
                  V* dp) {
   const V c0 = p[0], c10 = p[1], c11 = p[2], c20 = p[3], c21 = p[4], u1 = p[5], q1 = p[6],
           k = p[8], hx = p[9], hz = p[10];
-  const V zero = V{}, one = splat<V>(1), four = splat<V>(4);
+  const V zero = V{}, one = splat<V>(1), two = splat<V>(2), four = splat<V>(4);
   const V du = ub - ua, half = du / 2, um = ua + half, dY = Yb - Ya;
   const V Ba = 1 + 4 * ua * ua;
   const V den = 4 * (1 - 4 * ub * ua) / ((1 + 4 * ub * ub) * Ba);  // `arc._vdd(ub, ua)`
@@ -131,45 +131,47 @@ V arc_piece_impl(int n_gl, const double* xs, const double* ws, V ua, V ub, V Ya,
   V S_vD = zero, S_mD = zero, S_w = zero, S_we = zero, S_wse = zero, S_wee = zero,
     S_wsee = zero, S_Rp = zero, S_sRp = zero, S_e = zero, S_se = zero, S_ee = zero,
     S_see = zero, S_k = zero, S_hx = zero, S_hz = zero;
-  const V iBa = 1 / Ba;
+  const V iBa = 1 / Ba, iq1 = 1 / q1;
+  // (vfma: the sums and the polynomials in one rounding per term, where the CPU can)
   for (int j = 0; j < n_gl; ++j) {
     const V x = splat<V>(xs[j]), w = splat<V>(ws[j]);
     const V tau = (1 + x) / 2;
-    const V uu = um + half * x, u2 = uu * uu, B = 1 + 4 * u2, iBu = 1 / B;
-    const V vpj = 4 * (1 - 4 * u2) * iBu * iBu;
+    const V uu = vfma(half, x, um), u2 = uu * uu, B = vfma(four, u2, one), iBu = 1 / B;
+    const V m4u2 = vfma(splat<V>(-4), u2, one), vpj = 4 * m4u2 * iBu * iBu;
     // mu = (v(u) - v(ua)) / (ub - ua) at the node, by the divided difference.
-    const V mu = sel<V>(denp, tau * (4 * (1 - 4 * uu * ua) * iBu * iBa), tau);
-    const V wu = (Ya + dYden * mu) * vpj;
-    const V N = hz * (1 - 4 * u2) - 4 * hx * uu, inv2 = 1 / (B + k * N), T2 = B * inv2;
-    const V F2 = T2 * T2 + T2;
-    const V s = (uu - u1) / q1, e = 1 / (1 + s * s), se = s * e, ee = e * e, see = se * e;
-    const V A0 = wu * c10 - h[2], A1 = wu * c11 - h[3], B0 = wu * c20 - h[0],
-            B1 = wu * c21 - h[1];
-    const V Rs = (A0 + A1 * s) * e + (B0 + B1 * s) * ee;
-    gl += w * (wu * (c0 + F2) + Rs);
+    const V mu = sel<V>(denp, tau * (4 * vfma(-4 * uu, ua, one) * iBu * iBa), tau);
+    const V wu = vfma(dYden, mu, Ya) * vpj;
+    const V N = vfma(hz, m4u2, -4 * hx * uu), inv2 = 1 / vfma(k, N, B), T2 = B * inv2;
+    const V F2 = vfma(T2, T2, T2);
+    const V s = (uu - u1) * iq1, e = 1 / vfma(s, s, one), se = s * e, ee = e * e, see = se * e;
+    const V A0 = vfma(wu, c10, -h[2]), A1 = vfma(wu, c11, -h[3]), B0 = vfma(wu, c20, -h[0]),
+            B1 = vfma(wu, c21, -h[1]);
+    const V Rs = vfma(vfma(A1, s, A0), e, vfma(B1, s, B0) * ee);
+    gl = vfma(w, vfma(wu, c0 + F2, Rs), gl);
     if constexpr (kPartials) {
       const V eee = ee * e, seee = see * e;
-      const V Dt = c0 + F2 + c10 * e + c11 * se + c20 * ee + c21 * see;
+      const V Dt = vfma(c21, see, vfma(c20, ee, vfma(c11, se, vfma(c10, e, c0 + F2))));
       // d/ds of the remainder (w P - H) e^2 at fixed w, term by term as Rs.
-      const V Rp = -2 * A0 * see + A1 * (2 * ee - e) - 4 * B0 * seee + B1 * (4 * eee - 3 * ee);
-      const V ww = w * wu;
-      S_vD += w * vpj * Dt;
-      S_mD += w * mu * vpj * Dt;
+      const V Rp = vfma(B1, 4 * eee - 3 * ee,
+                        vfma(-4 * B0, seee, vfma(A1, 2 * ee - e, -2 * A0 * see)));
+      const V ww = w * wu, wv = w * vpj;
+      S_vD = vfma(wv, Dt, S_vD);
+      S_mD = vfma(wv * mu, Dt, S_mD);
       S_w += ww;
-      S_we += ww * e;
-      S_wse += ww * se;
-      S_wee += ww * ee;
-      S_wsee += ww * see;
-      S_Rp += w * Rp;
-      S_sRp += w * s * Rp;
-      S_e += w * e;
-      S_se += w * se;
-      S_ee += w * ee;
-      S_see += w * see;
-      const V f = ww * (-(2 * T2 + 1) * T2 * inv2);
-      S_k += f * N;
-      S_hx += f * (-4 * k * uu);
-      S_hz += f * (k * (1 - 4 * u2));
+      S_we = vfma(ww, e, S_we);
+      S_wse = vfma(ww, se, S_wse);
+      S_wee = vfma(ww, ee, S_wee);
+      S_wsee = vfma(ww, see, S_wsee);
+      S_Rp = vfma(w, Rp, S_Rp);
+      S_sRp = vfma(w * s, Rp, S_sRp);
+      S_e = vfma(w, e, S_e);
+      S_se = vfma(w, se, S_se);
+      S_ee = vfma(w, ee, S_ee);
+      S_see = vfma(w, see, S_see);
+      const V f = ww * (-vfma(two, T2, one) * T2 * inv2);
+      S_k = vfma(f, N, S_k);
+      S_hx = vfma(f, -4 * k * uu, S_hx);
+      S_hz = vfma(f, k * m4u2, S_hz);
     }
   }
   V value = half * gl;

@@ -41,6 +41,9 @@
 #include <functional>
 #include <memory>
 #include <mutex>
+#if defined(__FMA__) && defined(__AVX__)
+#include <immintrin.h>  // vfma (native_simd.h)
+#endif
 
 #include "xla/ffi/api/ffi.h"
 

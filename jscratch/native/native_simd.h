@@ -19,6 +19,27 @@ template <typename V>
 inline V splat(double x) {
   return V{} + static_cast<decltype(V{}[0])>(x);
 }
+// a * b + c with one rounding (a fused multiply-add) where the CPU has one; the build's
+// -ffp-contract=off keeps every other product and sum rounded on its own. (A file that includes
+// this one inside a namespace includes <immintrin.h> first, so the line below adds nothing there.)
+#if defined(__FMA__) && defined(__AVX__)
+#include <immintrin.h>
+#endif
+template <typename V>
+inline V vfma(V a, V b, V c) {
+#if defined(__FMA__) && defined(__AVX__)
+  if constexpr (sizeof(a[0]) == 4)
+    return reinterpret_cast<V>(_mm256_fmadd_ps(reinterpret_cast<__m256>(a),
+                                               reinterpret_cast<__m256>(b),
+                                               reinterpret_cast<__m256>(c)));
+  else
+    return reinterpret_cast<V>(_mm256_fmadd_pd(reinterpret_cast<__m256d>(a),
+                                               reinterpret_cast<__m256d>(b),
+                                               reinterpret_cast<__m256d>(c)));
+#else
+  return a * b + c;
+#endif
+}
 
 template <typename T, typename V>
 inline V vsqrt(V x) {
