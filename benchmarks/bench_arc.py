@@ -6,8 +6,8 @@ groove, docs/model.md §13) against `ndf.pair_integral` on the same pairs, float
 Pairs: `ndf_cases.random_cases` (half vectors, footprints, scratches, alpha), each scratch cut by
 the default ball (R = 0.125 mm) at a plunge uniform in the default machine range
 (0.005..0.1 mm); the paper kernel sees the profile of width 4R with the same half-width. Set
-``JSCRATCH_NATIVE=0`` to compare jnp with jnp. Prints ns per pair, medians (`--best`: the fastest) of
-`block_until_ready` runs after one warm-up; compile time excluded.
+``JSCRATCH_NATIVE=0`` to compare jnp with jnp. Prints ns per pair, medians (``--best``: the
+fastest) of `block_until_ready` runs after one warm-up; compile time excluded.
 
 Then the native whole-pair kernel (`native.pairs`, where it is available) with
 ``profile="arc"`` against ``profile="paper"`` on the same pairs at ``--views`` views (the arc's
