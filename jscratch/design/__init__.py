@@ -32,7 +32,8 @@ are off by default: culling bounds the forward error but removes the small gradi
 unlit grooves towards a view, and Adam's per-parameter scaling makes those matter (measured on the
 default run: loss 0.0136 unculled against 0.0323 at ``cull_eps = 1e-3``); a cull relative to each
 pair's brightest view keeps those but raises the ghosting, since what it drops is the ghost image
-itself (docs/model.md §11, `benchmarks/RESULTS.md`). The renderer (`render.render_pairs`) gives
+itself, and an absolute one that keeps each pair's brightest view costs the first view's SSIM
+from ``1e-4`` on, even culling gradients alone (docs/model.md §11, `benchmarks/RESULTS.md`). The renderer (`render.render_pairs`) gives
 radiance, `render.display` gives display values, and the loss (`loss.make_loss`) its value and
 gradient; Adam updates the parameters. Inside the same jitted step `bvh.needs_rebin` says whether
 the shared list still holds every pair for the new parameters and, only when it does not, the list
