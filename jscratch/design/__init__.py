@@ -33,9 +33,9 @@ unlit grooves towards a view, and Adam's per-parameter scaling makes those matte
 default run: loss 0.0136 unculled against 0.0323 at ``cull_eps = 1e-3``); a cull relative to each
 pair's brightest view keeps those but raises the ghosting, since what it drops is the ghost image
 itself, and an absolute one that keeps each pair's brightest view costs the first view's SSIM
-from ``1e-4`` on, even culling gradients alone (docs/model.md §11, `benchmarks/RESULTS.md`). The renderer (`render.render_pairs`) gives
-radiance, `render.display` gives display values, and the loss (`loss.make_loss`) its value and
-gradient; Adam updates the parameters. Inside the same jitted step `bvh.needs_rebin` says whether
+from ``1e-4`` on, even culling gradients alone (docs/model.md §11, `benchmarks/RESULTS.md`).
+The renderer (`render.render_pairs`) gives radiance, `render.display` gives display values, and
+the loss (`loss.make_loss`) its value and gradient; Adam updates the parameters. Inside the same jitted step `bvh.needs_rebin` says whether
 the shared list still holds every pair for the new parameters and, only when it does not, the list
 is rebuilt there at the same capacities (no host round trip, no recompilation); the host rebuilds
 it with larger capacities when that list overflows. Capacity overflows (shared list or per-view lists:
