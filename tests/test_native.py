@@ -592,10 +592,11 @@ def _arc_reference(fp, p0, p1, w, d, a, valid, H):
 
 
 def _arc_vjps(args, ct):
-    """The jnp reference's reverse pass (autodiff of `_arc_reference`), as `pair_vjp` orders it."""
+    """The jnp reference's values ``(D, A)`` and reverse pass (autodiff of `_arc_reference`, as
+    `pair_vjp` orders it), from one evaluation."""
     fp, p0, p1, w, d, a, valid, H = args
-    _, vjp = jax.vjp(lambda *x: _arc_reference(fp, *x[:5], valid, x[5]), p0, p1, w, d, a, H)
-    return vjp(ct)
+    out, vjp = jax.vjp(lambda *x: _arc_reference(fp, *x[:5], valid, x[5]), p0, p1, w, d, a, H)
+    return out, vjp(ct)
 
 
 @needs_native
@@ -610,16 +611,16 @@ def test_arc_pair_kernel_equals_jnp_float64():
     valid, n = np.asarray(args[6]), args[1].shape[0]
     ng = arc.nodes(jnp.float64)
     D, A = native.pair_values(ng, *args, profile="arc")
-    Dr, Ar = jax.jit(_arc_reference)(*args)
+    rng = np.random.default_rng(5)
+    ct = (jnp.asarray(rng.normal(size=D.shape)), jnp.asarray(rng.normal(size=A.shape)))
+    (Dr, Ar), g_ref = jax.jit(_arc_vjps)(args, ct)
     for x, r in ((D, Dr), (A, Ar)):
         x, r = np.asarray(x), np.asarray(r)
         np.testing.assert_allclose(x, r, rtol=1e-12, atol=1e-14 * np.max(np.abs(r)))
         assert np.all(x[..., ~valid] == 0)
     assert np.mean(np.asarray(Dr)[:, valid] > 0) > 0.3  # lit pairs, not zeros
-    rng = np.random.default_rng(5)
-    ct = (jnp.asarray(rng.normal(size=D.shape)), jnp.asarray(rng.normal(size=A.shape)))
     got = _rows(native.pair_vjp(ng, *args, *ct, profile="arc"), n)
-    ref = _rows(jax.jit(_arc_vjps)(args, ct), n)
+    ref = _rows(g_ref, n)
     _assert_gradients_close(got, ref, D, args, valid, np.ones(n, bool))
 
 
@@ -633,20 +634,21 @@ def test_arc_pair_kernel_float32_as_accurate_as_jnp():
     a32 = _arc_population(jnp.float32)
     a64 = tuple(x.astype(jnp.float64) if x.dtype == jnp.float32 else x for x in a32)
     n = a32[1].shape[0]
-    Dr = np.asarray(jax.jit(_arc_reference)(*a64)[0])
+    rng = np.random.default_rng(6)
+    ct = (rng.normal(size=a32[7].shape[:2]), rng.normal(size=(n,)))  # D: (V, n)
+    ct32 = tuple(jnp.asarray(c, jnp.float32) for c in ct)
+    (Dr, _), g_ref = jax.jit(_arc_vjps)(a64, tuple(jnp.asarray(c) for c in ct))
+    (Dj, _), g_jnp = jax.jit(_arc_vjps)(a32, ct32)
+    Dr, Dj = np.asarray(Dr), np.asarray(Dj, np.float64)
     Dn = np.asarray(native.pair_values(arc.nodes(jnp.float32), *a32, profile="arc")[0],
                     np.float64)
-    Dj = np.asarray(jax.jit(_arc_reference)(*a32)[0], np.float64)
     den = np.abs(Dr) + 1e-6 * np.max(np.abs(Dr))
     e_nat, e_jnp = np.abs(Dn - Dr) / den, np.abs(Dj - Dr) / den
     assert np.percentile(e_nat, 99) <= 2 * np.percentile(e_jnp, 99) + 1e-6
     assert e_nat.max() <= max(3 * e_jnp.max(), 1e-3), (e_nat.max(), e_jnp.max())
-    rng = np.random.default_rng(6)
-    ct = (rng.normal(size=Dr.shape), rng.normal(size=(n,)))
-    ref = _rows(jax.jit(_arc_vjps)(a64, tuple(jnp.asarray(c) for c in ct)), n)
-    ct32 = tuple(jnp.asarray(c, jnp.float32) for c in ct)
+    ref = _rows(g_ref, n)
     nat = _rows(native.pair_vjp(arc.nodes(jnp.float32), *a32, *ct32, profile="arc"), n)
-    jnp32 = _rows(jax.jit(_arc_vjps)(a32, ct32), n)
+    jnp32 = _rows(g_jnp, n)
     _assert_as_accurate_as_jnp(nat, jnp32, ref)
 
 
