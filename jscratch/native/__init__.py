@@ -38,12 +38,12 @@ gives the same bits as its jnp path (`tests/test_grid.py`).
   ``python -m jscratch.native [--json]`` prints it (and builds the kernel if needed).
 
 Build. The kernels (native_lit.cc, which includes native_arc.h and native_simd.h, and
-native_bin.cc; one library)
-are compiled on first use with the system's C++ compiler (``$CXX``, else ``g++``, ``c++`` or
-``clang++`` on ``PATH``; 5-8 s) into ``native_lit-<key>.so`` in ``$JSCRATCH_CACHE`` (else
-``$XDG_CACHE_HOME/jscratch`` or ``~/.cache/jscratch``). The key (`_key`) covers everything the binary depends on: the text of
-the four source files, the compiler's path and its ``--version`` output, the flags
-(``-march=native``), the CPU's model and features, the jaxlib version and a hash of the XLA FFI headers under ``jax.ffi.include_dir()``. After a build the
+native_bin.cc; one library) are compiled on first use with the system's C++ compiler (``$CXX``,
+else ``g++``, ``c++`` or ``clang++`` on ``PATH``; 5-8 s) into ``native_lit-<key>.so`` in
+``$JSCRATCH_CACHE`` (else ``$XDG_CACHE_HOME/jscratch`` or ``~/.cache/jscratch``). The key (`_key`)
+covers everything the binary depends on: the text of the four source files, the compiler's path and
+its ``--version`` output, the flags (``-march=native``), the CPU's model and features, the jaxlib
+version and a hash of the XLA FFI headers under ``jax.ffi.include_dir()``. After a build the
 cache's other ``native_lit-*.so`` (stale keys) are deleted. Nothing is downloaded.
 
 Settings, read from the environment ONCE, when this module is imported (changing them later in
@@ -355,8 +355,9 @@ def keep_freed_memory() -> dict:
     design the difference was within the noise: `benchmarks/RESULTS.md`). This sets glibc's
     ``M_MMAP_MAX`` to 0 (large blocks come from the heap), ``M_TRIM_THRESHOLD`` to 2 GiB (freed
     memory is not returned below that: mallopt takes a C int) and ``M_TOP_PAD`` to 64 MiB, for
-    the whole process, from now on: its resident memory then stays at its peak. `jscratch.design` calls it; off the CPU it does nothing.
-    ``JSCRATCH_KEEP_MEMORY=0`` (read at import) leaves the allocator alone; so does another C
+    the whole process, from now on: its resident memory then stays at its peak.
+    `jscratch.design` calls it; off the CPU it does nothing. ``JSCRATCH_KEEP_MEMORY=0`` (read at
+    import) leaves the allocator alone; so does another C
     library. Returns ``{"kept": bool, "why": str}`` (also in `status`); does the work once."""
     with _load_lock:
         if _memory:
