@@ -34,7 +34,7 @@ def _ckpt(path):
     return json.loads(bytes(data.pop("meta")).decode()), data
 
 
-def test_round_moves_lowest_scratches_consistently(two_view_scene):
+def test_round_moves_lowest_scratches_consistently(two_view_scene, caplog):
     targets, views, board = two_view_scene
     cfg = _config()
     params, opt, ctx = setup(targets, views, board, cfg)
@@ -42,7 +42,10 @@ def test_round_moves_lowest_scratches_consistently(two_view_scene):
     warm.join()
     # one real step so that the Adam moments are non-zero
     new, opt_state, *_ = solver.step(st.params, st.opt_state, st.lists, ctx, opt)
-    sc = prune.scores(new, st.lists, ctx)
+    # the scores were compiled beside the step (the run prunes): scoring compiles nothing more
+    with jax.log_compiles(True), caplog.at_level("WARNING"):
+        sc = prune.scores(new, st.lists, ctx)
+    assert not [r for r in caplog.records if "Compiling" in r.getMessage()]
     p2, o2, idx = prune.prune_reseed(new, opt_state, st.lists, ctx, cfg, 2)
     assert len(idx) == 30 and len(np.unique(idx)) == 30
     # exactly the 30 lowest scores moved

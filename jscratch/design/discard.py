@@ -18,6 +18,13 @@ def _contributions(params, lists, ctx):
     return solver.contributions(params, solver.view_lists(params, lists, ctx), ctx)
 
 
+def compile_scores(params, lists, ctx) -> None:
+    """Compile `scores`' per-scratch contributions for these arguments' shapes without running
+    them (the jit cache is then warm); the design does it on a thread beside the step's
+    compilation."""
+    _contributions.lower(params, lists, ctx).compile()
+
+
 def scores(params, lists, ctx) -> np.ndarray:
     """``(N,)`` each scratch's score: ``max_j contribution[j, i] / mean_i contribution[j, i]``
     (`solver.contributions` over the `bvh.PairLists` ``lists``); the discard and the

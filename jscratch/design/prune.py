@@ -139,6 +139,14 @@ def prune_reseed(params, opt_state, lists, ctx, config, iteration: int):
                   jnp.full((k,), config.init_depth, dt), jnp.full((k,), config.init_alpha, dt))
     fresh = DesignParams.from_physical(s, np.ones(1), ctx.board, params.parameterisation,
                                        params.groove)
-    jidx = jnp.asarray(idx)
-    params = _put(params, jidx, {name: getattr(fresh, name) for name in _SCRATCH_LEAVES})
-    return params, reset_moments(opt_state, jidx), idx
+    params, opt_state = _reseeded(params, opt_state, jnp.asarray(idx), fresh)
+    return params, opt_state, idx
+
+
+@eqx.filter_jit
+def _reseeded(params, opt_state, idx, fresh):
+    """``params`` with rows ``idx`` (k,) of the scratch leaves taken from ``fresh`` (k rows), and
+    those rows' Adam moments zeroed (`reset_moments`): one compiled call a round, not a dozen
+    scatters dispatched one by one."""
+    params = _put(params, idx, {name: getattr(fresh, name) for name in _SCRATCH_LEAVES})
+    return params, reset_moments(opt_state, idx)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 import threading
 import time
@@ -21,7 +22,7 @@ from jscratch.scene import Board, Scratches, Views
 from jscratch.shading import DISPLAY_GAMMA, board_ndf, display, half_vectors
 from jscratch.design.checkpoint import State, load_checkpoint, save_checkpoint
 from jscratch.design.config import DesignConfig, NonFiniteError, SceneConfig
-from jscratch.design.discard import discard, fewest_for_ssim
+from jscratch.design.discard import compile_scores, discard, fewest_for_ssim
 from jscratch.design import mesh as mesh_mod
 from jscratch.design import prune as prune_mod
 from jscratch.design.io import check_design_views, check_targets, targets_hash
@@ -224,11 +225,18 @@ def remeasure(lists, params, ctx) -> bvh.PairLists:
 
 def initial_state(params, optimizer, ctx, tnp, config):
     """Iteration 0: the pair list, the per-view capacities and (``init_intensity ==
-    "match_mean"``) the closed-form light intensities; and the thread compiling the step
-    meanwhile (`_compile_step_meanwhile`)."""
+    "match_mean"``) the closed-form light intensities. Returns ``(state, Compiling)``: the
+    threads compiling meanwhile what the run will call (`_compile_meanwhile`), the step and,
+    when the run scores its scratches (`_scores_needed`), `discard.scores`' contributions."""
     m, dt = tnp.shape[0], params.geom.dtype
     lists = pair_lists(params, ctx, config)
-    warm = _compile_step_meanwhile(params, optimizer, lists, ctx)
+    opt_state = optimizer.init(params)
+    threads = [_compile_meanwhile("step", functools.partial(compile_step, params, opt_state,
+                                                            lists, ctx, optimizer))]
+    if _scores_needed(ctx, config):
+        threads.append(_compile_meanwhile("scores", functools.partial(compile_scores, params,
+                                                                      lists, ctx)))
+    warm = Compiling(threads)
     if config.init_intensity == "match_mean":
         unit = eqx.tree_at(lambda p: p.log_intensity, params, jnp.zeros((m,), dt))
         all_keep = jnp.ones((config.n_scratches,), bool)
@@ -244,19 +252,48 @@ def initial_state(params, optimizer, ctx, tnp, config):
     return State(0, params, optimizer.init(params), lists, history, 0), warm
 
 
-def _compile_step_meanwhile(params, optimizer, lists, ctx) -> threading.Thread:
-    """Start compiling the Adam step (`compile_step`, the largest compilation of a design) on a
-    second thread, so that it overlaps the setup's own render. Only shapes matter, so the
-    intensities set meanwhile do not. A failure here is left to the first real step to report."""
+class Compiling:
+    """The compilations `initial_state` started (`_compile_meanwhile` threads, the step's first):
+    ``join()`` waits for them all; ``seconds`` is the step's compilation wall time."""
+
+    def __init__(self, threads: list[threading.Thread]):
+        self.threads = threads
+
+    def join(self) -> None:
+        for thread in self.threads:
+            thread.join()
+
+    @property
+    def seconds(self) -> float | None:
+        return self.threads[0].seconds
+
+
+def _scores_needed(ctx, config) -> bool:
+    """Whether a fresh run calls `discard.scores`: a prune round (`prune.due` at iteration
+    ``prune_every`` with scratches to move) or a final discard. Single device only: on a mesh
+    the placement of the later call is not known here."""
+    every = config.prune_every
+    rounds = (prune_mod.due(every, config) and every < config.iterations
+              and prune_mod.moved_count(config.n_scratches, ctx.board.n_pixels, config) > 0)
+    ends = config.discard or config.target_ssim is not None
+    return ctx.mesh is None and (rounds or ends)
+
+
+def _compile_meanwhile(name: str, compile_fn) -> threading.Thread:
+    """Run ``compile_fn`` (a lowering and compilation for the run's shapes, which warms the jit
+    cache) on its own thread, so that it overlaps the setup's render and the other compilations
+    (XLA compiles without holding the GIL). Only shapes matter, so the intensities set meanwhile
+    do not. A failure here is left to the first real call to report. The thread's ``seconds``
+    is its wall time."""
     def work():
         t0 = time.perf_counter()
         try:
-            compile_step(params, optimizer.init(params), lists, ctx, optimizer)
-        except Exception:  # the first `step` call compiles again and raises it properly
+            compile_fn()
+        except Exception:  # the first real call compiles again and raises it properly
             pass
         thread.seconds = time.perf_counter() - t0
 
-    thread = threading.Thread(target=work, name="jscratch-compile-step", daemon=True)
+    thread = threading.Thread(target=work, name=f"jscratch-compile-{name}", daemon=True)
     thread.seconds = None
     thread.start()
     return thread
