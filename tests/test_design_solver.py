@@ -91,3 +91,45 @@ def test_step_rebuilds_the_shared_list_only_when_a_groove_left_its_envelope(skin
         p, lists = new, new_lists
     # without a skin every moving step rebuilds; a skin of ~2 px outlasts several steps
     assert all(flags) if skin == 0 else (0 < flags.count(False))
+
+
+def test_health_names_the_first_bad_scratch_under_jit():
+    """`solver._health` inside jit: every check passes on a good state (a gradient that is a
+    constant zero included, as autodiff gives the jnp path for the depth of carvable grooves), and
+    a non-finite gradient or value at scratch k reports ``(False, k)``, the first bad one."""
+    import jax
+
+    from jscratch.design.params import DesignParams
+    from jscratch.scene import Board, Scratches
+
+    board = Board(shape=(16, 16))
+    n, rng = 50, np.random.default_rng(1)
+    p0 = rng.uniform(0.1, 0.9, (n, 2)) * board.Sx
+    p1 = np.clip(p0 + rng.normal(0, 1e-3, (n, 2)), 0, board.Sx)
+    s = Scratches(jnp.asarray(p0, jnp.float32), jnp.asarray(p1, jnp.float32),
+                  jnp.full((n,), 2e-4, jnp.float32), jnp.full((n,), 1e-4, jnp.float32),
+                  jnp.full((n,), 0.05, jnp.float32))
+    params = DesignParams.from_physical(s, np.ones(2), board)
+
+    @jax.jit
+    def health(grads, new):
+        zero_depth = grads.log_depth * 0  # a constant for XLA to fold, as autodiff's zeros are
+        grads = DesignParams(grads.geom, grads.log_width, jnp.zeros_like(zero_depth),
+                             grads.logit_alpha, grads.log_intensity, grads.parameterisation,
+                             grads.board_size, grads.groove)
+        return solver._health(jnp.float32(1.0), grads, new)
+
+    good = health(params, params)
+    assert all(bool(ok) for ok, _ in good.values())
+    bad_grad = DesignParams(params.geom.at[17, 2].set(jnp.nan), *(
+        getattr(params, k) for k in ("log_width", "log_depth", "logit_alpha", "log_intensity",
+                                     "parameterisation", "board_size", "groove")))
+    out = health(bad_grad, params)
+    assert not bool(out["gradient of endpoints"][0])
+    assert int(out["gradient of endpoints"][1]) == 17
+    bad_width = DesignParams(params.geom, params.log_width.at[33].set(jnp.inf).at[40].set(
+        jnp.nan), *(getattr(params, k) for k in ("log_depth", "logit_alpha", "log_intensity",
+                                                  "parameterisation", "board_size", "groove")))
+    out = health(params, bad_width)
+    assert not bool(out["updated width"][0]) and int(out["updated width"][1]) == 33
+    assert all(bool(ok) for key, (ok, _) in out.items() if key != "updated width")
