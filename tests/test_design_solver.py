@@ -133,3 +133,30 @@ def test_health_names_the_first_bad_scratch_under_jit():
     out = health(params, bad_width)
     assert not bool(out["updated width"][0]) and int(out["updated width"][1]) == 33
     assert all(bool(ok) for key, (ok, _) in out.items() if key != "updated width")
+
+
+@pytest.mark.float64
+def test_setup_threads_follow_the_callers_float64_context(caplog):
+    """`setup` binds the loss, and `initial_state` compiles the step, on other threads; inside a
+    `jax.enable_x64` block (thread-local) they still work in float64: the bound loss holds float64
+    arrays and the first step compiles nothing more."""
+    import jax
+
+    from jscratch.design import default_targets
+    from jscratch.design.run import initial_state, setup
+    from jscratch.scene import Board, views_on_circle
+
+    board = Board(shape=(16, 16))
+    targets, _ = default_targets(2, (16, 16))
+    views = views_on_circle(2, math.radians(50), board=board)
+    cfg = DesignConfig(n_scratches=50, iterations=2, dtype="float64", groove="free")
+    params, opt, ctx = setup(targets, views, board, cfg)
+    leaves = [x for x in jax.tree_util.tree_leaves(ctx.loss) if hasattr(x, "dtype")]
+    assert leaves and all(x.dtype == jnp.float64 for x in leaves if jnp.issubdtype(
+        x.dtype, jnp.floating))
+    state, warm = initial_state(params, opt, ctx, targets, cfg)
+    warm.join()
+    with jax.log_compiles(True), caplog.at_level("WARNING"):
+        out = solver.step(state.params, state.opt_state, state.lists, ctx, opt)
+    assert out[2]["total"].dtype == jnp.float64
+    assert not [r for r in caplog.records if "_step_impl" in r.getMessage()]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import functools
 import os
@@ -168,6 +169,31 @@ def setup(tnp, views, board, config, mesh=None):
     """The initial parameters (the structure a checkpoint is restored into), the optimiser and the
     step's `Context` (on `mesh`, its arrays replicated there: `jscratch.design.mesh`)."""
     dt = jnp.dtype(config.dtype)
+    # The loss binds the targets (their Gram matrices and ghosting baseline: two compilations)
+    # on a second thread while this one draws the scratches and the views' half vectors.
+    with concurrent.futures.ThreadPoolExecutor(1, "jscratch-bind-loss") as pool:
+        binding = pool.submit(_in_this_context(loss_mod.make_loss(
+            config.design_loss(board.n_pixels)).bind), jnp.asarray(tnp, dt))
+        params, optimizer, lrs, cam, lig, hs, ndf_max = _setup_scene(views, board, config, dt)
+        bound = binding.result()
+    ctx = Context(cam, lig, hs, ndf_max, bound, lrs, board, int(config.chunk), mesh)
+    return mesh_mod.place(params, mesh), optimizer, mesh_mod.place(ctx, mesh)
+
+
+def _in_this_context(fn):
+    """``fn``, to run on another thread in this thread's JAX dtype setting (the
+    `jax.enable_x64` context is thread-local: a thread would otherwise trace in float32)."""
+    x64 = bool(jax.config.jax_enable_x64)
+
+    def run(*args, **kwargs):
+        with jax.enable_x64(x64):
+            return fn(*args, **kwargs)
+    return run
+
+
+def _setup_scene(views, board, config, dt):
+    """`setup`'s parameters, optimiser, learning rates and views: ``(params, optimizer, lrs,
+    camera, light, half vectors, the board's largest GGX per pixel)``."""
     scratches = Scratches.random(
         jax.random.PRNGKey(config.seed), config.n_scratches, board, length=config.init_length,
         width=config.init_width, depth=config.init_depth, alpha=config.init_alpha, dtype=dt)
@@ -186,10 +212,8 @@ def setup(tnp, views, board, config, mesh=None):
     cam = jnp.asarray(views.camera, dt)
     lig = jnp.asarray(views.light, dt)
     hs = half_vectors(Views(cam, lig), board, dt)
-    bound = loss_mod.make_loss(config.design_loss(board.n_pixels)).bind(jnp.asarray(tnp, dt))
     ndf_max = _board_ndf_max(Views(cam, lig), board, dt)  # (P,)
-    ctx = Context(cam, lig, hs, ndf_max, bound, lrs, board, int(config.chunk), mesh)
-    return mesh_mod.place(params, mesh), optimizer, mesh_mod.place(ctx, mesh)
+    return params, optimizer, lrs, cam, lig, hs, ndf_max
 
 
 @eqx.filter_jit
@@ -285,6 +309,8 @@ def _compile_meanwhile(name: str, compile_fn) -> threading.Thread:
     (XLA compiles without holding the GIL). Only shapes matter, so the intensities set meanwhile
     do not. A failure here is left to the first real call to report. The thread's ``seconds``
     is its wall time."""
+    compile_fn = _in_this_context(compile_fn)
+
     def work():
         t0 = time.perf_counter()
         try:
