@@ -56,6 +56,12 @@ def due(iteration: int, config) -> bool:
             and iteration <= config.prune_until * config.iterations)
 
 
+def moves_at(iteration: int, n: int, pixels: int, config) -> bool:
+    """Whether a round at the top of ``iteration`` moves any of ``n`` scratches (`due` and
+    `moved_count` > 0; ``pixels`` per view)."""
+    return due(iteration, config) and moved_count(n, pixels, config) > 0
+
+
 def moved_count(n: int, pixels: int, config) -> int:
     """Scratches moved per round: ``prune_fraction * n``, at most ``prune_per_pixel * pixels``
     (``pixels`` per view), and none at ``dense_from * pixels`` scratches or more. The

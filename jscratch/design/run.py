@@ -273,7 +273,7 @@ def initial_state(params, optimizer, ctx, tnp, config):
         log_i = DISPLAY_GAMMA * (np.log(np.maximum(tmean, 1e-6)) - np.log(mean_disp))
         params = eqx.tree_at(lambda p: p.log_intensity, params, jnp.asarray(log_i, dt))
     history = {"total": [], "terms": {}}
-    return State(0, params, optimizer.init(params), lists, history, 0), warm
+    return State(0, params, opt_state, lists, history, 0), warm
 
 
 class Compiling:
@@ -297,8 +297,8 @@ def _scores_needed(ctx, config) -> bool:
     ``prune_every`` with scratches to move) or a final discard. Single device only: on a mesh
     the placement of the later call is not known here."""
     every = config.prune_every
-    rounds = (prune_mod.due(every, config) and every < config.iterations
-              and prune_mod.moved_count(config.n_scratches, ctx.board.n_pixels, config) > 0)
+    rounds = every < config.iterations and prune_mod.moves_at(every, config.n_scratches,
+                                                               ctx.board.n_pixels, config)
     ends = config.discard or config.target_ssim is not None
     return ctx.mesh is None and (rounds or ends)
 
@@ -365,8 +365,8 @@ def _iterate(state, optimizer, ctx, config, n_iter, checkpoint, thash, progress)
     try:
         while state.iteration < n_iter:
             t0 = time.perf_counter()
-            if prune_mod.due(state.iteration, config) and prune_mod.moved_count(
-                    config.n_scratches, ctx.board.n_pixels, config) and not any(
+            if prune_mod.moves_at(state.iteration, config.n_scratches, ctx.board.n_pixels,
+                                  config) and not any(
                     r[0] == state.iteration for r in state.history.get("prune", [])):
                 state = _prune(state, ctx, config)
                 parts["prune"] += time.perf_counter() - t0
