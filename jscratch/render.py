@@ -362,10 +362,10 @@ def _jac_fwd(cfg: _Cfg, params, h_loc, out, scr, valid):
 
 
 def _jac_bwd(cfg: _Cfg, params, h_loc, out, scr, valid, J, gD, gA, need_h: bool = True):
-    """The reverse pass from `_jac_fwd`'s Jacobians (cotangents times Jacobians, scatter-added);
-    the half vectors' cotangent only when `need_h` (zeros otherwise: a design's half vectors are
-    constants, and their scatter-add costs ~6 % of the default design's render value and
-    gradient)."""
+    """The reverse pass from `_jac_fwd`'s Jacobians (cotangents times Jacobians, the seven
+    per-pair derivatives scatter-added per scratch at once); the half vectors' cotangent only
+    when `need_h` (zeros otherwise: a design's half vectors are constants, and their scatter-add
+    costs ~6 % of the default design's render value and gradient)."""
     h_rows = _flat_h(cfg, h_loc)
     gD, gA = gD.reshape(h_rows.shape[:2]), gA.reshape(-1)
 
@@ -373,18 +373,19 @@ def _jac_bwd(cfg: _Cfg, params, h_loc, out, scr, valid, J, gD, gA, need_h: bool 
         oc, sc, vc, JD, Jh, JA = xs
         _, local = _split_index(cfg, oc)
         ctD = gD.at[:, local].get(mode="clip") if cfg.need_D else jnp.zeros(JD.shape[:2], gD.dtype)
-        g = jnp.einsum("vc,vck->ck", ctD, JD)
+        g = jnp.sum(ctD[..., None] * JD, axis=0)  # (a fusion: an einsum here transposes)
         if cfg.need_A:
             g = g.at[:, :6].add(jnp.where(vc, gA.at[local].get(mode="clip"), 0)[:, None] * JA)
-        out = tuple(x.at[sc].add(y, mode="drop") for x, y in zip(
-            carry[:5], (g[:, 0:2], g[:, 2:4], g[:, 4], g[:, 5], g[:, 6])))
-        gh = carry[5].at[:, local].add(ctD[..., None] * Jh, mode="drop") if (
-            cfg.need_D and need_h) else carry[5]
-        return out + (gh,)
+        gh = carry[1].at[:, local].add(ctD[..., None] * Jh, mode="drop") if (
+            cfg.need_D and need_h) else carry[1]
+        return carry[0].at[sc].add(g, mode="drop"), gh  # (one scatter, not one per parameter)
 
-    init = tuple(jnp.zeros_like(x) for x in params) + (jnp.zeros_like(h_rows),)
-    grads, _ = _scan_chunks(add_chunk, init, _chunks(cfg, out, scr, valid) + tuple(J))
-    return grads[:5], grads[5].reshape(h_loc.shape)
+    n, dt = params[2].shape[0], params[2].dtype
+    init = (jnp.zeros((n, 7), dt), jnp.zeros_like(h_rows))
+    (g, gh), _ = _scan_chunks(add_chunk, init, _chunks(cfg, out, scr, valid) + tuple(J))
+    grads = (g[:, 0:2], g[:, 2:4], g[:, 4], g[:, 5], g[:, 6])
+    return (tuple(x.reshape(y.shape).astype(y.dtype) for x, y in zip(grads, params)),
+            gh.reshape(h_loc.shape))
 
 
 _PRIMAL, _ZERO = jax.custom_derivatives.CustomVJPPrimal, jax.custom_derivatives.SymbolicZero
