@@ -63,6 +63,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from jscratch import native
+from jscratch.compile_options import few_calls_jit
 from jscratch.errors import InputError
 from jscratch.ndf import groove_half_width, local_frame
 
@@ -486,14 +487,14 @@ def _bin_native(p0, p1, width, depth, *, board, shape, skin, strip_capacity, row
     return pairs, (stats[0], stats[1], stats[2])
 
 
-@eqx.filter_jit
+@few_calls_jit(filter=True)
 def _setup_counts(p0, p1, width, depth, board, shape, skin):
     p0, p1, width, depth = checked_scratches(p0, p1, width, depth)
     g = _strip_setup(p0, p1, width, depth, board, shape, skin)
     return jnp.sum(g.n_strips), jnp.max(g.rows_bound, initial=1)
 
 
-@eqx.filter_jit
+@few_calls_jit(filter=True)
 def _measure(p0, p1, width, depth, board, shape, skin, strip_capacity, rows, pair_capacity):
     p0, p1, width, depth = checked_scratches(p0, p1, width, depth)
     # (the native stage where `update` runs it: the same counts, and no compilation of the jnp

@@ -24,7 +24,6 @@ of ``LAMBDA_G`` next to it. NaN detection is the optimiser's job: these function
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 import os
 from collections.abc import Sequence
@@ -35,6 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from jscratch.compile_options import few_calls_jit
 from jscratch.errors import InputError
 from jscratch.features import (VGG19_LAYERS, VGG19_TAPS, Features, FilterBank, VGG19Features,
                                gram, load_vgg19, separable3)
@@ -197,7 +197,7 @@ def _ghost_target(target, baseline=None) -> tuple[Array, Array, Array, Array]:
     return (bt, *ssim_moments(bt), cross_ssim(target, target) if baseline is None else baseline)
 
 
-@functools.partial(jax.jit, static_argnums=1)
+@few_calls_jit(static_argnums=1)
 def _bind_ghost(target, zero: bool) -> tuple[Array, Array, Array, Array]:
     """`Loss.bind`'s `_ghost_target`, in one compiled call; ``zero``: a zero baseline."""
     m = target.shape[0]
@@ -494,7 +494,7 @@ class Loss(eqx.Module):
         return self._terms(render, target, target_grams)["total"]
 
 
-@eqx.filter_jit
+@few_calls_jit(filter=True)
 def _target_grams(features, target) -> tuple[Array, ...]:
     """`Loss.bind`'s Gram matrices, in one compiled call (not op by op)."""
     return tuple(_grams(features, target))

@@ -56,6 +56,7 @@ from jax.sharding import PartitionSpec
 from jaxtyping import Array, Float
 
 from jscratch import arc, lobe, native, ndf
+from jscratch.compile_options import grad_compiler_options
 from jscratch.bvh import DEFAULT_CHUNK, bin_pairs, cull_pairs, pixels_per_shard
 from jscratch.errors import InputError
 from jscratch.scene import (
@@ -687,27 +688,6 @@ def render_pairs(scratches: Scratches, views: Views, board: Board, pairs,
     if poisoned is not False:  # traced checks over a mesh (see `_guard`)
         rad = jnp.where(poisoned, jnp.nan, rad)
     return rad.reshape(M, board.H, board.W)
-
-
-@functools.lru_cache(maxsize=None)
-def grad_compiler_options() -> dict:
-    """XLA compiler options for a jitted function that differentiates `render_pairs` (pass them
-    as ``jax.jit(f, compiler_options=grad_compiler_options())``).
-
-    On the CPU: ``xla_cpu_use_fusion_emitters=False``. Measured on a 2-core CPU (jax 0.10.1, see
-    ``benchmarks/RESULTS.md``): a render value-and-gradient compiles ~35% faster and runs ~17%
-    faster; a forward-only render runs 15-25% slower with it, so it is not for forward-only
-    functions. Elsewhere, or where this XLA does not know the option (checked once by compiling a
-    trivial function), ``{}``.
-    """
-    if jax.default_backend() != "cpu":
-        return {}
-    opts = {"xla_cpu_use_fusion_emitters": False}
-    try:
-        jax.jit(lambda x: x + 1).lower(np.float32(0)).compile(opts)
-    except Exception:  # an XLA without this option: compile with the defaults
-        return {}
-    return opts
 
 
 _checked_scene = eqx.filter_jit(_check_values)

@@ -3,16 +3,16 @@ target-quality variant: drop them while the mean SSIM stays at a requested value
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from jscratch.compile_options import few_calls_jit
 from jscratch.metrics import image_metrics
 from jscratch.shading import display
 from jscratch.design import solver
 
 
-@eqx.filter_jit
+@few_calls_jit(filter=True)
 def _contributions(params, lists, ctx):
     """`solver.contributions` over `solver.view_lists`' lists, one compiled call."""
     return solver.contributions(params, solver.view_lists(params, lists, ctx), ctx)

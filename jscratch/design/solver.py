@@ -18,8 +18,9 @@ from jaxtyping import Array
 
 from jscratch import bvh
 from jscratch import loss as loss_mod
+from jscratch.compile_options import few_calls_jit, grad_compiler_options
 from jscratch.contributions import scratch_contributions
-from jscratch.render import grad_compiler_options, render_pairs
+from jscratch.render import render_pairs
 from jscratch.scene import SCRATCH_RULES, Board, Views
 from jscratch.shading import display
 from jscratch.design.config import GROUPS
@@ -101,7 +102,7 @@ def evaluate(params: DesignParams, lists: bvh.PairLists, keep: Array, ctx: Conte
     return _evaluate(params, _on_mesh(params, lists, ctx), keep, ctx)
 
 
-@eqx.filter_jit
+@few_calls_jit(filter=True)
 def _evaluate(params: DesignParams, lists: bvh.PairLists, keep: Array, ctx: Context):
     keep_ext = jnp.concatenate([keep, jnp.zeros((1,), bool)])
     culled = view_lists(params, lists, ctx)
@@ -134,7 +135,8 @@ def _health(loss, grads: DesignParams, new: DesignParams) -> dict[str, Array]:
 
 
 def step(params: DesignParams, opt_state, lists: bvh.PairLists, ctx: Context, adam):
-    """`_step_impl`, jitted with `render.grad_compiler_options` (faster compile and step)."""
+    """`_step_impl`, jitted with `compile_options.grad_compiler_options` (faster compile and
+    step)."""
     params, opt_state = mesh_mod.place((params, opt_state), ctx.mesh)  # (once: then in place)
     return _jitted_step()(params, opt_state, _on_mesh(params, lists, ctx), ctx, adam)
 
