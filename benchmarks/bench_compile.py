@@ -5,8 +5,9 @@
    compile threads), wall and CPU time: run it under two code trees to compare them
    (``PYTHONPATH=DIR``, from a folder other than the repository's).
 2. Every `few_calls_jit` function the setup, the first evaluation and the discard scores call:
-   each lowered once with the arguments of the run, then compiled alternately with XLA's defaults
-   and with `grad_compiler_options`; medians of wall and CPU time.
+   each lowered with the arguments of the run, then compiled alternately with XLA's defaults and
+   with `grad_compiler_options`; medians of wall and CPU time. Then their run times with each
+   (medians, after a first call that compiles).
 
     python benchmarks/bench_compile.py [--repeats 3]
 """
@@ -90,6 +91,22 @@ def main():
                 t[key].append(since(start))
         d, o = (np.median(np.asarray(t[key]), axis=0) for key in ("default", "options"))
         print(f"| `{name}` | {d[0]:.2f} / {d[1]:.2f} | {o[0]:.2f} / {o[1]:.2f} |")
+    print(f"\n| function | run, XLA defaults (ms) | run, {opts} (ms) |")
+    print("|---|---|---|")
+    seen = set()
+    for fn, a, k in calls:
+        if fn.__name__ in seen:
+            continue
+        seen.add(fn.__name__)
+        jitted = {"default": fn.jitted(), "options": fn.jitted(opts)}
+        t = {key: [] for key in jitted}
+        for _ in range(args.repeats + 1):  # the first round compiles
+            for key, f in jitted.items():
+                start = time.perf_counter()
+                jax.block_until_ready(f(*a, **k))
+                t[key].append(time.perf_counter() - start)
+        d, o = (1e3 * np.median(t[key][1:]) for key in ("default", "options"))
+        print(f"| `{fn.__name__}` | {d:.1f} | {o:.1f} |")
 
 
 if __name__ == "__main__":

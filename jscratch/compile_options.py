@@ -5,8 +5,9 @@ On the CPU, XLA's fusion emitters (its default) make forward passes a few per ce
 compile slower. With ``xla_cpu_use_fusion_emitters=False`` (`grad_compiler_options`):
 
 - a render's value and gradient, the design step, compiles ~35 % faster and runs faster too;
-- a forward pass runs 4-5 % slower (the default design's final render and loss terms: 92 against
-  88 ms) but compiles 25-50 % faster (the same: 1.44 against 2.28 s).
+- a forward pass runs 3-8 % slower (the default design's render and loss terms: 96.6 against
+  93.4 ms; its discard scores: 77.5 against 71.8 ms) but compiles 25-50 % faster (the same: 1.53
+  against 2.35 s, 0.24 against 0.32 s).
 
 So the step (`jscratch.design.solver`) is compiled with these options, and so are the functions a
 run calls once or a handful of times (`few_calls_jit`: the targets' Gram matrices and ghosting
@@ -24,6 +25,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import threading
 from collections.abc import Callable
 
 import equinox as eqx
@@ -59,6 +61,8 @@ class FewCallsJit:
 
     def __init__(self, fn: Callable, jit: Callable):
         self._fn, self._jit = fn, jit
+        self._made: dict[str, Callable] = {}  # "plain", "fast": one jit each, made once
+        self._lock = threading.Lock()  # (a design calls and lowers from several threads)
         functools.update_wrapper(self, fn)
 
     def jitted(self, compiler_options: dict | None = None) -> Callable:
@@ -67,13 +71,22 @@ class FewCallsJit:
             return self._plain
         return self._jit(self._fn, compiler_options=compiler_options)
 
-    @functools.cached_property
-    def _plain(self):
-        return self._jit(self._fn)
+    def _get(self, which: str) -> Callable:
+        """The ``"plain"`` jit, or the ``"fast"`` one (the plain one where there are no options)."""
+        with self._lock:
+            if which not in self._made:
+                opts = grad_compiler_options() if which == "fast" else {}
+                self._made[which] = (self._jit(self._fn, compiler_options=opts) if opts
+                                     else self._made.get("plain") or self._jit(self._fn))
+            return self._made[which]
 
-    @functools.cached_property
+    @property
+    def _plain(self):
+        return self._get("plain")
+
+    @property
     def _fast(self):
-        return self.jitted(grad_compiler_options())
+        return self._get("fast")
 
     def __call__(self, *args, **kwargs):
         if _recording is not None:
