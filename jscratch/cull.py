@@ -22,7 +22,9 @@ the GGX `D(c) = chi+(c) alpha^2 / (pi (c^2 (alpha^2 - 1) + 1)^2)` increases on `
 
 (`rho = 0` when `c_max <= 0`: chi+ zeroes every wall; for `alpha >= 1` GGX peaks at `c -> 0+` and
 `rho = alpha^4` bounds it). `rho` is in `[0, 1]`: the fraction of the most the pair could ever
-contribute. `c_max` gets 4 ulps added so that the bound survives rounding. `cull_ratio` computes
+contribute. `c_max` gets 4 ulps added, and `rho` 8 ulps of itself (the rounding of its last five
+operations, which the margin on `c_max` does not cover where `c_max` is small: grazing half
+vectors), so that the bound survives rounding. `cull_ratio` computes
 `rho` per pair in O(1) (no integral); `cull` drops the pair when `rho < eps`. `eps = 0` keeps all.
 The bound holds for the ball's arc too (`Scratches.profile == "arc"`, stored as the paper groove
 with its footprint, ``w = 2R``): the arc's wall angles ``asin(x / R)`` lie within that groove's
@@ -100,7 +102,8 @@ def cull_ratio(
     `D_hat <= A D_ggx(c_max) = rho A / (pi alpha^2)` with
     `rho = alpha^4 / (c_max^2 (alpha^2 - 1) + 1)^2` (and `rho = 0` when `c_max <= 0`: the groove
     faces away and chi+ zeroes it). For `alpha >= 1` GGX peaks at `n.h -> 0+` and `rho = alpha^4`.
-    `c_max` gets 4 ulps added so that the bound survives rounding. Derivation: module docstring.
+    `c_max` gets 4 ulps added and `rho` 8 ulps of itself so that the bound survives rounding.
+    Derivation: module docstring.
 
     **Arguments:** `pairs`; current `p0`, `p1` `(N, 2)`, `width`, `depth`, `alpha` (`(N,)` or
     scalar); `h_pixel` `(P, 3)` unit board-frame half vector per pixel (`P = H * W`).
@@ -140,6 +143,8 @@ def cull_ratio(
     a2 = a * a
     denom = jnp.where(a < 1, c_max * c_max * (a2 - 1) + 1, 1.0)
     rho = jnp.where(c_max > 0, a2 * a2 / (denom * denom), 0.0)
+    rho = rho * (1 + 8 * jnp.finfo(dtype).eps)  # (the last operations' rounding)
+    rho = jnp.where(a < 1, jnp.minimum(rho, 1.0), rho)
     rho = jnp.where((length[i] > 0) | (a >= 1), rho, 0.0)  # zero-length: D_hat = A = 0
     return jnp.where(pairs.valid, rho, 0.0)
 

@@ -1,7 +1,8 @@
 """Tests of jscratch.cull: the per-scratch ratio bounds the point NDF over the whole groove and is
-attained (dense quadrature across the groove), eps = 0 keeps every pair, the culled pairs' D sums
-stay within the stated error bound (against a numpy quadrature and against the NDF kernel), the
-coverage list's radiance error through the renderer, and the input errors."""
+attained (dense quadrature across the groove), also at grazing half vectors and in float32,
+eps = 0 keeps every pair, the culled pairs' D sums stay within the stated error bound (against a
+numpy quadrature and against the NDF kernel), the coverage list's radiance error through the
+renderer, and the input errors."""
 
 import equinox as eqx
 import jax
@@ -105,6 +106,39 @@ def test_cull_ratio_is_a_tight_bound_of_the_point_ndf(random_layout):
     assert np.all(d_max >= 0.98 * rho - 1e-12), np.c_[d_max, rho]
     assert np.sum(rho < 1e-3) > 5 and np.sum(rho > 0.1) > 5  # both regimes covered
 
+
+
+@pytest.mark.float64
+def test_cull_ratio_bounds_grazing_and_below_board_half_vectors(random_layout):
+    """The bound at the half vectors that stress it: h_z from 1e-4 (grazing) to steep, a few below
+    the board, any groove aspect (depth / width 0.02-3) and roughness (0.02-0.9); `rho` bounds
+    the point NDF over the whole groove (dense quadrature of the rounded inputs) and is attained,
+    in float64 and in float32 (there only thanks to the margin on `rho` itself: at grazing half
+    vectors the margin on `c_max` alone left it up to 7e-8 short)."""
+    rng = np.random.default_rng(5)
+    n = 288
+    mid, u = random_layout(rng, n, 0.05, 0.25)
+    p0, p1 = mid - 0.01 * u, mid + 0.01 * u
+    width = rng.uniform(1e-4, 5e-4, n)
+    depth = width * rng.uniform(0.02, 3.0, n)
+    alpha = rng.uniform(0.02, 0.9, n)
+    h = rng.normal(size=(n, 3))
+    h[:, 2] = np.abs(h[:, 2]) * 10.0 ** rng.uniform(-4, 0.5, n)  # grazing to steep
+    h[:9, 2] *= -1  # below the board: the bound must hold regardless
+    h /= np.linalg.norm(h, axis=-1, keepdims=True)
+    pairs = bvh.Pairs(pixel=jnp.arange(n, dtype=jnp.int32), scratch=jnp.arange(n, dtype=jnp.int32),
+                      valid=jnp.ones(n, bool), overflow=jnp.array(False))
+    big = np.tile([-1.0, 1.0, -1.0, 1.0], (n, 1))  # the whole groove
+    for dtype in (jnp.float64, jnp.float32):
+        args = [jnp.asarray(x, dtype) for x in (p0, p1, width, depth, alpha, h)]
+        rho = np.asarray(cull.cull_ratio(pairs, *args), np.float64)
+        _, _, nh = dhat_numeric(*(np.asarray(x, np.float64) for x in (args[5], *args[:5])), big,
+                                20001)
+        d_max = _ggx(nh, np.asarray(args[4], np.float64)[:, None]).max(-1) * np.pi * np.asarray(
+            args[4], np.float64) ** 2
+        assert np.all(d_max <= rho * (1 + 1e-9) + 1e-300), dtype
+        assert np.all(d_max >= 0.98 * rho - 1e-12), dtype
+    assert np.sum(h[:, 2] < 1e-3) > 30 and np.sum(rho < 1e-3) > 10 and np.sum(rho > 0.1) > 10
 
 
 def test_cull_keeps_all_at_zero_and_obeys_the_error_bound(random_layout):
