@@ -324,17 +324,19 @@ void arc_lit_lanes(int n_gl, const double* xs, const double* ws, int k, const V*
                    V* g_Ya, V* g_Yb, V* gs) {
   typedef typename Cut<V>::M M;
   const V zero = V{}, one = splat<V>(1), two = splat<V>(2), four = splat<V>(4);
-  View<V> vw;
-  view_algebra<T>(sv, &vw);
+  constexpr int NV = kPartials ? kTan : 0;  // (the value alone needs no tangents)
+  View<V, NV> vw;
+  view_algebra<T, V, NV>(sv, &vw);
   // U = u_of_v(2 X), the slab in u and in x / 2R = v(u) / 2.
-  const Dual<V> v2 = scale(two, vw.X);
-  const Dual<V> U = v2 / scale(two, cst(one) + dsafe_sqrt<T>((cst(one) - v2) * (cst(one) + v2)));
-  const Dual<V> lo_u = dmax<T>(-U, vw.u_m);
-  const Dual<V> hi_u = dmax<T>(dmin<T>(U, vw.u_p), lo_u);
-  auto half_v = [&](const Dual<V>& u) {
-    return scale(splat<V>(0.5), scale(four, u) / (cst(one) + scale(four, u) * u));
+  const Dual<V, NV> v2 = scale(two, vw.X);
+  const Dual<V, NV> U = v2 / scale(two, cst<NV>(one) + dsafe_sqrt<T>((cst<NV>(one) - v2) *
+                                                                      (cst<NV>(one) + v2)));
+  const Dual<V, NV> lo_u = dmax<T>(-U, vw.u_m);
+  const Dual<V, NV> hi_u = dmax<T>(dmin<T>(U, vw.u_p), lo_u);
+  auto half_v = [&](const Dual<V, NV>& u) {
+    return scale(splat<V>(0.5), scale(four, u) / (cst<NV>(one) + scale(four, u) * u));
   };
-  const Dual<V> lo_c = half_v(lo_u), hi_c = half_v(hi_u);
+  const Dual<V, NV> lo_c = half_v(lo_u), hi_c = half_v(hi_u);
   V p[11];
   for (int i = 0; i < 11; ++i) p[i] = vw.pd[i].v;
   Cut<V> c;
@@ -373,17 +375,18 @@ void arc_lit_lanes(int n_gl, const double* xs, const double* ws, int k, const V*
   }
   const V h2 = splat<V>(0.5);
   *out = h2 * value;
-  if constexpr (!kPartials) return;
-  for (int i = 0; i < k; ++i) {
-    g_ua[i] *= h2;
-    g_ub[i] *= h2;
-    g_Ya[i] *= h2;
-    g_Yb[i] *= h2;
-  }
-  for (int t = 0; t < kTan; ++t) {
-    V s = g_lo * lo_c.d[t] + g_hi * hi_c.d[t] + g_ulo * lo_u.d[t] + g_uhi * hi_u.d[t] +
-          g_U * U.d[t];
-    for (int i = 0; i < 11; ++i) s += dp[i] * vw.pd[i].d[t];
-    gs[t] = h2 * s;
+  if constexpr (kPartials) {
+    for (int i = 0; i < k; ++i) {
+      g_ua[i] *= h2;
+      g_ub[i] *= h2;
+      g_Ya[i] *= h2;
+      g_Yb[i] *= h2;
+    }
+    for (int t = 0; t < kTan; ++t) {
+      V s = g_lo * lo_c.d[t] + g_hi * hi_c.d[t] + g_ulo * lo_u.d[t] + g_uhi * hi_u.d[t] +
+            g_U * U.d[t];
+      for (int i = 0; i < 11; ++i) s += dp[i] * vw.pd[i].d[t];
+      gs[t] = h2 * s;
+    }
   }
 }

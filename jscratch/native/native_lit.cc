@@ -343,38 +343,38 @@ V piece(int n_gl, const double* xs, const double* ws, V ua, V ub, V Ya, V Yb, co
 // alpha): computed here with IEEE operations, not in an XLA fusion (whose rewrites, such as
 // x / sqrt(y) -> x * rsqrt(y), move a sharp peak by an ulp or two). Out: X, the roots u_m, u_p of
 // N (`lit_interval`) and the 11 lobe parameters, each with its kTan tangents.
-template <typename V>
+template <typename V, int N = kTan>
 struct View {
-  Dual<V> X, u_m, u_p, pd[11];
+  Dual<V, N> X, u_m, u_p, pd[11];
 };
 
-template <typename T, typename V>
-void view_algebra(const V* sv, View<V>* o) {
+template <typename T, typename V, int N = kTan>
+void view_algebra(const V* sv, View<V, N>* o) {
   const V one = splat<V>(1), two = splat<V>(2);
-  Dual<V> Xd = var(sv[0], 0), h0 = var(sv[1], 1), h1 = var(sv[2], 2), h2 = var(sv[3], 3),
-          b0 = var(sv[4], 4), b1 = var(sv[5], 5), t0 = var(sv[6], 6), t1 = var(sv[7], 7),
-          al = var(sv[8], 8);
-  Dual<V> nrm = dsqrt<T>(h0 * h0 + h1 * h1 + h2 * h2);
-  Dual<V> hn0 = h0 / nrm, hn1 = h1 / nrm, hz = h2 / nrm;
-  Dual<V> hx = hn0 * b0 + hn1 * b1, hy = hn0 * t0 + hn1 * t1;
-  Dual<V> r = dsqrt<T>(hx * hx + hz * hz);
-  Dual<V> rp = r + dabs<T>(hx);
-  Dual<V> near = hz / scale(two, rp), far = rp / scale(two, hz);
+  Dual<V, N> Xd = var<N>(sv[0], 0), h0 = var<N>(sv[1], 1), h1 = var<N>(sv[2], 2), h2 = var<N>(sv[3], 3),
+          b0 = var<N>(sv[4], 4), b1 = var<N>(sv[5], 5), t0 = var<N>(sv[6], 6), t1 = var<N>(sv[7], 7),
+          al = var<N>(sv[8], 8);
+  Dual<V, N> nrm = dsqrt<T>(h0 * h0 + h1 * h1 + h2 * h2);
+  Dual<V, N> hn0 = h0 / nrm, hn1 = h1 / nrm, hz = h2 / nrm;
+  Dual<V, N> hx = hn0 * b0 + hn1 * b1, hy = hn0 * t0 + hn1 * t1;
+  Dual<V, N> r = dsqrt<T>(hx * hx + hz * hz);
+  Dual<V, N> rp = r + dabs<T>(hx);
+  Dual<V, N> near = hz / scale(two, rp), far = rp / scale(two, hz);
   auto hx_pos = hx.v >= 0;
   o->X = Xd;
   o->u_p = dsel(hx_pos, near, far);
   o->u_m = dsel(hx_pos, -far, -near);
-  Dual<V> a2 = al * al;
-  Dual<V> kk = dsafe_sqrt<T>(cst(one) - a2);
-  Dual<V> g = cst(one) / (cst(one) + kk * hz);
-  Dual<V> beta2 = a2 + kk * kk * hy * hy;
-  Dual<V> beta = dsqrt<T>(beta2);
-  Dual<V> u1 = -(g * kk * hx) / cst(two);
-  Dual<V> q1 = g * beta / cst(two);
-  Dual<V> a = -(scale(two, g) * kk * hx) / beta;
-  Dual<V> m = scale(two, kk) * (hz + g * kk * hx * hx) / beta2;
-  Dual<V> g21 = scale(two, g) + cst(one);
-  const Dual<V> pd[11] = {g * g + g, g21 * m + a * a, g21 * a, m * m - a * a, scale(two, a) * m,
+  Dual<V, N> a2 = al * al;
+  Dual<V, N> kk = dsafe_sqrt<T>(cst<N>(one) - a2);
+  Dual<V, N> g = cst<N>(one) / (cst<N>(one) + kk * hz);
+  Dual<V, N> beta2 = a2 + kk * kk * hy * hy;
+  Dual<V, N> beta = dsqrt<T>(beta2);
+  Dual<V, N> u1 = -(g * kk * hx) / cst<N>(two);
+  Dual<V, N> q1 = g * beta / cst<N>(two);
+  Dual<V, N> a = -(scale(two, g) * kk * hx) / beta;
+  Dual<V, N> m = scale(two, kk) * (hz + g * kk * hx * hx) / beta2;
+  Dual<V, N> g21 = scale(two, g) + cst<N>(one);
+  const Dual<V, N> pd[11] = {g * g + g, g21 * m + a * a, g21 * a, m * m - a * a, scale(two, a) * m,
                           u1, q1, g, kk, hx, hz};
   for (int i = 0; i < 11; ++i) o->pd[i] = pd[i];
 }
@@ -460,10 +460,11 @@ void lit_lanes(int n_gl, const double* xs, const double* ws, int k, const V* ua,
                const V* Ya, const V* Yb, const V* sv, V* out, V* g_ua, V* g_ub, V* g_Ya,
                V* g_Yb, V* gs) {
   const V zero = V{};
-  View<V> vw;
-  view_algebra<T>(sv, &vw);
-  const Dual<V> lo = dmax<T>(-vw.X, vw.u_m);
-  const Dual<V> hi = dmax<T>(dmin<T>(vw.X, vw.u_p), lo);
+  constexpr int NV = kPartials ? kTan : 0;  // (the value alone needs no tangents)
+  View<V, NV> vw;
+  view_algebra<T, V, NV>(sv, &vw);
+  const Dual<V, NV> lo = dmax<T>(-vw.X, vw.u_m);
+  const Dual<V, NV> hi = dmax<T>(dmin<T>(vw.X, vw.u_p), lo);
   V p[11];
   for (int i = 0; i < 11; ++i) p[i] = vw.pd[i].v;
   Cut<V> c;
@@ -479,12 +480,13 @@ void lit_lanes(int n_gl, const double* xs, const double* ws, int k, const V* ua,
                     &g_hi);
   }
   *out = value;
-  if constexpr (!kPartials) return;
-  // Chain the slab bounds' and the lobe parameters' partials through the view algebra.
-  for (int t = 0; t < kTan; ++t) {
-    V s = g_lo * lo.d[t] + g_hi * hi.d[t];
-    for (int i = 0; i < 11; ++i) s += dp[i] * vw.pd[i].d[t];
-    gs[t] = s;
+  if constexpr (kPartials) {
+    // Chain the slab bounds' and the lobe parameters' partials through the view algebra.
+    for (int t = 0; t < kTan; ++t) {
+      V s = g_lo * lo.d[t] + g_hi * hi.d[t];
+      for (int i = 0; i < 11; ++i) s += dp[i] * vw.pd[i].d[t];
+      gs[t] = s;
+    }
   }
 }
 
