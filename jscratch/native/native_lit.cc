@@ -351,9 +351,9 @@ struct View {
 template <typename T, typename V, int N = kTan>
 void view_algebra(const V* sv, View<V, N>* o) {
   const V one = splat<V>(1), two = splat<V>(2);
-  Dual<V, N> Xd = var<N>(sv[0], 0), h0 = var<N>(sv[1], 1), h1 = var<N>(sv[2], 2), h2 = var<N>(sv[3], 3),
-          b0 = var<N>(sv[4], 4), b1 = var<N>(sv[5], 5), t0 = var<N>(sv[6], 6), t1 = var<N>(sv[7], 7),
-          al = var<N>(sv[8], 8);
+  Dual<V, N> Xd = var<N>(sv[0], 0), h0 = var<N>(sv[1], 1), h1 = var<N>(sv[2], 2),
+             h2 = var<N>(sv[3], 3), b0 = var<N>(sv[4], 4), b1 = var<N>(sv[5], 5),
+             t0 = var<N>(sv[6], 6), t1 = var<N>(sv[7], 7), al = var<N>(sv[8], 8);
   Dual<V, N> nrm = dsqrt<T>(h0 * h0 + h1 * h1 + h2 * h2);
   Dual<V, N> hn0 = h0 / nrm, hn1 = h1 / nrm, hz = h2 / nrm;
   Dual<V, N> hx = hn0 * b0 + hn1 * b1, hy = hn0 * t0 + hn1 * t1;
