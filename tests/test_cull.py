@@ -78,34 +78,42 @@ def half_vectors(board, shape, camera, light):
 
 
 
-def test_cull_ratio_is_a_tight_bound_of_the_point_ndf(random_layout):
-    # rho * (1 / (pi alpha^2)) bounds D_x over the whole groove, and is attained by it.
-    rng = np.random.default_rng(2)
-    n = 64
-    mid, u = random_layout(rng, n, 0.05, 0.25)
+def _one_pair_per_scratch(rng, layout, n, aspect, alpha_hi, hz_factor, below):
+    """`n` random scratches (2 cm, depth / width in `aspect`, roughness 0.02 to `alpha_hi`), each
+    paired with pixel i of half vector `h[i]` (unit; `h_z` scaled by `hz_factor(rng, n)`, the
+    first `below` of them below the board): `(pairs, (p0, p1, width, depth, alpha, h))`."""
+    mid, u = layout(rng, n, 0.05, 0.25)
     p0, p1 = mid - 0.01 * u, mid + 0.01 * u
     width = rng.uniform(1e-4, 5e-4, n)
-    depth = width * rng.uniform(0.05, 2.0, n)
-    alpha = rng.uniform(0.02, 0.5, n)
+    depth = width * rng.uniform(*aspect, n)
+    alpha = rng.uniform(0.02, alpha_hi, n)
     h = rng.normal(size=(n, 3))
-    h[:, 2] = np.abs(h[:, 2]) * rng.uniform(0.05, 3, n)
-    h[:7, 2] *= -1  # includes h below the board (the bound must hold regardless)
+    h[:, 2] = np.abs(h[:, 2]) * hz_factor(rng, n)
+    h[:below, 2] *= -1  # below the board: the bound must hold regardless
     h /= np.linalg.norm(h, axis=-1, keepdims=True)
-    # one pair per scratch, pixel i has half vector h[i]
-    pairs = bvh.Pairs(
-        pixel=jnp.arange(n, dtype=jnp.int32),
-        scratch=jnp.arange(n, dtype=jnp.int32),
-        valid=jnp.ones(n, bool),
-        overflow=jnp.array(False),
-    )
-    rho = np.asarray(cull.cull_ratio(pairs, p0, p1, width, depth, alpha, h))
-    big = np.tile([-1.0, 1.0, -1.0, 1.0], (n, 1))  # the whole groove
+    pairs = bvh.Pairs(pixel=jnp.arange(n, dtype=jnp.int32), scratch=jnp.arange(n, dtype=jnp.int32),
+                      valid=jnp.ones(n, bool), overflow=jnp.array(False))
+    return pairs, (p0, p1, width, depth, alpha, h)
+
+
+def _groove_peak(p0, p1, width, depth, alpha, h):
+    """`pi alpha^2 max D_x` over the whole groove (dense quadrature, float64): what `rho` bounds."""
+    p0, p1, width, depth, alpha, h = (np.asarray(x, np.float64)
+                                      for x in (p0, p1, width, depth, alpha, h))
+    big = np.tile([-1.0, 1.0, -1.0, 1.0], (len(alpha), 1))  # the whole groove
     _, _, nh = dhat_numeric(h, p0, p1, width, depth, alpha, big, 20001)
-    d_max = _ggx(nh, alpha[:, None]).max(-1) * np.pi * alpha**2
+    return _ggx(nh, alpha[:, None]).max(-1) * np.pi * alpha**2
+
+
+def test_cull_ratio_is_a_tight_bound_of_the_point_ndf(random_layout):
+    # rho * (1 / (pi alpha^2)) bounds D_x over the whole groove, and is attained by it.
+    pairs, args = _one_pair_per_scratch(np.random.default_rng(2), random_layout, 64, (0.05, 2.0),
+                                        0.5, lambda rng, n: rng.uniform(0.05, 3, n), 7)
+    rho = np.asarray(cull.cull_ratio(pairs, *args))
+    d_max = _groove_peak(*args)
     assert np.all(d_max <= rho * (1 + 1e-9) + 1e-300), np.c_[d_max, rho]
     assert np.all(d_max >= 0.98 * rho - 1e-12), np.c_[d_max, rho]
     assert np.sum(rho < 1e-3) > 5 and np.sum(rho > 0.1) > 5  # both regimes covered
-
 
 
 @pytest.mark.float64
@@ -115,30 +123,17 @@ def test_cull_ratio_bounds_grazing_and_below_board_half_vectors(random_layout):
     the point NDF over the whole groove (dense quadrature of the rounded inputs) and is attained,
     in float64 and in float32 (there only thanks to the margin on `rho` itself: at grazing half
     vectors the margin on `c_max` alone left it up to 7e-8 short)."""
-    rng = np.random.default_rng(5)
-    n = 288
-    mid, u = random_layout(rng, n, 0.05, 0.25)
-    p0, p1 = mid - 0.01 * u, mid + 0.01 * u
-    width = rng.uniform(1e-4, 5e-4, n)
-    depth = width * rng.uniform(0.02, 3.0, n)
-    alpha = rng.uniform(0.02, 0.9, n)
-    h = rng.normal(size=(n, 3))
-    h[:, 2] = np.abs(h[:, 2]) * 10.0 ** rng.uniform(-4, 0.5, n)  # grazing to steep
-    h[:9, 2] *= -1  # below the board: the bound must hold regardless
-    h /= np.linalg.norm(h, axis=-1, keepdims=True)
-    pairs = bvh.Pairs(pixel=jnp.arange(n, dtype=jnp.int32), scratch=jnp.arange(n, dtype=jnp.int32),
-                      valid=jnp.ones(n, bool), overflow=jnp.array(False))
-    big = np.tile([-1.0, 1.0, -1.0, 1.0], (n, 1))  # the whole groove
+    pairs, args64 = _one_pair_per_scratch(np.random.default_rng(5), random_layout, 288,
+                                          (0.02, 3.0), 0.9,
+                                          lambda rng, n: 10.0 ** rng.uniform(-4, 0.5, n), 9)
     for dtype in (jnp.float64, jnp.float32):
-        args = [jnp.asarray(x, dtype) for x in (p0, p1, width, depth, alpha, h)]
+        args = [jnp.asarray(x, dtype) for x in args64]
         rho = np.asarray(cull.cull_ratio(pairs, *args), np.float64)
-        _, _, nh = dhat_numeric(*(np.asarray(x, np.float64) for x in (args[5], *args[:5])), big,
-                                20001)
-        d_max = _ggx(nh, np.asarray(args[4], np.float64)[:, None]).max(-1) * np.pi * np.asarray(
-            args[4], np.float64) ** 2
+        d_max = _groove_peak(*args)  # (of the rounded inputs: float32 is held to its own scene)
         assert np.all(d_max <= rho * (1 + 1e-9) + 1e-300), dtype
         assert np.all(d_max >= 0.98 * rho - 1e-12), dtype
-    assert np.sum(h[:, 2] < 1e-3) > 30 and np.sum(rho < 1e-3) > 10 and np.sum(rho > 0.1) > 10
+    assert np.sum(args64[5][:, 2] < 1e-3) > 30
+    assert np.sum(rho < 1e-3) > 10 and np.sum(rho > 0.1) > 10
 
 
 def test_cull_keeps_all_at_zero_and_obeys_the_error_bound(random_layout):
