@@ -342,7 +342,8 @@ V piece(int n_gl, const double* xs, const double* ws, V ua, V ub, V Ya, V Yb, co
 // `_view`, `lit_interval`, `lobe.lobe`, `lobe_params`), from sv = (X, h (3), b (2), t (2),
 // alpha): computed here with IEEE operations, not in an XLA fusion (whose rewrites, such as
 // x / sqrt(y) -> x * rsqrt(y), move a sharp peak by an ulp or two). Out: X, the roots u_m, u_p of
-// N (`lit_interval`) and the 11 lobe parameters, each with its kTan tangents.
+// N (`lit_interval`) and the 11 lobe parameters, each with the tangents of the template's
+// count (kTan with the partials; 0 for the value alone, which needs none).
 template <typename V, int N = kTan>
 struct View {
   Dual<V, N> X, u_m, u_p, pd[11];
