@@ -375,8 +375,8 @@ void view_algebra(const V* sv, View<V, N>* o) {
   Dual<V, N> a = -(scale(two, g) * kk * hx) / beta;
   Dual<V, N> m = scale(two, kk) * (hz + g * kk * hx * hx) / beta2;
   Dual<V, N> g21 = scale(two, g) + cst<N>(one);
-  const Dual<V, N> pd[11] = {g * g + g, g21 * m + a * a, g21 * a, m * m - a * a, scale(two, a) * m,
-                          u1, q1, g, kk, hx, hz};
+  const Dual<V, N> pd[11] = {g * g + g, g21 * m + a * a, g21 * a, m * m - a * a,
+                             scale(two, a) * m, u1, q1, g, kk, hx, hz};
   for (int i = 0; i < 11; ++i) o->pd[i] = pd[i];
 }
 
