@@ -70,10 +70,16 @@ inline Cx<V> cinv(const Cx<V>& a) {
 //
 // `kSub` false: no lane subtracts (`sub` false in all of them), so H, its closed form and their
 // partials are zero and are not computed (the same results: only zeros are left out of sums).
+//
+// The rule, per lane: the n_s-point one (xs_s, ws_s) where `short_rule`, else the n_gl-point one
+// (xs, ws); the loop runs over n nodes (n_gl, or n_s where every lane takes the short rule), a
+// short-rule lane's nodes past n_s weighing 0. Every sum is weighted, so those nodes add exact
+// zeros: a lane's result is its own, whatever rule its block's other lanes take.
 template <typename T, typename V, bool kPartials, bool kSub>
-V arc_piece_impl(int n_gl, const double* xs, const double* ws, V ua, V ub, V Ya, V Yb,
-                 const V* p, decltype(V{} < V{}) sub, V* d_ua, V* d_ub, V* d_Ya, V* d_Yb,
-                 V* dp) {
+V arc_piece_impl(int n, int n_gl, const double* xs, const double* ws, int n_s,
+                 const double* xs_s, const double* ws_s, decltype(V{} < V{}) short_rule, V ua,
+                 V ub, V Ya, V Yb, const V* p, decltype(V{} < V{}) sub, V* d_ua, V* d_ub,
+                 V* d_Ya, V* d_Yb, V* dp) {
   const V c0 = p[0], c10 = p[1], c11 = p[2], c20 = p[3], c21 = p[4], u1 = p[5], q1 = p[6],
           k = p[8], hx = p[9], hz = p[10];
   const V zero = V{}, one = splat<V>(1), two = splat<V>(2), four = splat<V>(4);
@@ -133,8 +139,10 @@ V arc_piece_impl(int n_gl, const double* xs, const double* ws, V ua, V ub, V Ya,
     S_see = zero, S_k = zero, S_hx = zero, S_hz = zero;
   const V iBa = 1 / Ba, iq1 = 1 / q1;
   // (vfma: the sums and the polynomials in one rounding per term, where the CPU can)
-  for (int j = 0; j < n_gl; ++j) {
-    const V x = splat<V>(xs[j]), w = splat<V>(ws[j]);
+  for (int j = 0; j < n; ++j) {
+    const int js = j < n_s ? j : n_s - 1;
+    const V x = sel<V>(short_rule, splat<V>(xs_s[js]), splat<V>(xs[j]));
+    const V w = sel<V>(short_rule, j < n_s ? splat<V>(ws_s[j]) : zero, splat<V>(ws[j]));
     const V tau = (1 + x) / 2;
     const V uu = vfma(half, x, um), u2 = uu * uu, B = vfma(four, u2, one), iBu = 1 / B;
     const V m4u2 = vfma(splat<V>(-4), u2, one), vpj = 4 * m4u2 * iBu * iBu;
@@ -264,10 +272,11 @@ inline decltype(V{} < V{}) far_pole(V zr, V zi, V ua, V ub, V len) {
 }
 
 // `arc_piece_impl` with the subtraction's work only where a lane subtracts, and with the
-// n_gl / 2-point rule (stored after the n_gl-point one in xs, ws: `run_pairs`) where every lane's
+// n_gl / 2-point rule (stored after the n_gl-point one in xs, ws: `run_pairs`) in each lane whose
 // integrand is analytic in E_5 of its piece: the poles of w (+-i/2), of F2 and, where nothing is
 // subtracted, of F1 lie outside it. The rule's error bound (docs/model.md §13) then has
-// 5^(-2 n / 2) = 5^(-n) < 2^(-2 n), below the full rule's at the worst pieces (rho = 2).
+// 5^(-2 n / 2) = 5^(-n) < 2^(-2 n), below the full rule's at the worst pieces (rho = 2). The
+// choice is per lane, so a pair's result does not depend on the pairs beside it in its block.
 template <typename T, typename V, bool kPartials>
 V arc_piece(int n_gl, const double* xs, const double* ws, V ua, V ub, V Ya, V Yb, const V* p,
             V* d_ua, V* d_ub, V* d_Ya, V* d_Yb, V* dp) {
@@ -278,7 +287,9 @@ V arc_piece(int n_gl, const double* xs, const double* ws, V ua, V ub, V Ya, V Yb
                    (vabs<T>(ds) >= vmax<T>(one, splat<V>(0.5) * vabs<T>(sm)));
   bool any = false;
   for (int l = 0; l < Vec<T>::L; ++l) any = any || sub[l];
-  int n = n_gl;
+  decltype(V{} < V{}) far{};  // (no lane)
+  int n = n_gl, n_s = n_gl;
+  const double *xs_s = xs, *ws_s = ws;
   if (n_gl >= 8 && n_gl % 2 == 0) {
     const V k = p[8], hx = p[9], hz = p[10], len = vabs<T>(ub - ua), zero = V{};
     // F2's poles: (k hx +- i beta) / (2 (1 - k hz)), beta^2 = 1 - k^2 (hx^2 + hz^2) (complex
@@ -287,21 +298,20 @@ V arc_piece(int n_gl, const double* xs, const double* ws, V ua, V ub, V Ya, V Yb
     const auto ok2 = (b2 > 0) & (den > 0);
     const V iden = 1 / sel<V>(ok2, den, one);
     const V zr = k * hx * iden, zi = vsqrt<T>(sel<V>(ok2, b2, one)) * iden;
-    auto far = far_pole<T>(zero, splat<V>(0.5), ua, ub, len) & ok2 &
-               far_pole<T>(zr, zi, ua, ub, len) & (sub | far_pole<T>(p[5], q1, ua, ub, len));
+    far = far_pole<T>(zero, splat<V>(0.5), ua, ub, len) & ok2 &
+          far_pole<T>(zr, zi, ua, ub, len) & (sub | far_pole<T>(p[5], q1, ua, ub, len));
+    xs_s = xs + n_gl;
+    ws_s = ws + n_gl;
+    n_s = n_gl / 2;
     bool all = true;
     for (int l = 0; l < Vec<T>::L; ++l) all = all && far[l];
-    if (all) {
-      xs += n_gl;
-      ws += n_gl;
-      n = n_gl / 2;
-    }
+    if (all) n = n_s;
   }
   if (any)
-    return arc_piece_impl<T, V, kPartials, true>(n, xs, ws, ua, ub, Ya, Yb, p, sub, d_ua, d_ub,
-                                                 d_Ya, d_Yb, dp);
-  return arc_piece_impl<T, V, kPartials, false>(n, xs, ws, ua, ub, Ya, Yb, p, sub, d_ua, d_ub,
-                                                d_Ya, d_Yb, dp);
+    return arc_piece_impl<T, V, kPartials, true>(n, n_gl, xs, ws, n_s, xs_s, ws_s, far, ua, ub,
+                                                 Ya, Yb, p, sub, d_ua, d_ub, d_Ya, d_Yb, dp);
+  return arc_piece_impl<T, V, kPartials, false>(n, n_gl, xs, ws, n_s, xs_s, ws_s, far, ua, ub,
+                                                Ya, Yb, p, sub, d_ua, d_ub, d_Ya, d_Yb, dp);
 }
 
 // `arc.u_of_v(2 c)` and its derivative in c (as autodiff of `u_of_v` gives it: 1 where the

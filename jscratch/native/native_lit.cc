@@ -867,13 +867,109 @@ struct PairArgs {
   T *JD = nullptr, *JA = nullptr;                             // Jacobians (kJac)
 };
 
-// Pairs [i0, i1), `L` at a time (a tail repeats its last pair in the spare lanes; padding slots
-// are evaluated as a benign dummy pair and give exact zeros). Values (`kGrad` false): D, A; the
-// reverse pass: the cotangents ctD, ctA times the pair's Jacobian; `kJac` (with `kGrad`): the
-// values and the Jacobian itself, per view JD (V, n, 7) = dD/d(p0x, p0y, p1x, p1y, w, d, alpha)
-// and dh (V, n, 3) = dD/dh, and JA (n, 6) = dA/d(p0x, p0y, p1x, p1y, w, d).
+// Pairs per chunk of work (a multiple of every vector width).
+constexpr size_t kPairChunk = 256;
+
+// `ndf.piece_count_estimate` of the pairs i0 .. i0 + L - 1 (one lane each; lanes past i1 and
+// padding give 0): the footprint edges whose part within the scratch's length reaches into the
+// groove, and the chains along its ends whose crossing does. It orders the pairs alone
+// (`pairs_in_order`), so it needs neither the geometry's compensated arithmetic nor its exact
+// ties, and the groove's half-width X = sqrt(1 - exp(-r)) / 2 (r = 2 d / w) takes
+// exp(-r) ~ 1 / (1 + r + r^2/2 + r^3/6 + r^4/24) (X within 0.5 %).
+template <typename T>
+typename Vec<T>::type piece_estimate(const PairArgs<T>& a, size_t i0, size_t i1) {
+  typedef typename Vec<T>::type V;
+  constexpr int L = Vec<T>::L;
+  const V zero = V{}, one = splat<V>(1);
+  V p0x, p0y, ex, ey, w, d, fx[4], fy[4];
+  decltype(V{} < V{}) ok;
+  for (int l = 0; l < L; ++l) {
+    const size_t i = std::min(i0 + l, i1 - 1);
+    const bool use = i0 + l < i1 && a.valid[i];
+    ok[l] = use ? -1 : 0;
+    p0x[l] = a.p0[2 * i];
+    p0y[l] = a.p0[2 * i + 1];
+    ex[l] = a.p1[2 * i] - p0x[l];
+    ey[l] = a.p1[2 * i + 1] - p0y[l];
+    w[l] = use ? a.w[i] : T(1);
+    d[l] = use ? a.d[i] : T(1);
+    for (int k = 0; k < 4; ++k) {
+      fx[k][l] = a.fp[i * 8 + 2 * k] - p0x[l];
+      fy[k][l] = a.fp[i * 8 + 2 * k + 1] - p0y[l];
+    }
+  }
+  const V len = vsqrt<T>(ex * ex + ey * ey);
+  ok = ok & (len > 0) & (w > 0);
+  const V il = one / sel<V>(len > 0, len, one), tx = ex * il, ty = ey * il;
+  const V r = 2 * d / w, taylor = 1 + r * (1 + r * (splat<V>(0.5) + r * (splat<V>(1.0 / 6) +
+                                                                        r * splat<V>(1.0 / 24))));
+  const V X = splat<V>(0.5) * vsqrt<T>(vmax<T>(1 - one / taylor, zero)), iw = one / w;
+  V u[4], y[4];
+  for (int k = 0; k < 4; ++k) {
+    u[k] = (fx[k] * ty - fy[k] * tx) * iw;  // b = (t_y, -t_x)
+    y[k] = fx[k] * tx + fy[k] * ty;
+  }
+  V count = zero;
+  for (int lev = 0; lev < 2; ++lev) {  // the chains along y = 0 and y = len
+    const V level = lev ? len : zero;
+    V crossings = zero, lo = splat<V>(1e30), hi = splat<V>(-1e30);
+    for (int k = 0; k < 4; ++k) {
+      const int j = (k + 1) % 4;
+      const auto cr = (y[k] - level) * (y[j] - level) < 0;
+      const V dy = sel<V>(cr, y[j] - y[k], one);
+      const V uc = u[k] + (level - y[k]) / dy * (u[j] - u[k]);
+      crossings += sel<V>(cr, one, zero);
+      lo = sel<V>(cr, vmin<T>(lo, uc), lo);
+      hi = sel<V>(cr, vmax<T>(hi, uc), hi);
+    }
+    count += sel<V>((crossings >= 2) & (lo <= X) & (hi >= -X) & (hi > lo), one, zero);
+  }
+  for (int k = 0; k < 4; ++k) {  // the edges, clipped to 0 <= y <= len
+    const int j = (k + 1) % 4;
+    const V dy = y[j] - y[k], du = u[j] - u[k];
+    const auto flat = dy == 0;
+    const auto inside = (y[k] >= 0) & (y[k] <= len);
+    const V idy = one / sel<V>(flat, one, dy);
+    const V ta = (zero - y[k]) * idy, tb = (len - y[k]) * idy;
+    const V t0 = sel<V>(flat, sel<V>(inside, zero, one), vmax<T>(zero, vmin<T>(ta, tb)));
+    const V t1 = sel<V>(flat, sel<V>(inside, one, zero), vmin<T>(one, vmax<T>(ta, tb)));
+    const V ua = u[k] + t0 * du, ub = u[k] + t1 * du;
+    count += sel<V>((t1 > t0) & (vmin<T>(ua, ub) <= X) & (vmax<T>(ua, ub) >= -X), one, zero);
+  }
+  return sel<V>(ok, count, zero);
+}
+
+// The positions [i0, i1) (at most kPairChunk) into `ord` by increasing `piece_estimate`, the
+// padding (valid false) last, each group in position order; returns i1 - i0.
+template <typename T>
+size_t pairs_in_order(size_t i0, size_t i1, const PairArgs<T>& a, size_t* ord) {
+  constexpr int kGroups = 8;  // estimates 0..6, then padding
+  constexpr int L = Vec<T>::L;
+  const size_t m = i1 - i0;
+  unsigned char key[kPairChunk];
+  size_t start[kGroups + 1] = {0};
+  for (size_t j = 0; j < m; j += L) {
+    const auto c = piece_estimate(a, i0 + j, i1);
+    for (int l = 0; l < L && j + l < m; ++l) {
+      const size_t i = i0 + j + l;
+      key[j + l] = static_cast<unsigned char>(a.valid[i] ? std::min(static_cast<int>(c[l]), 6)
+                                                         : 7);
+      ++start[key[j + l] + 1];
+    }
+  }
+  for (int g = 0; g < kGroups; ++g) start[g + 1] += start[g];
+  for (size_t j = 0; j < m; ++j) ord[start[key[j]]++] = i0 + j;
+  return m;
+}
+
+// Pairs [i0, i1) (at most kPairChunk), `L` at a time in the order of `pairs_in_order` (a tail
+// repeats its last pair in the spare lanes; padding slots are evaluated as a benign dummy pair
+// and give exact zeros). Values (`kGrad` false): D, A; the reverse pass: the cotangents ctD, ctA
+// times the pair's Jacobian; `kJac` (with `kGrad`): the values and the Jacobian itself, per view
+// JD (V, n, 7) = dD/d(p0x, p0y, p1x, p1y, w, d, alpha) and dh (V, n, 3) = dD/dh, and
+// JA (n, 6) = dA/d(p0x, p0y, p1x, p1y, w, d).
 template <typename T, bool kGrad, bool kJac = false>
-void pairs_range(int n_gl, const double* xs, const double* ws, size_t i0, size_t i1,
+void pairs_chunk(int n_gl, const double* xs, const double* ws, size_t i0, size_t i1,
                  const PairArgs<T>& a, bool arc) {
   typedef typename Vec<T>::type V;
   constexpr int L = Vec<T>::L;
@@ -882,13 +978,20 @@ void pairs_range(int n_gl, const double* xs, const double* ws, size_t i0, size_t
   const V zero = V{};
   const T dummy_fp[8] = {0, 0, T(1e-3), 0, T(1e-3), T(1e-3), 0, T(1e-3)};
   const T four_pi = static_cast<T>(4 * 3.14159265358979323846);
-  for (size_t b = i0; b < i1; b += L) {
-    const int lanes = static_cast<int>(std::min<size_t>(L, i1 - b));
+  // The pairs in order of their estimated piece count (`piece_estimate`), padding last: a block
+  // integrates as many pieces as its busiest lane, and each pair's results are its own, so the
+  // order changes the time alone. ord: positions in [i0, i1), at most kPairChunk of them.
+  size_t ord[kPairChunk];
+  const size_t m = pairs_in_order(i0, i1, a, ord);
+  for (size_t b = 0; b < m; b += L) {
+    const int lanes = static_cast<int>(std::min<size_t>(L, m - b));
+    size_t id[L];  // the pair of each lane (a tail repeats its last pair in the spare lanes)
+    for (int l = 0; l < L; ++l) id[l] = ord[b + std::min(l, lanes - 1)];
     V fp[4][2], p[6], al;
     decltype(V{} < V{}) valid;
     bool any = false;
     for (int l = 0; l < L; ++l) {
-      const size_t i = b + std::min(l, lanes - 1);
+      const size_t i = id[l];
       const bool ok = a.valid[i];
       any = any || ok;
       valid[l] = ok ? -1 : 0;
@@ -903,7 +1006,7 @@ void pairs_range(int n_gl, const double* xs, const double* ws, size_t i0, size_t
     }
     if (!any) {  // padding only
       for (int l = 0; l < lanes; ++l) {
-        const size_t i = b + l;
+        const size_t i = id[l];
         if constexpr (!kGrad || kJac) {
           a.A[i] = 0;
           for (size_t v = 0; v < a.nv; ++v) a.D[v * a.n + i] = 0;
@@ -951,7 +1054,7 @@ void pairs_range(int n_gl, const double* xs, const double* ws, size_t i0, size_t
     for (size_t v = 0; v < a.nv; ++v) {
       V hv[3], ct = zero;
       for (int l = 0; l < L; ++l) {
-        const size_t i = b + std::min(l, lanes - 1);
+        const size_t i = id[l];
         for (int c = 0; c < 3; ++c) hv[c][l] = valid[l] ? a.h[(v * a.n + i) * 3 + c] : T(c == 2);
         if constexpr (kJac) ct[l] = valid[l] ? T(1) : T(0);
         else if constexpr (kGrad) ct[l] = valid[l] ? a.ctD[v * a.n + i] : T(0);
@@ -969,7 +1072,7 @@ void pairs_range(int n_gl, const double* xs, const double* ws, size_t i0, size_t
                                gp[3], gs);
       if constexpr (!kGrad) {
         V Dv = sel<V>(valid, sp * lit, zero);
-        for (int l = 0; l < lanes; ++l) a.D[v * a.n + b + l] = Dv[l];
+        for (int l = 0; l < lanes; ++l) a.D[v * a.n + id[l]] = Dv[l];
       } else {
         // dD/d(geometry) through the pieces (back to their uncompacted slots), X and the frame.
         V gpc[4][kPieces];
@@ -979,7 +1082,7 @@ void pairs_range(int n_gl, const double* xs, const double* ws, size_t i0, size_t
           for (int j = 0; j < cnt[l] && j < k; ++j)
             for (int f = 0; f < 4; ++f) gpc[f][idx[l][j]][l] = gp[f][j][l];
         const V cs = ct * sp;
-        const size_t row = v * a.n + b;
+        const size_t row = v * a.n;  // (lane l's row: row + id[l])
         for (int t = 0; t < kGeo; ++t) {
           V sum = gs[0] * g.X.d[t] + gs[4] * g.bx.d[t] + gs[5] * g.by.d[t] + gs[6] * g.tx.d[t] +
                   gs[7] * g.ty.d[t];
@@ -988,7 +1091,8 @@ void pairs_range(int n_gl, const double* xs, const double* ws, size_t i0, size_t
                    gpc[2][i] * g.Ya[i].d[t] + gpc[3][i] * g.Yb[i].d[t];
           const V jt = cs * sum + ct * (g.scale.d[t] * pref * lit);
           if constexpr (kJac) {
-            for (int l = 0; l < lanes; ++l) a.JD[(row + l) * (kGeo + 1) + t] = valid[l] ? jt[l] : T(0);
+            for (int l = 0; l < lanes; ++l)
+              a.JD[(row + id[l]) * (kGeo + 1) + t] = valid[l] ? jt[l] : T(0);
           } else {
             gt[t] += jt;
           }
@@ -997,33 +1101,33 @@ void pairs_range(int n_gl, const double* xs, const double* ws, size_t i0, size_t
         if constexpr (kJac) {
           const V Dv = sel<V>(valid, sp * lit, zero);
           for (int l = 0; l < lanes; ++l) {
-            a.JD[(row + l) * (kGeo + 1) + kGeo] = valid[l] ? jal[l] : T(0);
-            a.D[row + l] = Dv[l];
+            a.JD[(row + id[l]) * (kGeo + 1) + kGeo] = valid[l] ? jal[l] : T(0);
+            a.D[row + id[l]] = Dv[l];
           }
         } else {
           ga += jal;
         }
         for (int l = 0; l < lanes; ++l)
           for (int c = 0; c < 3; ++c)
-            a.dh[(v * a.n + b + l) * 3 + c] = valid[l] ? cs[l] * gs[1 + c][l] : T(0);
+            a.dh[(v * a.n + id[l]) * 3 + c] = valid[l] ? cs[l] * gs[1 + c][l] : T(0);
       }
     }
     if constexpr (!kGrad) {
-      for (int l = 0; l < lanes; ++l) a.A[b + l] = valid[l] ? g.area.v[l] : T(0);
+      for (int l = 0; l < lanes; ++l) a.A[id[l]] = valid[l] ? g.area.v[l] : T(0);
     } else if constexpr (kJac) {
       for (int l = 0; l < lanes; ++l) {
-        a.A[b + l] = valid[l] ? g.area.v[l] : T(0);
-        for (int t = 0; t < kGeo; ++t) a.JA[(b + l) * kGeo + t] = valid[l] ? g.area.d[t][l] : T(0);
+        a.A[id[l]] = valid[l] ? g.area.v[l] : T(0);
+        for (int t = 0; t < kGeo; ++t) a.JA[id[l] * kGeo + t] = valid[l] ? g.area.d[t][l] : T(0);
       }
     } else {
       V ctA;
       for (int l = 0; l < L; ++l) {
-        const size_t i = b + std::min(l, lanes - 1);
+        const size_t i = id[l];
         ctA[l] = valid[l] ? a.ctA[i] : T(0);
       }
       for (int t = 0; t < kGeo; ++t) gt[t] += ctA * g.area.d[t];
       for (int l = 0; l < lanes; ++l) {
-        const size_t i = b + l;
+        const size_t i = id[l];
         const bool ok = valid[l];
         a.dp0[2 * i] = ok ? gt[0][l] : T(0);
         a.dp0[2 * i + 1] = ok ? gt[1][l] : T(0);
@@ -1037,8 +1141,13 @@ void pairs_range(int n_gl, const double* xs, const double* ws, size_t i0, size_t
   }
 }
 
-// Pairs per chunk of work (a multiple of every vector width).
-constexpr size_t kPairChunk = 256;
+// `pairs_chunk` over [i0, i1), kPairChunk pairs at a time.
+template <typename T, bool kGrad, bool kJac = false>
+void pairs_range(int n_gl, const double* xs, const double* ws, size_t i0, size_t i1,
+                 const PairArgs<T>& a, bool arc) {
+  for (size_t c0 = i0; c0 < i1; c0 += kPairChunk)
+    pairs_chunk<T, kGrad, kJac>(n_gl, xs, ws, c0, std::min(i1, c0 + kPairChunk), a, arc);
+}
 
 template <typename T, bool kGrad, bool kJac = false>
 ffi::Error run_pairs(ffi::ThreadPool& pool, int64_t n_gl, int64_t profile, int64_t threads,
