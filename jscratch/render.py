@@ -617,7 +617,8 @@ def _pair_checks(out, scr, valid, overflow, *, shared: bool, M: int, P: int, Pb:
 def render_pairs(scratches: Scratches, views: Views, board: Board, pairs,
                  coverage_pairs=None, *, chunk: int = DEFAULT_CHUNK,
                  mesh: jax.sharding.Mesh | None = None,
-                 axis_names: str | Sequence[str] | None = None) -> Float[Array, "m h w"]:
+                 axis_names: str | Sequence[str] | None = None,
+                 checked: bool = True) -> Float[Array, "m h w"]:
     """Render linear radiance from precomputed pair lists (jittable, differentiable).
 
     **Arguments:**
@@ -633,6 +634,9 @@ def render_pairs(scratches: Scratches, views: Views, board: Board, pairs,
     - `mesh`, `axis_names`: shard the pixel axis over these mesh axes (default: all axes of
       `mesh`); the pair lists must then be laid out for ``n_shards`` pixel blocks (`bin_pairs` /
       `cull_pairs` with ``shards=n_shards``; see the module docstring).
+    - `checked`: ``False`` leaves out the traced value and pair-list checks below (the shapes
+      are still checked), for a caller that guarantees them: the design step, whose own checks
+      cover every parameter it updates, saves their tracing, compilation and per-call cost.
 
     **Returns:** radiance ``(M, H, W)`` (W/(sr m^2)).
 
@@ -651,14 +655,15 @@ def render_pairs(scratches: Scratches, views: Views, board: Board, pairs,
     shards = _n_shards(mesh, axes)
     Pb = pixels_per_shard(board, shards)
     # The checks hang on a small replicated parameter, not on the (sharded) pair arrays.
-    checks = scene_checks(scratches, views)
+    checks = scene_checks(scratches, views) if checked else []
     views = jax.tree_util.tree_map(lambda x: x.astype(dtype), views)
     geo_h = half_vectors(views, board, dtype)  # (M, P, 3)
 
     def flat(p, m, what):
         out, scr, valid, over, shared = _pair_arrays(p, m, n, what, shards, Pb * shards)
-        checks.extend(_pair_checks(out, scr, valid, over, shared=shared, M=m, P=P, Pb=Pb,
-                                   shards=shards, n=n, name=what))
+        if checked:
+            checks.extend(_pair_checks(out, scr, valid, over, shared=shared, M=m, P=P, Pb=Pb,
+                                       shards=shards, n=n, name=what))
         return out, scr, valid, shared
 
     # A shared list is evaluated for every view at once (views vmapped inside the chunk, the

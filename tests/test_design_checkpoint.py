@@ -78,3 +78,24 @@ def test_refusals(tmp_path):
     other = _state(20)
     with pytest.raises(DesignError, match="does not match this design"):
         load_checkpoint(path, other, cfg, "abc")
+
+
+def test_damaged_values_are_refused_when_read(tmp_path):
+    """A checkpoint whose parameters or Adam moments hold NaN or infinity is refused on reading,
+    naming the leaf: the design step checks what it updates, not the state it resumes from."""
+    state = _state(30)
+    cfg = DesignConfig(n_scratches=30)
+    path = tmp_path / "ckpt.npz"
+    save_checkpoint(str(path), state, cfg, "abc")
+    assert load_checkpoint(str(path), state, cfg, "abc").iteration == 7
+    with np.load(path) as z:
+        data = {k: z[k] for k in z.files}
+    for key, bad in (("params/0", np.nan), ("opt/1", np.inf)):
+        damaged = dict(data)
+        a = damaged[key].copy()
+        a.reshape(-1)[3] = bad
+        damaged[key] = a
+        np.savez(tmp_path / "damaged.npz", **damaged)
+        with pytest.raises(DesignFileError, match=rf"non-finite values \({key.split('/')[0]} "
+                                                  rf"leaf {key.split('/')[1]}\)"):
+            load_checkpoint(str(tmp_path / "damaged.npz"), state, cfg, "abc")

@@ -457,6 +457,25 @@ def test_errors_name_the_argument():
         jax.block_until_ready(_fwd(s, v, bad))
 
 
+def test_unchecked_render_is_the_checked_one_without_its_errors():
+    """``checked=False`` (what the design step runs) gives the checked render's bits on a valid
+    scene, and under jit neither a non-finite width nor an overflowed list raises there: the
+    NaN reaches the radiance, as the caller's own checks expect."""
+    s, v = _scene(jnp.float32)
+    pairs = _pairs(s)
+    unchecked = jax.jit(lambda s, v, p: render.render_pairs(s, v, BOARD, p, chunk=CHUNK,
+                                                            checked=False),
+                        compiler_options=FAST)
+    np.testing.assert_array_equal(np.asarray(unchecked(s, v, pairs)),
+                                  np.asarray(_fwd(s, v, pairs)))
+    nan_w = eqx.tree_at(lambda t: t.width, s, s.width.at[3].set(jnp.nan))
+    with pytest.raises(Exception, match="scratch width is not finite"):
+        jax.block_until_ready(_fwd(nan_w, v, pairs))
+    assert np.isnan(np.asarray(unchecked(nan_w, v, pairs))).any()
+    bad = eqx.tree_at(lambda p: p.overflow, pairs, jnp.asarray(True))
+    assert np.all(np.isfinite(np.asarray(unchecked(s, v, bad))))
+
+
 # --------------------------------------------------------------------------------------------
 # The ball's arc profile (`Scratches.profile == "arc"`, docs/model.md §13)
 

@@ -108,6 +108,11 @@ def load_checkpoint(path: str, like: State, config: DesignConfig, thash: str,
             a = data.get(f"{prefix}/{i}")
             if a is None or a.shape != np.shape(leaf):
                 raise DesignError(f"checkpoint {path!r} does not match this design ({prefix} leaf {i})")
+            # (the design step checks what it updates, not what it is given: a resumed state
+            # is checked here)
+            if np.issubdtype(a.dtype, np.floating) and not np.all(np.isfinite(a)):
+                raise DesignFileError(f"checkpoint {path!r} holds non-finite values ({prefix} "
+                                      f"leaf {i}): it is damaged")
             new.append(jnp.asarray(a, dtype=jnp.asarray(leaf).dtype))
         return jax.tree_util.tree_unflatten(treedef, new)
 

@@ -70,10 +70,12 @@ def view_lists(params: DesignParams, lists: bvh.PairLists, ctx: Context) -> bvh.
 
 
 def radiance(params: DesignParams, lists: bvh.PairLists, ctx: Context) -> Array:
-    """Radiance ``(M, H, W)`` from `view_lists`' culled lists."""
+    """Radiance ``(M, H, W)`` from `view_lists`' culled lists. Without the renderer's traced
+    checks (``checked=False``): the setup draws valid scratches, a resumed checkpoint is checked
+    when it is read, and every step checks what it updates (`_health`)."""
     views = Views(ctx.camera, ctx.light, params.intensity())
     rad = render_pairs(params.scratches(), views, ctx.board, *lists.for_render(), chunk=ctx.chunk,
-                       mesh=ctx.mesh)
+                       mesh=ctx.mesh, checked=False)
     # (on a mesh: the small images gathered, so the loss runs replicated, not split into strips)
     return mesh_mod.replicated(rad, ctx.mesh)
 
