@@ -508,7 +508,8 @@ def _run_pair_sums(scratches: Scratches, board: Board, h_views, out, scr, valid,
     def order(params, out, scr, valid, k):  # pad and sort ``k`` segments
         if Ls_pad != Ls:
             out, scr, valid = pad(out, 0, k), pad(scr, n, k), pad(valid, False, k)
-        # (the native kernel integrates each pair's own pieces: only padding is put last)
+        # (the native kernel integrates each pair's own pieces and orders each chunk by piece
+        # count itself: only padding is put last)
         klass = (valid.astype(jnp.int8) if native.available(params[2].dtype)
                  else _pair_classes(cfg, params, out, scr, valid))
         return _sort_pairs(out, scr, valid, klass, k)
