@@ -27,10 +27,10 @@ otherwise chunks are re-evaluated (`native.pair_vjp`, or the jnp path's VJP). Re
 
 **The pair kernel** follows `Scratches.profile` (the paper's groove or the ball's arc). With the
 native kernel (CPU) a chunk is one call: each pair's geometry once, then every view over its own
-pieces, the pairs in order of their piece count inside the kernel (docs/model.md §12). Elsewhere (``JSCRATCH_NATIVE=0``, other backends) the jnp path runs
-`ndf.pair_geometry` vmapped, then per view `ndf.lit_integral(..., pieces=k)` (`k` the smallest of
-`PIECE_BUDGETS` the chunk needs) or `arc.arc_lit_integral`. Padding is sorted last per shard and
-skipped by chunks.
+pieces, the pairs in order of their piece count inside the kernel (docs/model.md §12).
+Elsewhere (``JSCRATCH_NATIVE=0``, other backends) the jnp path runs `ndf.pair_geometry` vmapped,
+then per view `ndf.lit_integral(..., pieces=k)` (`k` the smallest of `PIECE_BUDGETS` the chunk
+needs) or `arc.arc_lit_integral`. Padding is sorted last per shard and skipped by chunks.
 
 **Multiple devices.** Given a `jax.sharding.Mesh`, the pixel axis is split into strips of rows
 (`jax.shard_map`), parameters replicated and their gradients ``psum``-ed; the pair lists must be
