@@ -71,12 +71,12 @@ inline Cx<V> cinv(const Cx<V>& a) {
 // `kSub` false: no lane subtracts (`sub` false in all of them), so H, its closed form and their
 // partials are zero and are not computed (the same results: only zeros are left out of sums).
 //
-// The rule, per lane: the n_s-point one (xs_s, ws_s) where `short_rule`, else the n_gl-point one
-// (xs, ws); the loop runs over n nodes (n_gl, or n_s where every lane takes the short rule), a
-// short-rule lane's nodes past n_s weighing 0. Every sum is weighted, so those nodes add exact
+// The rule, per lane: the n_s-point one (xs_s, ws_s) where `short_rule`, else the full one (xs,
+// ws); the loop runs over n nodes (the full rule's, or n_s where every lane takes the short one),
+// a short-rule lane's nodes past n_s weighing 0. Every sum is weighted, so those nodes add exact
 // zeros: a lane's result is its own, whatever rule its block's other lanes take.
 template <typename T, typename V, bool kPartials, bool kSub>
-V arc_piece_impl(int n, int n_gl, const double* xs, const double* ws, int n_s,
+V arc_piece_impl(int n, const double* xs, const double* ws, int n_s,
                  const double* xs_s, const double* ws_s, decltype(V{} < V{}) short_rule, V ua,
                  V ub, V Ya, V Yb, const V* p, decltype(V{} < V{}) sub, V* d_ua, V* d_ub,
                  V* d_Ya, V* d_Yb, V* dp) {
@@ -308,9 +308,9 @@ V arc_piece(int n_gl, const double* xs, const double* ws, V ua, V ub, V Ya, V Yb
     if (all) n = n_s;
   }
   if (any)
-    return arc_piece_impl<T, V, kPartials, true>(n, n_gl, xs, ws, n_s, xs_s, ws_s, far, ua, ub,
+    return arc_piece_impl<T, V, kPartials, true>(n, xs, ws, n_s, xs_s, ws_s, far, ua, ub,
                                                  Ya, Yb, p, sub, d_ua, d_ub, d_Ya, d_Yb, dp);
-  return arc_piece_impl<T, V, kPartials, false>(n, n_gl, xs, ws, n_s, xs_s, ws_s, far, ua, ub,
+  return arc_piece_impl<T, V, kPartials, false>(n, xs, ws, n_s, xs_s, ws_s, far, ua, ub,
                                                 Ya, Yb, p, sub, d_ua, d_ub, d_Ya, d_Yb, dp);
 }
 
