@@ -648,6 +648,7 @@ def render_pairs(scratches: Scratches, views: Views, board: Board, pairs,
     would leave the others stuck in a collective; `render` checks the scene before it renders).
     Gradients: reverse mode only (a `jax.custom_vjp`; see the module docstring).
     """
+    _check_scene_types("render_pairs", scratches, views, board)
     dtype = scratches.dtype
     if not jnp.issubdtype(dtype, jnp.floating):
         raise InputError(f"render_pairs: scratches must be floating point; got {dtype}")
@@ -699,6 +700,16 @@ def render_pairs(scratches: Scratches, views: Views, board: Board, pairs,
 _checked_scene = eqx.filter_jit(_check_values)
 
 
+def _check_scene_types(where: str, scratches, views, board) -> None:
+    """A one-line `InputError` when an argument is not the scene type it must be (e.g. the
+    arguments given in another order)."""
+    for name, value, kind in (("scratches", scratches, Scratches), ("views", views, Views),
+                              ("board", board, Board)):
+        if not isinstance(value, kind):
+            raise InputError(f"{where}: `{name}` must be a jscratch.{kind.__name__}, got "
+                             f"{type(value).__name__}")
+
+
 @functools.lru_cache(maxsize=None)
 def _jitted_render_pairs(chunk, mesh, axis_names):
     return eqx.filter_jit(functools.partial(render_pairs, chunk=chunk, mesh=mesh,
@@ -722,6 +733,7 @@ def render(scratches: Scratches, views: Views, board: Board, *, eps: float = 0.0
     **Returns:** radiance ``(M, H, W)`` (W/(sr m^2)); with `return_pairs`, ``(radiance, pairs,
     coverage_pairs)``.
     """
+    _check_scene_types("render", scratches, views, board)
     if eps < 0 or not math.isfinite(eps):
         raise InputError(f"render: `eps` must be finite and >= 0; got {eps}")
     check_scratches(scratches.p0, scratches.p1, scratches.width, scratches.depth, scratches.alpha,
@@ -755,7 +767,7 @@ def render_reference(scratches: Scratches, views: Views, board: Board, *,
 
     **Returns:** radiance ``(M, H, W)`` (W/(sr m^2)).
     """
-
+    _check_scene_types("render_reference", scratches, views, board)
     dtype = scratches.dtype
     scratches, views = _check_values(scratches, views)
     views = jax.tree_util.tree_map(lambda x: x.astype(dtype), views)

@@ -143,6 +143,8 @@ def test_config_and_input_errors(tmp_path):
         design(np.full((3, SIZE, SIZE), 0.5), views, board)
     with pytest.raises(DesignError, match=r"target 1 has values outside \[0, 1\]"):
         design(np.stack([targets[0], targets[1] * 3]), views, board)
+    with pytest.raises(DesignError, match="different shapes"):
+        design([targets[0], targets[1, :-1]], views, board)
     with pytest.raises(DesignError, match="integer images"):
         design(np.zeros((2, SIZE, SIZE), np.uint8), views, board)
     with pytest.raises(DesignError, match=r"targets are 32x32 px but the board's image shape is \(16, 16\)"):

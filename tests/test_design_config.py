@@ -161,6 +161,9 @@ def test_config_json_round_trip():
     ({"prune_fraction": 1.5}, "prune_fraction"),
     ({"target_ssim": 0.0}, "target_ssim"),
     ({"adam_b2": 1.0}, "adam_b2"),
+    ({"cull_eps": 1.0}, "cull_eps"),
+    ({"coverage_eps": 2.0}, "coverage_eps"),
+    ({"cull_eps": -1e-3}, "cull_eps"),
     ({"machine": {"cutter_radius_mm": -1}}, "cutter_radius_mm"),
 ])
 def test_bad_design_config_is_one_line_input_error(kw, field):

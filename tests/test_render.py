@@ -20,6 +20,7 @@ import pytest
 
 from jscratch import arc, brute, bvh, native, ndf
 from jscratch import render
+from jscratch.errors import InputError
 
 BOARD = render.Board(shape=(10, 10), Sx=0.01, Sy=0.01)  # 1 mm pixels
 
@@ -452,6 +453,12 @@ def test_errors_name_the_argument():
     with pytest.raises(ValueError, match="`shape` must be"):
         render.Board(shape=(0, 4))
     s, v = _scene()
+    with pytest.raises(InputError, match="render_pairs: `views` must be a jscratch.Views, got Board"):
+        render.render_pairs(s, BOARD, v, _pairs(s))
+    with pytest.raises(InputError, match="render: `board` must be a jscratch.Board, got NoneType"):
+        render.render(s, v, None)
+    with pytest.raises(InputError, match="render_reference: `scratches` must be a jscratch.Scr"):
+        render.render_reference(None, v, BOARD)
     bad = eqx.tree_at(lambda p: p.overflow, _pairs(s), jnp.asarray(True))
     with pytest.raises(Exception, match="overflowed its capacity"):
         jax.block_until_ready(_fwd(s, v, bad))

@@ -188,8 +188,11 @@ class DesignConfig:
                 raise DesignError(f"DesignConfig.loss: unknown fields {unknown}") from None
         if not isinstance(self.loss, loss_mod.LossConfig):
             bad("loss", "a jscratch.loss.LossConfig")
-        for name in ("cull_eps", "coverage_eps", "skin", "discard_tol", "prune_per_pixel",
-                     "dense_from", "dense_lambda_g"):
+        for name in ("cull_eps", "coverage_eps"):  # a tolerance of 1 culls every pair (§11)
+            number(name, 0.0, 1.0, "in [0, 1) (a fraction of a pair's peak value)")
+            if getattr(self, name) >= 1:
+                bad(name, "in [0, 1) (a fraction of a pair's peak value)")
+        for name in ("skin", "discard_tol", "prune_per_pixel", "dense_from", "dense_lambda_g"):
             number(name, 0.0, what="finite and >= 0")
         for name in ("adam_b1", "adam_b2"):
             number(name, 0.0, 1.0, "in [0, 1)")

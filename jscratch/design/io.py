@@ -20,7 +20,11 @@ from jscratch.design.result import DesignResult
 
 
 def check_targets(targets, m: int | None) -> np.ndarray:
-    t = np.asarray(targets)
+    try:
+        t = np.asarray(targets)
+    except ValueError:  # ragged nested lists
+        raise DesignError("targets must be an (M, H, W) array of display values: the images "
+                          "given have different shapes") from None
     if t.dtype == object or not (np.issubdtype(t.dtype, np.floating) or np.issubdtype(t.dtype, np.integer)):
         raise DesignError(f"targets must be a numeric (M, H, W) array of display values, got dtype {t.dtype}")
     if t.ndim != 3:
