@@ -77,10 +77,10 @@ __all__ = [
 ]
 
 DEFAULT_EPS = 1e-3
-"""Default culling threshold (fraction of a pair's largest possible contribution), from the
-time-against-error table in `benchmarks/results/bvh.md` (20k scratches with the
-defaults of docs/model.md §5, 256x256, 4 views at 30 deg): `eps = 1e-3` keeps ~55% of the pairs and cuts shading time ~40% for a radiance
-error of ~3e-4 of the image's peak (`1e-2`: ~31% kept, error ~2e-3 of the peak)."""
+"""Default culling threshold of `cull` and `cull_coverage` (a fraction of a pair's largest
+possible contribution): on the scenes of `benchmarks/results/bvh.md` (20k scratches, 256x256, 4
+views) it keeps ~55 % of the pairs for a radiance error of ~3e-4 of the image's peak (`1e-2`: ~31 %
+kept, ~2e-3). A design does not cull by default (`DesignConfig.cull_eps = 0`, docs/model.md §11)."""
 
 
 @jax.jit

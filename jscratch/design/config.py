@@ -96,8 +96,9 @@ class DesignConfig:
                                      metavar="GROUPS")
     loss: loss_mod.LossConfig = option(default_factory=loss_mod.LossConfig, nested=True,
                                        help="the loss (jscratch.loss.LossConfig)")
-    cull_eps: float = option(0.0, "per-view pair culling tolerance (0: every pair; 1e-3 is "
-                             "about 2x faster but optimises worse)")
+    cull_eps: float = option(0.0, "per-view pair culling tolerance, a fraction of a pair's peak "
+                             "value (0: every pair; 1e-3 optimises worse and, with the native "
+                             "kernel, is not faster: docs/model.md §11)")
     coverage_eps: float = option(0.0, "coverage-pass culling tolerance, with --cull-eps > 0 (0: "
                                  "every pair; faster but can lose contrast in dark regions)")
     skin: float = option(0.0, "groove inflation for binning (0: rebin when a groove leaves its "
