@@ -100,7 +100,8 @@ class DesignConfig:
                              "value (0: every pair; 1e-3 optimises worse and, with the native "
                              "kernel, is not faster: docs/model.md §11)")
     coverage_eps: float = option(0.0, "coverage-pass culling tolerance, with --cull-eps > 0 (0: "
-                                 "every pair; faster but can lose contrast in dark regions)")
+                                 "every pair; fewer coverage pairs, but dark regions can lose "
+                                 "contrast)")
     skin: float = option(0.0, "groove inflation for binning (0: rebin when a groove leaves its "
                          "binned cells)", unit="m")
     discard: bool = option(True, "discard the least useful scratches after the optimisation")
