@@ -65,7 +65,6 @@ SIZE = 40 if SMALL else 128           # image side in pixels (the board is 0.3 m
 N_RENDER = 1500 if SMALL else 20000   # scratches in the forward-render examples
 N_DESIGN = 300 if SMALL else 8000     # scratches in the optimisation
 ITERATIONS = 5 if SMALL else 100      # Adam iterations (the paper uses 100)
-CULL_EPS = 0.0 if SMALL else 1e-3     # optimiser's per-view pair culling (0: off, compiles faster)
 SEED = 0
 """, tags=["parameters"]),
     code(r"""
@@ -269,7 +268,7 @@ three images bundled with scikit-image; `python -m jscratch.design` does the sam
     code(r"""
 targets, names = jscratch.design.default_targets(3, (SIZE, SIZE))  # (3, SIZE, SIZE), in [0, 1]
 views3 = jscratch.views_on_circle(3, math.radians(50), board=board)
-config = jscratch.DesignConfig(n_scratches=N_DESIGN, iterations=ITERATIONS, seed=SEED, cull_eps=CULL_EPS)
+config = jscratch.DesignConfig(n_scratches=N_DESIGN, iterations=ITERATIONS, seed=SEED)
 result = jscratch.design.design(targets, views3, board, config, progress=not SMALL)
 m = result.metrics
 print(f"{m['iterations']} iterations in {m['time_total']:.1f} s (first step, with compilation: "
