@@ -31,9 +31,7 @@ Writes the Markdown to `benchmarks/results/bvh.md` (or `--out`).
 from __future__ import annotations
 
 import argparse
-import datetime
 import os
-import platform
 import statistics
 import sys
 import time
@@ -43,9 +41,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from jscratch import bvh, cull, ndf, render
+from jscratch.bench import machine_line
 
 BOARD = (0.3, 0.3)
-DATE = "2026-11-21"
 
 
 def scene(n, seed=0, dtype=np.float32):
@@ -264,10 +262,8 @@ def main(argv=None):
     md = [
         "# bvh benchmark",
         "",
-        f"Date {DATE}; machine `{platform.platform()}`, {os.cpu_count()} CPUs "
-        f"({jax.devices()[0].platform}); jax {jax.__version__}; float32.",
-        f"Command: `python {' '.join(['benchmarks/bench_bvh.py', *sys.argv[1:]])}` "
-        f"(run at {datetime.datetime.now().isoformat(timespec='seconds')}).",
+        f"Machine: {machine_line()}; float32.",
+        f"Command: `python {' '.join(['benchmarks/bench_bvh.py', *sys.argv[1:]])}`.",
         "Scenes: defaults of docs/model.md §5 (lengths U[5, 25] mm, width 2.5e-4 m, depth 1.28e-4 m, "
         "alpha 0.04) on a 0.3 m board. Times are medians of `block_until_ready` runs; compile "
         "times apart. The machine may be shared: numbers are provisional, rerun on a quiet one.",

@@ -23,20 +23,18 @@ Prints Markdown tables and writes them to ``benchmarks/results/design.md`` (with
 from __future__ import annotations
 
 import argparse
-import datetime
 import math
 import os
-import platform
 import sys
 import time
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 
 from jscratch import loss
 from jscratch import render
+from jscratch.bench import machine_line
 from jscratch.design import DesignConfig, default_targets, design
 
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "design.md")
@@ -124,11 +122,8 @@ def main():
     p.add_argument("--iterations", type=int, default=100)
     args = p.parse_args()
     out = [
-        "# Design benchmark (provisional: the machine was shared with other jobs)\n",
-        f"- date: {datetime.date(2026, 11, 21).isoformat()}",
-        f"- machine: {platform.platform()}, {platform.processor() or platform.machine()}, "
-        f"os.cpu_count() = {os.cpu_count()}",
-        f"- jax {jax.__version__}, backend {jax.default_backend()}, float32",
+        "# Design benchmark\n",
+        f"- machine: {machine_line()}; float32",
         f"- command: `python benchmarks/bench_design.py {' '.join(sys.argv[1:])}`".rstrip(),
         "",
     ]

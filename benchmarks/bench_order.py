@@ -8,13 +8,13 @@ Designs are :func:`jscratch.designfile.demo_design` (brushed rings, 5-25 mm scra
 
 import argparse
 import os
-import platform
 import sys
 import time
 
 
 import numpy as np
 
+from jscratch.bench import machine_line
 from jscratch.designfile import demo_design
 from jscratch.toolpath import best_directions, greedy_order, improve_order, path_travel
 
@@ -42,10 +42,9 @@ def main():
     head = [
         "# Fabrication: scratch ordering",
         "",
-        f"date 2026-11-21; machine {platform.platform()}, {platform.processor() or platform.machine()}, "
-        f"os.cpu_count() = {os.cpu_count()}; numpy {np.__version__}; no jax in this benchmark.",
+        f"Machine: {machine_line()}; numpy {np.__version__} (no jax in the ordering).",
         f"command: `python benchmarks/bench_order.py --sizes {' '.join(map(str, args.sizes))} --time-limit {args.time_limit:g}`",
-        "Provisional: measured on a machine shared with other jobs. Travel in metres (demo design, 0.3 m board);",
+        "Travel in metres (demo design, 0.3 m board);",
         "time = wall seconds (improved = greedy + 2-opt/Or-opt within the time limit + direction DP).",
         "",
         "| scratches | input-order travel (m) | greedy travel (m) | greedy time (s) | improved travel (m) | improved vs greedy | total time (s) |",

@@ -43,3 +43,25 @@ def test_quick_bench_writes_finite_results(tmp_path):
     assert rows[-1]["loss"] < rows[0]["loss"]  # resumed stages continue one optimisation
     for name in ("render_culling.png", "brute_vs_analytic.png", "design_ssim.png"):
         assert (tmp_path / name).stat().st_size > 1000, name
+
+
+def test_cpu_model_reads_the_first_model_name(tmp_path):
+    info = tmp_path / "cpuinfo"
+    info.write_text("processor\t: 0\nvendor_id\t: X\nmodel name\t: Some  CPU   @ 2.0GHz\n\n"
+                    "processor\t: 1\nmodel name\t: Other CPU\n")
+    assert bench.cpu_model(info) == "Some CPU @ 2.0GHz"
+    # No model name line, or no file: the platform's own answer, never empty.
+    (tmp_path / "bare").write_text("processor\t: 0\nmodel name\t:\n")
+    for path in (tmp_path / "bare", tmp_path / "missing"):
+        assert bench.cpu_model(path).strip()
+
+
+def test_machine_line_names_date_cpu_and_load():
+    import datetime
+
+    info = bench.machine_info()
+    today = datetime.datetime.now(datetime.timezone.utc).date().isoformat()
+    assert info["date"] == today and info["cpu_model"] == bench.cpu_model()
+    line = bench.machine_line(info)
+    assert line.startswith(f"{today} {info['time_utc']} UTC; {info['cpu_model']}, ")
+    assert f"{info['cpu_count']} CPUs" in line and "load " in line and "\n" not in line

@@ -22,7 +22,8 @@ reported apart), then takes the median of repeated `block_until_ready` runs. Res
    needs to reach the same error, and the speed-up.
 5. ``design``: SSIM per view against iterations and time for the default design.
 
-``--quick`` shrinks every section (measured 49-51 s on a 2-core CPU, mostly compilation); the
+``--quick`` shrinks every section (about 30 s on a 2-core CPU, mostly compilation; the figures
+are in benchmarks/RESULTS.md, "Quick bench"); the
 test suite runs it as a smoke test.
 
 **Modules:** `jscratch.bench.timing` (helpers), `jscratch.bench.kernel` (sections 1-2),
@@ -36,7 +37,9 @@ quadrature).
 from jscratch.bench.cli import SECTIONS as SECTIONS, main as main, run_bench as run_bench
 from jscratch.bench.timing import (
     compile_once as compile_once,
+    cpu_model as cpu_model,
     machine_info as machine_info,
+    machine_line as machine_line,
     md_table as md_table,
     median_time as median_time,
     time_compiled as time_compiled,

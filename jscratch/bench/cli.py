@@ -11,7 +11,7 @@ from pathlib import Path
 import jax
 
 from jscratch.bench import kernel, rendering
-from jscratch.bench.timing import machine_info
+from jscratch.bench.timing import machine_info, machine_line
 from jscratch.errors import EXIT_STATUS_HELP, InputError, JscratchError, report
 
 DESCRIPTION = ("`python -m jscratch.bench`: run time against error, numerical stress, and the"
@@ -41,7 +41,7 @@ def run_bench(sections=SECTIONS, quick: bool = False, out: str | Path = "bench_o
         res[s] = runners[s](quick, out)
         res[s]["section_wall_s"] = time.perf_counter() - t0
     md = [f"# jscratch bench ({'quick' if quick else 'full'})\n",
-          "Machine: " + ", ".join(f"{k} {v}" for k, v in res["machine"].items()) + "\n"]
+          f"Machine: {machine_line(res['machine'])}\n"]
     for s in sections:
         md.append(f"\n## {s}\n\n{res[s].get('markdown', '')}\n")
         if "note" in res[s]:

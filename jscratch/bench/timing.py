@@ -1,6 +1,6 @@
 """Timing and report helpers of the bench: ahead-of-time compilation timed apart
 (`compile_once`), medians of `block_until_ready` runs (`median_time`, `time_compiled`), the
-machine (`machine_info`), Markdown tables (`md_table`) and one-figure PNG plots (`plot`)."""
+machine (`machine_info`, `machine_line`, `cpu_model`), Markdown tables (`md_table`) and one-figure PNG plots (`plot`)."""
 
 from __future__ import annotations
 
@@ -55,10 +55,31 @@ def time_compiled(fn, *args, reps: int = 5, min_time: float = 0.2, options: dict
     return compile_s, med, out
 
 
+def cpu_model(cpuinfo: str | Path = "/proc/cpuinfo") -> str:
+    """The CPU's model name (the first ``model name`` line of Linux's `cpuinfo`); elsewhere, or
+    when that file has none, `platform.processor()` or the machine's architecture. Shared
+    machines change CPUs between runs, and the same code rounds differently on each."""
+    try:
+        with open(cpuinfo, encoding="utf-8", errors="replace") as f:
+            for line in f:
+                key, sep, value = line.partition(":")
+                if sep and key.strip() == "model name" and value.strip():
+                    return " ".join(value.split())
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
 def machine_info() -> dict:
+    """Where and when a benchmark ran: the date and time (UTC), the CPU model, the 1-minute load
+    average at the call, the platform and the versions."""
     dev = jax.devices()[0]
+    now = datetime.datetime.now(datetime.timezone.utc)
     return {
-        "date": datetime.date.today().isoformat(),
+        "date": now.date().isoformat(),
+        "time_utc": now.strftime("%H:%M"),
+        "cpu_model": cpu_model(),
+        "load": round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None,
         "platform": platform.platform(),
         "processor": platform.processor() or platform.machine(),
         "cpu_count": os.cpu_count(),
@@ -67,6 +88,16 @@ def machine_info() -> dict:
         "jax": jax.__version__,
         "python": platform.python_version(),
     }
+
+
+def machine_line(info: dict | None = None) -> str:
+    """`machine_info` as one line for a report's header: date, time, CPU, cores, load,
+    device and versions."""
+    m = machine_info() if info is None else info
+    load = "-" if m.get("load") is None else f"{m['load']:.2f}"
+    return (f"{m['date']} {m['time_utc']} UTC; {m['cpu_model']}, {m['cpu_count']} CPUs, "
+            f"load {load}; device {m['device']}; {m['platform']}; jax {m['jax']}, "
+            f"python {m['python']}")
 
 
 def md_table(rows: list[dict], cols: list[str]) -> str:
