@@ -3,6 +3,7 @@
 
 import json
 import math
+import shlex
 
 from jscratch import bench
 
@@ -11,6 +12,9 @@ def test_quick_bench_writes_finite_results(tmp_path):
     bench.main(["--quick", "--out", str(tmp_path)])
     res = json.loads((tmp_path / "bench.json").read_text())
     assert res["quick"] is True and res["machine"]["jax"]
+    command = shlex.join(["python", "-m", "jscratch.bench", "--quick", "--out", str(tmp_path)])
+    assert res["command"] == command  # the command line as typed, not the module's path
+    assert f"Command: `{command}`" in (tmp_path / "bench.md").read_text()
     rows = res["kernel"]["rows"]
     methods = {r["method"] for r in rows}
     assert "closed form" in methods and any(m.startswith("GL n=") for m in methods)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -19,9 +20,11 @@ DESCRIPTION = ("`python -m jscratch.bench`: run time against error, numerical st
 SECTIONS = ("kernel", "stability", "render", "brute", "design")
 
 
-def run_bench(sections=SECTIONS, quick: bool = False, out: str | Path = "bench_out") -> dict:
+def run_bench(sections=SECTIONS, quick: bool = False, out: str | Path = "bench_out",
+              command: str | None = None) -> dict:
     """Run the chosen sections; write `bench.json`, `bench.md` and plots to `out`; return the
-    results dict (`machine`, one entry per section, each with a `markdown` table)."""
+    results dict (`machine`, the `command` that ran it, one entry per section, each with a
+    `markdown` table)."""
     unknown = set(sections) - set(SECTIONS)
     if unknown:
         raise InputError(f"unknown bench sections {sorted(unknown)}; choose from {SECTIONS}")
@@ -32,7 +35,9 @@ def run_bench(sections=SECTIONS, quick: bool = False, out: str | Path = "bench_o
     out.mkdir(parents=True, exist_ok=True)
     runners = {"kernel": kernel.bench_kernel, "stability": kernel.bench_stability,
                **rendering.RUNNERS}
-    res = {"machine": machine_info(), "quick": quick, "command": " ".join(sys.argv)}
+    if command is None:
+        command = f"run_bench({list(sections)!r}, quick={quick!r}, out={str(out)!r})"
+    res = {"machine": machine_info(), "quick": quick, "command": command}
     for s in sections:
         if s not in runners:
             res[s] = {"skipped": "not available in this build", "markdown": "(skipped)"}
@@ -41,7 +46,7 @@ def run_bench(sections=SECTIONS, quick: bool = False, out: str | Path = "bench_o
         res[s] = runners[s](quick, out)
         res[s]["section_wall_s"] = time.perf_counter() - t0
     md = [f"# jscratch bench ({'quick' if quick else 'full'})\n",
-          f"Machine: {machine_line(res['machine'])}\n"]
+          f"Machine: {machine_line(res['machine'])}\n\nCommand: `{command}`\n"]
     for s in sections:
         md.append(f"\n## {s}\n\n{res[s].get('markdown', '')}\n")
         if "note" in res[s]:
@@ -73,7 +78,8 @@ def main(argv=None) -> int:
                    help="sections to run (default: all)")
     a = p.parse_args(argv)
     try:
-        run_bench(a.sections, a.quick, a.out)
+        run_bench(a.sections, a.quick, a.out, command=shlex.join(
+            ["python", "-m", "jscratch.bench", *(sys.argv[1:] if argv is None else argv)]))
     except KeyboardInterrupt:
         return 130
     except (JscratchError, OSError) as exc:
