@@ -104,8 +104,8 @@ def bench_ablations(args, out):
     for name, cfg in runs:
         res, wall, ep = _run(3, size, cfg)
         if name.startswith("loss: the default"):
-            out.append(_row("discard off (the default loss, all scratches)", res, wall, float("nan"),
-                            before=True))
+            out.append(_row("discard off (the default loss, all scratches)", res, wall,
+                            float("nan"), before=True))
         out.append(_row(name, res, wall, ep))
         print(out[-1], flush=True)
     out.append("")

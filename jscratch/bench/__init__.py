@@ -23,8 +23,7 @@ reported apart), then takes the median of repeated `block_until_ready` runs. Res
 5. ``design``: SSIM per view against iterations and time for the default design.
 
 ``--quick`` shrinks every section (about 30 s on a 2-core CPU, mostly compilation; the figures
-are in benchmarks/RESULTS.md, "Quick bench"); the
-test suite runs it as a smoke test.
+are in benchmarks/RESULTS.md, "Quick bench"); the test suite runs it as a smoke test.
 
 **Modules:** `jscratch.bench.timing` (helpers), `jscratch.bench.kernel` (sections 1-2),
 `jscratch.bench.rendering` (sections 3-5), `jscratch.bench.cli` (`run_bench`, `main`), and the

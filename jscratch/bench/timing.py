@@ -1,6 +1,7 @@
 """Timing and report helpers of the bench: ahead-of-time compilation timed apart
 (`compile_once`), medians of `block_until_ready` runs (`median_time`, `time_compiled`), the
-machine (`machine_info`, `machine_line`, `cpu_model`), Markdown tables (`md_table`) and one-figure PNG plots (`plot`)."""
+machine (`machine_info`, `machine_line`, `cpu_model`), Markdown tables (`md_table`) and
+one-figure PNG plots (`plot`)."""
 
 from __future__ import annotations
 
