@@ -247,12 +247,12 @@ def main(argv=None) -> int:
         print(json.dumps(res))
         return 0
 
-    import platform
+    from jscratch.bench import machine_line  # the working tree's (the parent measures nothing)
 
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     res = {"base": a.base, "load_before": " ".join(f"{x:.2f}" for x in os.getloadavg()),
-           "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, {platform.python_version()}"}
+           "machine": machine_line()}
     with tempfile.TemporaryDirectory() as tmp:
         _export(a.base, tmp)
         inputs = Path(tmp, "kernel_inputs.npz")
