@@ -185,7 +185,8 @@ def cull_table(n, size, eps_list, n_views, repeats, batch):
     unit = np.asarray(render.shade(d_ref + 1.0, cover, views, board)) - rad_ref
 
     header = (
-        "| eps | pairs kept | cull (ms, all views) | shade (ms, all views) | shading time saved "
+        "| eps | pairs kept | cull (ms, all views) | single-pair shade (ms, all views) "
+        "| shading time saved "
         "| max error / peak radiance | max error / bound |\n|---|---|---|---|---|---|---|"
     )
     rows = []
@@ -281,7 +282,11 @@ def main(argv=None):
             "Error: radiance of the culled render minus the unculled one (coverage from the "
             "unculled list), max over pixels and views, over the largest unculled radiance. "
             "Bound: `eps * sum_dropped A_i / (pi alpha_i^2 S_P)` times the pixel's shading factor "
-            "(`jscratch.bvh` docstring); the last column must stay <= 1.",
+            "(`jscratch.bvh` docstring); the last column must stay <= 1. Shading here is the "
+            "single-pair API one view at a time (the pair's geometry computed per view), so "
+            "culled lists save its time; the renderer computes each pair's geometry once for "
+            "all views from the shared list and is slower with per-view culled lists up to "
+            "`eps = 1e-2` (`python -m jscratch.bench`, render section).",
             "",
             t2,
         ]
