@@ -36,12 +36,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
 
 import numpy as np
+
+from jscratch.bench.timing import cpu_model
 
 SETS = {
     "default": ("camera", "astronaut", "chelsea"),
@@ -248,7 +249,7 @@ def main(argv=None):
         f.write(f"\n### suite {a.suite}, {a.size} px, {a.scratches} scratches, 3 views, "
                 f"{a.iterations} it., {a.groove} grooves, extra {a.extra}, "
                 f"seed 0 ({time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, "
-                f"{platform.machine()}, load at start {load[0]:.2f}/{load[1]:.2f}/{load[2]:.2f})\n\n"
+                f"{cpu_model()}, load at start {load[0]:.2f}/{load[1]:.2f}/{load[2]:.2f})\n\n"
                 "| targets | run | SSIM per view (mean) | PSNR (dB) | ghosting (mean) | excess "
                 "ghosting | texture | kept | carve (h) | wall (s) | load |\n"
                 "|---|---|---|---|---|---|---|---|---|---|---|\n")
