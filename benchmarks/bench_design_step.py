@@ -1,53 +1,104 @@
-"""Where one step of the default design goes: the render forward, the render value + VJP, the loss
-value + gradient (and of each of its terms) and a host rebin, timed apart on the default scene
-(3 views, 20k scratches, 256x256, unculled, initial layout). Medians of 3 after a warm-up. The
-bound loss is an argument of the jitted functions, as in the design step.
+"""Where one step of the default design goes, on the design's own state: `run.setup` and
+`run.initial_state` with the command line's defaults (3 views, 20,000 scratches, 256 px, carvable
+grooves rendered as the ball's arc, no culling), then after ``--warm`` chained steps (the grooves
+have grown a little, as in a design):
 
-    python benchmarks/bench_design_step.py
+- the whole step (`solver.step`: render, loss, gradient, Adam, the in-step rebin check), chained;
+- the render forward and its value + gradient with respect to the parameters (the pair kernel);
+- the loss's value + gradient on the rendered image, whole and per term;
+- a rebuild of the shared pair list (`run.rebin`, what a step that moved a groove runs).
+
+Medians of ``--repeats`` calls after a first call that compiles. One process: the parts are timed
+apart, so they do not add up to the step exactly (XLA fuses across them inside the step).
+
+    python benchmarks/bench_design_step.py [--scratches N] [--views M] [--size PX]
+        [--groove-fit arc|height] [--warm 10] [--repeats 9]
+
+``--groove-fit height`` renders the grooves as the paper's profile fitted to the ball's arc;
+``JSCRATCH_NATIVE=0`` times the jnp path (what runs where the native kernel cannot be built).
 """
 
-import math
+import argparse
 import time
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
+
+from jscratch import native
+from jscratch.bench import machine_line
+from jscratch.design import DesignConfig, default_targets
+from jscratch.design import run, solver
+from jscratch.machine import MachineProfile
+from jscratch.render import display
 
 
-from jscratch import loss
-from jscratch import render
-from jscratch.bench.rendering import time_median
-from jscratch.design import default_targets
-
-board = render.Board(shape=(256, 256))
-s = render.Scratches.random(jax.random.PRNGKey(0), 20000, board, length=(0.005, 0.025),
-                       width=2.5e-4, depth=1.28e-4, alpha=0.04, dtype=jnp.float32)
-v = render.views_on_circle(3, math.radians(50), 1.0, None, board)
-pairs = render.bin_pairs(s, board)
-print("pairs", int(pairs.valid.sum()))
-t, _ = default_targets(3, (256, 256))
-bound = loss.make_loss(loss.LossConfig()).bind(jnp.asarray(t, jnp.float32))
+def median_s(fn, repeats):
+    """Median wall time [s] of ``fn()`` over ``repeats`` calls, after one call that compiles."""
+    jax.block_until_ready(fn())
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - t)
+    return float(np.median(times))
 
 
-def rend(s, v):
-    return render.render_pairs(s, v, board, pairs)
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scratches", type=int, default=20000)
+    ap.add_argument("--views", type=int, default=3)
+    ap.add_argument("--size", type=int, default=256)
+    ap.add_argument("--groove-fit", choices=("arc", "height"), default="arc",
+                    help="the groove a carvable design renders (docs/model.md §13)")
+    ap.add_argument("--warm", type=int, default=10, help="steps taken before the timing")
+    ap.add_argument("--repeats", type=int, default=9)
+    args = ap.parse_args()
+    print(machine_line())
+    native.keep_freed_memory()  # as the design does
+    native.prepare()
+    machine = dict(MachineProfile().to_dict(), groove_fit=args.groove_fit)
+    cfg = DesignConfig(n_scratches=args.scratches, machine=machine)
+    targets, _ = default_targets(args.views, (args.size, args.size))
+    tnp, views, board = run.check_inputs(targets, None, None, cfg)
+    params, adam, ctx = run.setup(tnp, views, board, cfg)
+    state, warm = run.initial_state(params, adam, ctx, tnp, cfg)
+    warm.join()
+    p, opt, lists = state.params, state.opt_state, state.lists
+    for _ in range(args.warm):
+        p, opt, _, new_lists, _, _, _ = solver.step(p, opt, lists, ctx, adam)
+        lists = new_lists if new_lists is not None else lists
+    pairs = int(np.asarray(lists.shared.valid).sum())
+    print(f"{args.views} views, {args.scratches} scratches, {args.size} px, {cfg.groove} grooves "
+          f"({cfg.machine_profile().groove_fit}), after {args.warm} steps: {pairs:,} pairs, "
+          f"kernel {native.status()['kernel']}; medians of {args.repeats} [ms]")
+
+    chain = {"p": p, "opt": opt, "lists": lists}
+
+    def one_step():  # chained, as the design runs them
+        out = solver.step(chain["p"], chain["opt"], chain["lists"], ctx, adam)
+        chain["p"], chain["opt"] = out[0], out[1]
+        chain["lists"] = out[3] if out[3] is not None else chain["lists"]
+        return out[2]["total"]
+
+    fwd = eqx.filter_jit(lambda q: solver.radiance(q, lists, ctx))
+    cot = jnp.ones_like(fwd(p))
+    vjp = eqx.filter_jit(lambda q: jax.vjp(lambda r: solver.radiance(r, lists, ctx), q)[1](cot))
+    disp = display(fwd(p))
+    loss_vg = {t: eqx.filter_jit(lambda b, d, t=t: jax.value_and_grad(
+        lambda d: b.terms(d)[t])(d)) for t in ("total", "E_p", "E_g", "E_x")}
+    rows = [("the whole step (solver.step)", one_step),
+            ("render forward", lambda: fwd(p)),
+            ("render value + gradient (parameters)", lambda: vjp(p)),
+            ("loss value + gradient", lambda: loss_vg["total"](ctx.loss, disp))]
+    rows += [(f"  its {t} alone", lambda t=t: loss_vg[t](ctx.loss, disp))
+             for t in ("E_p", "E_g", "E_x")]
+    rows.append(("rebuild of the shared list (run.rebin)",
+                 lambda: run.rebin(lists, p, ctx).shared.valid))
+    for name, fn in rows:
+        print(f"{name}: {1e3 * median_s(fn, args.repeats):.1f}")
 
 
-f_fwd = jax.jit(rend)
-f_vjp = jax.jit(lambda s, v: jax.vjp(rend, s, v)[1](jnp.ones((3, 256, 256), jnp.float32)))
-disp = jnp.asarray(render.display(f_fwd(s, v)))
-
-
-def loss_vg(term):
-    return jax.jit(lambda b, d: jax.value_and_grad(lambda d: b.terms(d)[term])(d))
-
-
-f_loss = {term: loss_vg(term) for term in ("total", "E_p", "E_g", "E_x")}
-for name, fn in (("render forward", lambda: f_fwd(s, v)),
-                 ("render value + VJP", lambda: f_vjp(s, v)),
-                 ("loss value + gradient", lambda: f_loss["total"](bound, disp)),
-                 *((f"  the loss's {t} alone", lambda t=t: f_loss[t](bound, disp))
-                   for t in ("E_p", "E_g", "E_x"))):
-    print(f"{name}: {time_median(fn, 3):.3f} s")
-t0 = time.perf_counter()
-render.bin_pairs(s, board)
-print(f"rebin (host): {time.perf_counter() - t0:.3f} s")
+if __name__ == "__main__":
+    main()
