@@ -236,14 +236,18 @@ def test_cache_key_covers_source_compiler_jaxlib_and_ffi_headers(monkeypatch, tm
 
 
 def test_build_prunes_stale_libraries(monkeypatch, tmp_path):
-    """A build deletes the cache's other ``native_lit-*.so`` (and nothing else); a second
-    call finds the library in the cache and builds nothing. A stand-in compiler (a shell script
-    that writes its ``-o`` file) keeps this fast."""
+    """One library per dtype, built with only that dtype's handlers (its ``-D`` flag); a build
+    deletes the cache's ``native_lit-*.so`` of other keys (and nothing else), not the other
+    dtype's library of its key; a second call finds the library in the cache and builds nothing.
+    A stand-in compiler (a shell script that writes its ``-D`` flags into its ``-o`` file) keeps
+    this fast."""
     cxx = tmp_path / "fake-cxx"
     cxx.write_text('#!/bin/sh\n'
                    'if [ "$1" = --version ]; then echo "fake-cxx 1.0"; exit 0; fi\n'
+                   'defs=""\n'
                    'while [ $# -gt 1 ]; do\n'
-                   '  if [ "$1" = -o ]; then echo lib > "$2"; fi; shift\n'
+                   '  case "$1" in -D*) defs="$defs $1";; esac\n'
+                   '  if [ "$1" = -o ]; then echo "lib$defs" > "$2"; fi; shift\n'
                    'done\n')
     cxx.chmod(0o755)
     cache = tmp_path / "cache"
@@ -254,13 +258,50 @@ def test_build_prunes_stale_libraries(monkeypatch, tmp_path):
     (cache / "notes.txt").write_text("kept")
     monkeypatch.setenv("CXX", str(cxx))
     monkeypatch.setenv("JSCRATCH_CACHE", str(cache))
-    info = native._compile()
-    assert info["built"] and info["library"].read_text() == "lib\n"
+    info = native._compile("f32")
+    assert info["built"] and info["library"].read_text() == "lib -DJSCRATCH_DTYPE_F32\n"
     assert info["compiler"] == f"{cxx} (fake-cxx 1.0)"
-    assert info["library"].name == f"native_lit-{info['key']}.so"
+    assert info["library"].name == f"native_lit-{info['key']}-f32.so"
     assert sorted(p.name for p in cache.iterdir()) == sorted([info["library"].name, "notes.txt"])
-    again = native._compile()
+    other = native._compile("f64")
+    assert other["built"] and other["library"].read_text() == "lib -DJSCRATCH_DTYPE_F64\n"
+    assert other["key"] == info["key"] and other["library"].name.endswith("-f64.so")
+    assert sorted(p.name for p in cache.iterdir()) == sorted(
+        [info["library"].name, other["library"].name, "notes.txt"])
+    again = native._compile("f32")
     assert not again["built"] and again["library"] == info["library"]
+
+
+def test_a_float32_run_builds_only_the_float32_library(tmp_path):
+    """`prepare(float32)` (what a float32 design calls) builds the float32 library alone; the
+    float64 one is built when a float64 kernel is first asked for. In a fresh process, with a
+    stand-in compiler that writes its ``-D`` flags into its ``-o`` file."""
+    cxx = tmp_path / "fake-cxx"
+    cxx.write_text('#!/bin/sh\n'
+                   'if [ "$1" = --version ]; then echo "fake-cxx 1.0"; exit 0; fi\n'
+                   'defs=""\n'
+                   'while [ $# -gt 1 ]; do\n'
+                   '  case "$1" in -D*) defs="$defs $1";; esac\n'
+                   '  if [ "$1" = -o ]; then echo "lib$defs" > "$2"; fi; shift\n'
+                   'done\n')
+    cxx.chmod(0o755)
+    code = """
+import json, os, jax.numpy as jnp
+from jscratch import native
+native.prepare(jnp.float32)
+native.prepare(jnp.float32)  # (a second call starts nothing)
+native._build["f32"]["thread"].join()
+first = sorted(os.listdir(os.environ["JSCRATCH_CACHE"]))
+native.prepare(jnp.float64)
+native._build["f64"]["thread"].join()
+print(json.dumps({"first": first, "then": sorted(os.listdir(os.environ["JSCRATCH_CACHE"])),
+                  "builds": sorted(native._build)}))
+"""
+    r = _python(code, CXX=str(cxx), JSCRATCH_CACHE=str(tmp_path / "cache"), JSCRATCH_NATIVE="1")
+    assert len(r["first"]) == 1 and r["first"][0].endswith("-f32.so"), r
+    assert len(r["then"]) == 2 and r["then"][1].endswith("-f64.so"), r
+    assert r["builds"] == ["f32", "f64"]
+    assert (tmp_path / "cache" / r["first"][0]).read_text() == "lib -DJSCRATCH_DTYPE_F32\n"
 
 
 def test_settings_are_read_once_and_checked(monkeypatch):
@@ -291,7 +332,12 @@ def test_status_and_cli_describe_the_kernel(capsys):
     ``python -m jscratch.native --json`` prints the same in a fresh process and exits 0."""
     st = native.status()
     assert st["kernel"] == "native" and st["enabled"] and st["backend"] == "cpu", st
-    assert st["library"].endswith(f"native_lit-{st['key']}.so") and os.path.exists(st["library"])
+    assert st["library"].endswith(f"native_lit-{st['key']}-f32.so")
+    assert os.path.exists(st["library"])
+    assert native.available(jnp.float64)
+    st64 = native.status(jnp.float64)
+    assert st64["kernel"] == "native" and st64["key"] == st["key"], st64
+    assert st64["library"].endswith(f"native_lit-{st['key']}-f64.so")
     assert st["covers"]["jaxlib"] == jaxlib.__version__ and st["compiler"]
     assert isinstance(st["threads"], int) and st["threads"] >= 1
     assert json.loads(json.dumps(st)) == st

@@ -158,7 +158,7 @@ def _run(argv) -> int:
     # --- several processes: joined before any JAX work (jax.distributed)
     mesh_mod.initialize(run.coordinator, run.num_processes, run.process_id, run.join_timeout)
     # ---
-    native.prepare()  # the native kernel builds (first run only) while the inputs load
+    native.prepare(config.dtype)  # the native kernel builds (first run only) as inputs load
     if config.dtype == "float64":
         jax.config.update("jax_enable_x64", True)
     checkpoint = os.path.join(run.out, "checkpoint.npz")

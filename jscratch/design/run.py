@@ -85,9 +85,10 @@ def design(
     """
     t_start = time.perf_counter()
     parts = {}  # wall time per part of the run (s): `metrics["time_parts"]`
-    native.prepare()  # the native kernel builds (first run only) while the setup goes on
-    native.keep_freed_memory()  # the steps reuse their large buffers (`native.keep_freed_memory`)
     config = DesignConfig() if config is None else config
+    # the native kernel builds (first run only) during the setup
+    native.prepare(getattr(config, "dtype", "float32"))
+    native.keep_freed_memory()  # the steps reuse their large buffers (`native.keep_freed_memory`)
     tnp, views, board = check_inputs(targets, views, board, config, checkpoint, resume)
     checkpoint = None if checkpoint is None else os.fspath(checkpoint)
     thash = targets_hash(tnp)
@@ -130,7 +131,7 @@ def design(
         "time_step_median": float(np.median(step_times[1:])) if len(step_times) > 1 else None,
         "time_compile_step": compile_seconds,
         "time_parts": {k: v for k, v in parts.items() if k != "pair_views"},
-        "kernel": native.status(),
+        "kernel": native.status(config.dtype),
         "mesh": mesh_mod.describe(mesh),
     })
     if mesh is not None:  # host copies: what follows (saving, metrics) may run on process 0 alone

@@ -21,7 +21,8 @@ and float32). A third kernel, the grid binning's strip and cell stage (`bin_cell
 `jscratch.grid.update` runs: one pass over scratches, strips and cells writing the pair list),
 gives the same bits as its jnp path (`tests/test_grid.py`).
 
-- `prepare()`: start the build on a background thread (the design does, before its setup).
+- `prepare(dtype=float32)`: start that dtype's build on a background thread (the design does,
+  before its setup).
 - `available(dtype) -> bool`: whether the kernels can run for arrays of `dtype` here: the
   native kernel is enabled (`enabled`), the default backend is the CPU and the kernel was built
   and loaded. Otherwise jscratch uses the jnp path.
@@ -38,13 +39,15 @@ gives the same bits as its jnp path (`tests/test_grid.py`).
   ``python -m jscratch.native [--json]`` prints it (and builds the kernel if needed).
 
 Build. The kernels (native_lit.cc, which includes native_arc.h and native_simd.h, and
-native_bin.cc; one library) are compiled on first use with the system's C++ compiler (``$CXX``,
-else ``g++``, ``c++`` or ``clang++`` on ``PATH``; 5-8 s) into ``native_lit-<key>.so`` in
-``$JSCRATCH_CACHE`` (else ``$XDG_CACHE_HOME/jscratch`` or ``~/.cache/jscratch``). The key (`_key`)
+native_bin.cc) are compiled on first use with the system's C++ compiler (``$CXX``, else ``g++``,
+``c++`` or ``clang++`` on ``PATH``), one library per dtype, each when a kernel of that dtype is
+first asked for (about 10 s each on 2 cores; a float32 design never builds the float64 one), into
+``native_lit-<key>-f32.so`` and ``native_lit-<key>-f64.so`` in ``$JSCRATCH_CACHE`` (else
+``$XDG_CACHE_HOME/jscratch`` or ``~/.cache/jscratch``). The key (`_key`)
 covers everything the binary depends on: the text of the four source files, the compiler's path and
 its ``--version`` output, the flags (``-march=native``), the CPU's model and features, the jaxlib
 version and a hash of the XLA FFI headers under ``jax.ffi.include_dir()``. After a build the
-cache's other ``native_lit-*.so`` (stale keys) are deleted. Nothing is downloaded.
+cache's ``native_lit-*.so`` of other keys (stale) are deleted. Nothing is downloaded.
 
 Settings, read from the environment ONCE, when this module is imported (changing them later in
 the process changes nothing):
@@ -99,9 +102,9 @@ __all__ = ["PROFILES", "NativeKernelWarning", "available", "bin_cells", "enabled
            "pair_vjp", "pairs", "prepare", "status", "threads"]
 
 _SOURCE = Path(__file__).with_name("native_lit.cc")
-#: The arc groove's per-view stage, included by `_SOURCE` (one library; the key covers both).
+#: The arc groove's per-view stage, included by `_SOURCE` (the key covers both).
 _ARC_SOURCE = Path(__file__).with_name("native_arc.h")
-#: The grid binning's strip and cell stage (`bin_cells`), compiled into the same library.
+#: The grid binning's strip and cell stage (`bin_cells`), compiled into the same libraries.
 _BIN_SOURCE = Path(__file__).with_name("native_bin.cc")
 #: The SIMD vector type and per-lane elementary functions, included by `_SOURCE`.
 _SIMD_SOURCE = Path(__file__).with_name("native_simd.h")
@@ -125,6 +128,8 @@ _BIN_TARGETS = {jnp.dtype(dt): (f"jscratch_bin_{name}", f"JscratchBin{name.upper
                 for dt, name in ((jnp.float32, "f32"), (jnp.float64, "f64"))}
 _FLAGS = ("-O3", "-march=native", "-fno-math-errno", "-ffp-contract=off", "-std=c++17", "-shared",
           "-fPIC", "-pthread", "-w")
+#: The dtypes the kernels run for, one library each -> the library's name (its symbols' suffix).
+_DTYPES = {jnp.dtype(jnp.float32): "f32", jnp.dtype(jnp.float64): "f64"}
 #: What the jnp path costs, in the fallback warning (`benchmarks/RESULTS.md`).
 _COST = ("the jnp path runs instead: a design step about 45x slower with the default arc "
          "grooves, 6x with groove_fit = \"height\"")
@@ -262,24 +267,27 @@ def _key(parts: dict) -> str:
 
 
 def _prune(keep: Path) -> list[Path]:
-    """Delete the other ``native_lit-*.so`` next to `keep` (stale keys; a process that loaded one
-    keeps its mapping). Returns what was deleted; errors are ignored."""
+    """Delete the ``native_lit-*.so`` next to `keep` whose key is not `keep`'s (stale keys; the
+    other dtypes' libraries of its key stay; a process that loaded one keeps its mapping).
+    Returns what was deleted; errors are ignored."""
+    prefix = keep.name.rsplit("-", 1)[0] + "-"  # native_lit-<key>-
     gone = []
     for p in keep.parent.glob("native_lit-*.so"):
-        if p.name != keep.name:
+        if not p.name.startswith(prefix):
             with contextlib.suppress(OSError):
                 p.unlink()
                 gone.append(p)
     return gone
 
 
-def _compile() -> dict:
-    """The kernel's shared library, compiled unless the cache has one for this key:
+def _compile(name: str = "f32") -> dict:
+    """The kernels' shared library for the dtype `name` (``"f32"`` or ``"f64"``: `_DTYPES`),
+    compiled unless the cache has it for this key:
     ``{"library", "key", "covers", "compiler", "built", "seconds"}``."""
     cxx = _compiler()
     parts = _key_parts(cxx)
     key = _key(parts)
-    lib = _cache_dir() / f"native_lit-{key}.so"
+    lib = _cache_dir() / f"native_lit-{key}-{name}.so"
     info = {"library": lib, "key": key, "covers": parts, "built": False, "seconds": 0.0,
             "compiler": f"{cxx} ({parts['compiler_version'].splitlines()[0]})"}
     if lib.exists():
@@ -288,8 +296,9 @@ def _compile() -> dict:
     lib.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=lib.parent) as tmp:
         out = Path(tmp) / lib.name
-        proc = subprocess.run([cxx, *_FLAGS, f"-I{jax.ffi.include_dir()}", str(_SOURCE),
-                               str(_BIN_SOURCE), "-o", str(out)], capture_output=True, text=True)
+        proc = subprocess.run([cxx, *_FLAGS, f"-DJSCRATCH_DTYPE_{name.upper()}",
+                               f"-I{jax.ffi.include_dir()}", str(_SOURCE), str(_BIN_SOURCE),
+                               "-o", str(out)], capture_output=True, text=True)
         if proc.returncode != 0:
             last = (proc.stderr.strip().splitlines() or ["?"])[-1]
             raise RuntimeError(f"{Path(cxx).name} failed on {_SOURCE.name} and "
@@ -299,11 +308,11 @@ def _compile() -> dict:
     return info | {"built": True, "seconds": round(time.perf_counter() - t0, 1)}
 
 
-def _build_and_open() -> dict:
-    """`_compile`, then the library opened (``"handle"``). A library deleted between the two (by
-    another process's prune) is built again, once."""
+def _build_and_open(name: str) -> dict:
+    """`_compile(name)`, then the library opened (``"handle"``). A library deleted between the
+    two (by another process's prune) is built again, once."""
     for attempt in (0, 1):
-        info = _compile()
+        info = _compile(name)
         try:
             return info | {"handle": ctypes.cdll.LoadLibrary(str(info["library"]))}
         except OSError:
@@ -312,7 +321,8 @@ def _build_and_open() -> dict:
     raise AssertionError("unreachable")
 
 
-_build: dict = {}  # the background build (`prepare`): {"thread": ..., "info" or "error": ...}
+#: The background builds (`prepare`), by dtype name: {"thread": ..., "info" or "error": ...}.
+_build: dict = {}
 _build_lock = threading.Lock()
 
 
@@ -320,25 +330,31 @@ def _on_cpu() -> bool:
     return jax.default_backend() == "cpu"
 
 
-def prepare() -> None:
-    """Start building the kernel on a background thread (the compiler runs as a subprocess, so
-    the caller's setup goes on meanwhile); `available` waits for it. A no-op when already
-    started, built, disabled (`enabled`) or off the CPU."""
-    if not enabled() or not _on_cpu():
+def prepare(dtype=jnp.float32) -> None:
+    """Start building the kernels for `dtype` (float32 or float64) on a background thread (the
+    compiler runs as a subprocess, so the caller's setup goes on meanwhile); `available` waits
+    for it. A no-op when already started, built, disabled (`enabled`), off the CPU or for
+    another dtype."""
+    try:
+        name = _DTYPES.get(jnp.dtype(dtype))
+    except TypeError:  # not a dtype: whoever passed it refuses it
+        return
+    if name is None or not enabled() or not _on_cpu():
         return
     with _build_lock:
-        if _build:
+        if name in _build:
             return
+        build = _build[name] = {}
 
         def work():
             try:
-                _build["info"] = _build_and_open()
+                build["info"] = _build_and_open(name)
             except Exception as e:  # reported by `available` (its warning) and `status`
-                _build["error"] = str(e) if type(e) is RuntimeError else error_line(e, 300)
+                build["error"] = str(e) if type(e) is RuntimeError else error_line(e, 300)
 
-        _build["thread"] = threading.Thread(target=work, name="jscratch-native-build",
-                                            daemon=True)
-        _build["thread"].start()
+        build["thread"] = threading.Thread(target=work, name=f"jscratch-native-build-{name}",
+                                           daemon=True)
+        build["thread"].start()
 
 
 _memory: dict = {}  # `keep_freed_memory`'s outcome: {"kept": bool, "why": str}
@@ -383,37 +399,47 @@ def keep_freed_memory() -> dict:
         return dict(_memory)
 
 
-_loaded: dict = {}  # {"ok": bool, "why": str}, set once by `_load_once`
+_loaded: dict = {}  # by dtype name: {"ok": bool, "why": str}, set once by `_load_once`
+_warned: list = []  # the fallback's warning, once per process whatever the dtype
 _load_lock = threading.Lock()
 
 
-def _load() -> bool:
+def _load(name: str) -> bool:
     with _load_lock:  # the design traces on two threads at once
-        return _load_once()
+        return _load_once(name)
+
+
+def _targets_of(dt) -> list[tuple[str, str]]:
+    """The (FFI target, symbol) pairs of the kernels for dtype `dt`."""
+    return [v for table in (_TARGETS, _PAIR_TARGETS) for (d, _), v in table.items() if d == dt] + [
+        _JAC_TARGETS[dt], _BIN_TARGETS[dt]]
 
 
 @functools.cache
-def _load_once() -> bool:
-    prepare()
-    _build["thread"].join()
+def _load_once(name: str) -> bool:
+    dt = next(d for d, n in _DTYPES.items() if n == name)
+    prepare(dt)
+    build = _build[name]
+    build["thread"].join()
     try:
-        if "error" in _build:
-            raise RuntimeError(_build["error"])
-        handle = _build["info"]["handle"]
-        for target, symbol in (*_TARGETS.values(), *_PAIR_TARGETS.values(),
-                               *_JAC_TARGETS.values(), *_BIN_TARGETS.values()):
+        if "error" in build:
+            raise RuntimeError(build["error"])
+        handle = build["info"]["handle"]
+        for target, symbol in _targets_of(dt):
             jax.ffi.register_ffi_target(target, jax.ffi.pycapsule(getattr(handle, symbol)),
                                         platform="cpu")
     except Exception as e:  # no compiler, a failed build, an FFI this jaxlib lacks: jnp path
         why = str(e) if type(e) is RuntimeError else error_line(e, 300)
-        _loaded.update(ok=False, why=why)
-        warnings.warn(f"jscratch's native kernel is off: {why}; {_COST} (JSCRATCH_NATIVE=0 "
-                      "chooses the jnp path without this warning)", NativeKernelWarning,
-                      stacklevel=4)
+        _loaded[name] = {"ok": False, "why": why}
+        if not _warned:
+            _warned.append(why)
+            warnings.warn(f"jscratch's native kernel is off: {why}; {_COST} (JSCRATCH_NATIVE=0 "
+                          "chooses the jnp path without this warning)", NativeKernelWarning,
+                          stacklevel=4)
         return False
-    info = _build["info"]
+    info = build["info"]
     how = (f"compiled ({info['seconds']} s)" if info["built"] else "found in the cache")
-    _loaded.update(ok=True, why=f"{how} and registered as an XLA FFI target")
+    _loaded[name] = {"ok": True, "why": f"{how} and registered as an XLA FFI target"}
     return True
 
 
@@ -421,21 +447,23 @@ def available(dtype) -> bool:
     """Whether `lit_partials` runs for `dtype` arrays (float32 or float64) here: `enabled`, CPU
     backend, and the kernel built and loaded (building it the first time; warns once if that
     fails)."""
-    if (jnp.dtype(dtype), True) not in _TARGETS or not enabled() or not _on_cpu():
+    name = _DTYPES.get(jnp.dtype(dtype))
+    if name is None or not enabled() or not _on_cpu():
         return False
-    return _load()
+    return _load(name)
 
 
-def status() -> dict:
-    """What runs the per-view stage and why, JSON-friendly::
+def status(dtype=jnp.float32) -> dict:
+    """What runs the kernels for `dtype` arrays (float32 or float64) and why, JSON-friendly::
 
         {"kernel": "native" | "jnp", "why": str, "enabled": bool, "backend": str,
          "library": path or None, "key": str or None, "covers": {str: str} or None,
          "compiler": str or None, "jaxlib": str, "threads": int,
          "memory": `keep_freed_memory`'s outcome or None}
 
-    ``covers``: the key's inputs (`_key_parts`). Starts nothing; waits for a build in progress.
-    ``"jnp"`` also where nothing in this process has asked for the kernel yet."""
+    ``library``: that dtype's; ``covers``: the key's inputs (`_key_parts`). Starts nothing; waits
+    for a build in progress. ``"jnp"`` also where nothing in this process has asked for the
+    kernel of that dtype yet."""
     on, backend = enabled(), jax.default_backend()
     st = {"kernel": "jnp", "why": "", "enabled": on, "backend": backend, "library": None,
           "key": None, "covers": None, "compiler": None, "jaxlib": jaxlib.__version__,
@@ -444,17 +472,22 @@ def status() -> dict:
         return st | {"why": "disabled (JSCRATCH_NATIVE=0)"}
     if backend != "cpu":
         return st | {"why": f"the default backend is {backend}; the native kernel is CPU-only"}
-    if not _build:
+    name = _DTYPES.get(jnp.dtype(dtype))
+    if name is None:
+        return st | {"why": f"no native kernel for {jnp.dtype(dtype).name}"}
+    build = _build.get(name)
+    if build is None:
         return st | {"why": "not asked for in this process yet (python -m jscratch.native "
                             "builds it)"}
-    _build["thread"].join()
-    if "info" in _build:
-        info = _build["info"]
+    build["thread"].join()
+    if "info" in build:
+        info = build["info"]
         st.update(library=str(info["library"]), key=info["key"], covers=dict(info["covers"]),
                   compiler=info["compiler"])
-    if _loaded:
-        return st | {"kernel": "native" if _loaded["ok"] else "jnp", "why": _loaded["why"]}
-    return st | {"why": _build.get("error") or "built, not used in this process yet"}
+    if name in _loaded:
+        return st | {"kernel": "native" if _loaded[name]["ok"] else "jnp",
+                     "why": _loaded[name]["why"]}
+    return st | {"why": build.get("error") or "built, not used in this process yet"}
 
 
 def lit_values(n_gl: int, ua, ub, Ya, Yb, X, h, b, t, alpha):

@@ -27,6 +27,13 @@
 
 #include "xla/ffi/api/ffi.h"
 
+// The dtypes whose handlers this build defines: jscratch.native builds one library per dtype
+// (-DJSCRATCH_DTYPE_F32 or -DJSCRATCH_DTYPE_F64); neither defined: both.
+#if !defined(JSCRATCH_DTYPE_F32) && !defined(JSCRATCH_DTYPE_F64)
+#define JSCRATCH_DTYPE_F32
+#define JSCRATCH_DTYPE_F64
+#endif
+
 namespace ffi = xla::ffi;
 
 namespace {
@@ -172,7 +179,11 @@ ffi::Error BinImpl(ffi::Buffer<DT> fl, ffi::Buffer<ffi::DataType::S32> ints, int
       .Ret<ffi::Buffer<ffi::DataType::PRED>>().Ret<ffi::Buffer<ffi::DataType::PRED>>()     \
       .Ret<ffi::Buffer<ffi::DataType::S32>>()
 
+#ifdef JSCRATCH_DTYPE_F32
 XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchBinF32, BinImpl<ffi::DataType::F32>,
                               JSCRATCH_BIN_BIND(ffi::DataType::F32));
+#endif
+#ifdef JSCRATCH_DTYPE_F64
 XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchBinF64, BinImpl<ffi::DataType::F64>,
                               JSCRATCH_BIN_BIND(ffi::DataType::F64));
+#endif

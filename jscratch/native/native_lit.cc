@@ -47,6 +47,13 @@
 
 #include "xla/ffi/api/ffi.h"
 
+// The dtypes whose handlers this build defines: jscratch.native builds one library per dtype
+// (-DJSCRATCH_DTYPE_F32 or -DJSCRATCH_DTYPE_F64); neither defined: both.
+#if !defined(JSCRATCH_DTYPE_F32) && !defined(JSCRATCH_DTYPE_F64)
+#define JSCRATCH_DTYPE_F32
+#define JSCRATCH_DTYPE_F64
+#endif
+
 namespace ffi = xla::ffi;
 
 namespace {
@@ -1262,16 +1269,24 @@ ffi::Error PairsJacImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT
       .Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()                \
       .Ret<ffi::Buffer<DT>>()
 
+#ifdef JSCRATCH_DTYPE_F32
 XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchLitF32, LitImpl<ffi::DataType::F32>,
                               JSCRATCH_LIT_BIND(ffi::DataType::F32));
+#endif
+#ifdef JSCRATCH_DTYPE_F64
 XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchLitF64, LitImpl<ffi::DataType::F64>,
                               JSCRATCH_LIT_BIND(ffi::DataType::F64));
+#endif
+#ifdef JSCRATCH_DTYPE_F32
 XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchLitValuesF32, LitValuesImpl<ffi::DataType::F32>,
                               JSCRATCH_LIT_ARGS(ffi::DataType::F32)
                                   .Ret<ffi::Buffer<ffi::DataType::F32>>());
+#endif
+#ifdef JSCRATCH_DTYPE_F64
 XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchLitValuesF64, LitValuesImpl<ffi::DataType::F64>,
                               JSCRATCH_LIT_ARGS(ffi::DataType::F64)
                                   .Ret<ffi::Buffer<ffi::DataType::F64>>());
+#endif
 
 #define JSCRATCH_PAIRS_ARGS(DT)                                                            \
   ffi::Ffi::Bind()                                                                         \
@@ -1292,14 +1307,22 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchLitValuesF64, LitValuesImpl<ffi::DataType:
       .Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()                \
       .Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()
 
+#ifdef JSCRATCH_DTYPE_F32
 XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchPairsF32, PairsImpl<ffi::DataType::F32>,
                               JSCRATCH_PAIRS_BIND(ffi::DataType::F32));
+#endif
+#ifdef JSCRATCH_DTYPE_F64
 XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchPairsF64, PairsImpl<ffi::DataType::F64>,
                               JSCRATCH_PAIRS_BIND(ffi::DataType::F64));
+#endif
+#ifdef JSCRATCH_DTYPE_F32
 XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchPairsVjpF32, PairsVjpImpl<ffi::DataType::F32>,
                               JSCRATCH_PAIRS_VJP_BIND(ffi::DataType::F32));
+#endif
+#ifdef JSCRATCH_DTYPE_F64
 XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchPairsVjpF64, PairsVjpImpl<ffi::DataType::F64>,
                               JSCRATCH_PAIRS_VJP_BIND(ffi::DataType::F64));
+#endif
 
 #define JSCRATCH_PAIRS_JAC_BIND(DT)                                                        \
   JSCRATCH_PAIRS_ARGS(DT)                                                                  \
@@ -1307,7 +1330,11 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchPairsVjpF64, PairsVjpImpl<ffi::DataType::F
       .Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()                \
       .Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()
 
+#ifdef JSCRATCH_DTYPE_F32
 XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchPairsJacF32, PairsJacImpl<ffi::DataType::F32>,
                               JSCRATCH_PAIRS_JAC_BIND(ffi::DataType::F32));
+#endif
+#ifdef JSCRATCH_DTYPE_F64
 XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchPairsJacF64, PairsJacImpl<ffi::DataType::F64>,
                               JSCRATCH_PAIRS_JAC_BIND(ffi::DataType::F64));
+#endif
