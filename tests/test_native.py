@@ -235,12 +235,9 @@ def test_cache_key_covers_source_compiler_jaxlib_and_ffi_headers(monkeypatch, tm
     assert parts["jaxlib"] == "0.0.1" and "-march=native" in parts["flags"]
 
 
-def test_build_prunes_stale_libraries(monkeypatch, tmp_path):
-    """One library per dtype, built with only that dtype's handlers (its ``-D`` flag); a build
-    deletes the cache's ``native_lit-*.so`` of other keys (and nothing else), not the other
-    dtype's library of its key; a second call finds the library in the cache and builds nothing.
-    A stand-in compiler (a shell script that writes its ``-D`` flags into its ``-o`` file) keeps
-    this fast."""
+def _fake_cxx(tmp_path):
+    """A stand-in C++ compiler: a shell script that answers ``--version`` and writes its ``-D``
+    flags into its ``-o`` file (fast; what the library-management tests need)."""
     cxx = tmp_path / "fake-cxx"
     cxx.write_text('#!/bin/sh\n'
                    'if [ "$1" = --version ]; then echo "fake-cxx 1.0"; exit 0; fi\n'
@@ -250,6 +247,15 @@ def test_build_prunes_stale_libraries(monkeypatch, tmp_path):
                    '  if [ "$1" = -o ]; then echo "lib$defs" > "$2"; fi; shift\n'
                    'done\n')
     cxx.chmod(0o755)
+    return cxx
+
+
+def test_build_prunes_stale_libraries(monkeypatch, tmp_path):
+    """One library per dtype, built with only that dtype's handlers (its ``-D`` flag); a build
+    deletes the cache's ``native_lit-*.so`` of other keys (and nothing else), not the other
+    dtype's library of its key; a second call finds the library in the cache and builds nothing.
+    A stand-in compiler (`_fake_cxx`) keeps this fast."""
+    cxx = _fake_cxx(tmp_path)
     cache = tmp_path / "cache"
     cache.mkdir()
     stale = [cache / "native_lit-0123456789abcdef.so", cache / "native_lit-old.so"]
@@ -275,16 +281,8 @@ def test_build_prunes_stale_libraries(monkeypatch, tmp_path):
 def test_a_float32_run_builds_only_the_float32_library(tmp_path):
     """`prepare(float32)` (what a float32 design calls) builds the float32 library alone; the
     float64 one is built when a float64 kernel is first asked for. In a fresh process, with a
-    stand-in compiler that writes its ``-D`` flags into its ``-o`` file."""
-    cxx = tmp_path / "fake-cxx"
-    cxx.write_text('#!/bin/sh\n'
-                   'if [ "$1" = --version ]; then echo "fake-cxx 1.0"; exit 0; fi\n'
-                   'defs=""\n'
-                   'while [ $# -gt 1 ]; do\n'
-                   '  case "$1" in -D*) defs="$defs $1";; esac\n'
-                   '  if [ "$1" = -o ]; then echo "lib$defs" > "$2"; fi; shift\n'
-                   'done\n')
-    cxx.chmod(0o755)
+    stand-in compiler (`_fake_cxx`)."""
+    cxx = _fake_cxx(tmp_path)
     code = """
 import json, os, jax.numpy as jnp
 from jscratch import native
