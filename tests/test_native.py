@@ -278,6 +278,28 @@ def test_build_prunes_stale_libraries(monkeypatch, tmp_path):
     assert not again["built"] and again["library"] == info["library"]
 
 
+def test_a_failed_build_names_the_source_and_the_compiler_s_last_line(monkeypatch, tmp_path):
+    """The two sources compile side by side, then link; a compiler that fails on one of them
+    gives one `RuntimeError` naming that file and the compiler's last line, and leaves nothing in
+    the cache."""
+    cxx = tmp_path / "failing-cxx"
+    cxx.write_text('#!/bin/sh\n'
+                   'if [ "$1" = --version ]; then echo "failing-cxx 1.0"; exit 0; fi\n'
+                   'for a in "$@"; do case "$a" in *native_bin.cc)\n'
+                   '  echo "native_bin.cc:1: note: first" >&2; echo "error: boom" >&2; exit 1;;\n'
+                   'esac; done\n'
+                   'while [ $# -gt 1 ]; do\n'
+                   '  if [ "$1" = -o ]; then echo obj > "$2"; fi; shift\n'
+                   'done\n')
+    cxx.chmod(0o755)
+    cache = tmp_path / "cache"
+    monkeypatch.setenv("CXX", str(cxx))
+    monkeypatch.setenv("JSCRATCH_CACHE", str(cache))
+    with pytest.raises(RuntimeError, match=r"^failing-cxx failed on native_bin\.cc: error: boom$"):
+        native._compile("f32")
+    assert list(cache.iterdir()) == []
+
+
 def test_a_float32_run_builds_only_the_float32_library(tmp_path):
     """`prepare(float32)` (what a float32 design calls) builds the float32 library alone; the
     float64 one is built when a float64 kernel is first asked for. In a fresh process, with a

@@ -294,15 +294,27 @@ def _compile(name: str = "f32") -> dict:
         return info
     t0 = time.perf_counter()
     lib.parent.mkdir(parents=True, exist_ok=True)
+    flags = [*_FLAGS, f"-DJSCRATCH_DTYPE_{name.upper()}", f"-I{jax.ffi.include_dir()}"]
     with tempfile.TemporaryDirectory(dir=lib.parent) as tmp:
         out = Path(tmp) / lib.name
-        proc = subprocess.run([cxx, *_FLAGS, f"-DJSCRATCH_DTYPE_{name.upper()}",
-                               f"-I{jax.ffi.include_dir()}", str(_SOURCE), str(_BIN_SOURCE),
-                               "-o", str(out)], capture_output=True, text=True)
-        if proc.returncode != 0:
-            last = (proc.stderr.strip().splitlines() or ["?"])[-1]
-            raise RuntimeError(f"{Path(cxx).name} failed on {_SOURCE.name} and "
-                               f"{_BIN_SOURCE.name}: {last}")
+        # The two sources compile side by side (a process each), then one link.
+        objs = {src: Path(tmp) / f"{src.stem}.o" for src in (_SOURCE, _BIN_SOURCE)}
+        procs = {src: subprocess.Popen([cxx, *flags, "-c", str(src), "-o", str(o)],
+                                       stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                 for src, o in objs.items()}
+        errors = {src: p.communicate()[1] for src, p in procs.items()}
+
+        def check(rc, what, err):
+            if rc != 0:
+                last = (err.strip().splitlines() or ["?"])[-1]
+                raise RuntimeError(f"{Path(cxx).name} failed on {what}: {last}")
+
+        for src, p in procs.items():
+            check(p.returncode, src.name, errors[src])
+        link = subprocess.run([cxx, *flags, *map(str, objs.values()), "-o", str(out)],
+                              capture_output=True, text=True)
+        check(link.returncode, "the link of " + " and ".join(o.name for o in objs.values()),
+              link.stderr)
         os.replace(out, lib)  # atomic: concurrent processes see a whole library or none
     _prune(lib)
     return info | {"built": True, "seconds": round(time.perf_counter() - t0, 1)}
