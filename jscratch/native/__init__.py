@@ -41,7 +41,8 @@ gives the same bits as its jnp path (`tests/test_grid.py`).
 Build. The kernels (native_lit.cc, which includes native_arc.h and native_simd.h, and
 native_bin.cc) are compiled on first use with the system's C++ compiler (``$CXX``, else ``g++``,
 ``c++`` or ``clang++`` on ``PATH``), one library per dtype, each when a kernel of that dtype is
-first asked for (about 10 s each on 2 cores; a float32 design never builds the float64 one), into
+first asked for (the two sources side by side, then a link: about 10 s each on 2 cores; a
+float32 design never builds the float64 one), into
 ``native_lit-<key>-f32.so`` and ``native_lit-<key>-f64.so`` in ``$JSCRATCH_CACHE`` (else
 ``$XDG_CACHE_HOME/jscratch`` or ``~/.cache/jscratch``). The key (`_key`)
 covers everything the binary depends on: the text of the four source files, the compiler's path and
