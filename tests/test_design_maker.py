@@ -90,3 +90,33 @@ def test_carving_estimate_by_hand():
     assert est["travel_m"] == pytest.approx(0.005) and est["cut_length_m"] == pytest.approx(0.02)
 
 
+
+
+def test_the_default_carving_estimate_is_the_greedy_toolpath_on_every_run():
+    """With no 2-opt time (`save_result`'s default) the estimate is the greedy order with the best
+    directions, the same on every run: its travel equals `toolpath`'s greedy order and
+    directions computed here, and its hours are `carving_seconds` of that travel."""
+    from jscratch import toolpath
+    from jscratch.design.maker import carving_estimate
+
+    rng = np.random.default_rng(3)
+    p0 = rng.uniform(0.01, 0.29, (400, 2))
+    p1 = p0 + rng.normal(0, 0.004, (400, 2))
+    n = len(p0)
+    d = designfile.validate_design(p0, p1, [2.5e-4] * n, [1.28e-4] * n, [0.04] * n, [0.3, 0.3])
+    prof = MachineProfile()
+    plunge = np.full(n, 5e-5)
+    a = carving_estimate(d, prof, time_limit=0, plunge=plunge)
+    b = carving_estimate(d, prof, time_limit=0, plunge=plunge)
+    a.pop("ordering_seconds"), b.pop("ordering_seconds")
+    assert a == b
+    q0, q1 = 1000 * d.p0, 1000 * d.p1
+    order, _ = toolpath.greedy_order(q0, q1, (0.0, 0.0))
+    flipped = toolpath.best_directions(q0, q1, order, (0.0, 0.0))
+    travel = toolpath.path_travel(q0, q1, order, flipped, (0.0, 0.0))
+    assert a["travel_m"] == pytest.approx(travel / 1000, rel=1e-12)
+    cut = float(np.hypot(*(q1 - q0).T).sum())
+    assert a["estimated_seconds"] == pytest.approx(carving_seconds(
+        prof, n=n, cut_mm=cut, travel_mm=travel, plunge_mm_total=1000 * plunge.sum()), rel=1e-12)
+    improved = carving_estimate(d, prof, time_limit=5.0, plunge=plunge)
+    assert improved["travel_m"] <= a["travel_m"]

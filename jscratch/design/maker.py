@@ -113,12 +113,13 @@ def as_carved(design: designfile.Design, profile: MachineProfile, shape, design_
 def carving_estimate(design: designfile.Design, profile: MachineProfile, *, time_limit: float = 5.0,
                      plunge=None) -> dict:
     """Carving time of `design` on `profile`: ordered toolpath (greedy + `time_limit` s of 2-opt/
-    Or-opt, as `jscratch.fabricate` does with its own limit) and `carving_seconds`."""
+    Or-opt, as `jscratch.fabricate` does with its own limit; 0: greedy alone, the same on every
+    run) and `carving_seconds`."""
     from jscratch.toolpath import order_scratches
 
     p0 = 1000.0 * design.p0
     p1 = 1000.0 * design.p1
-    ordering = order_scratches(p0, p1, (0.0, 0.0), time_limit=time_limit)
+    ordering = order_scratches(p0, p1, (0.0, 0.0), improve=time_limit != 0, time_limit=time_limit)
     if plunge is None:
         plunge, _ = plunges(design, profile)
     cut = float(np.hypot(*(p1 - p0).T).sum())
