@@ -347,6 +347,33 @@ def test_settings_are_read_once_and_checked(monkeypatch):
 
 
 @needs_native
+def test_a_kernel_call_loads_its_own_dtype():
+    """Asking `available` for float32 builds and registers the float32 kernels alone; a direct
+    float64 kernel call then loads the float64 library itself (in a fresh process, the suite's
+    kernel cache) and gives the float32 call's result to float32 rounding."""
+    code = """
+import json, jax, jax.numpy as jnp, numpy as np
+jax.config.update("jax_enable_x64", True)
+from jscratch import lobe, native
+ok = native.available(jnp.float32)
+before = native.status(jnp.float64)["kernel"]
+fp = np.array([[[0., 0.], [1e-3, 0.], [1e-3, 1e-3], [0., 1e-3]]])
+args = [fp, [[4e-4, -1e-3]], [[6e-4, 2e-3]], [2.5e-4], [1e-4], [0.04], [True],
+        [[[0.1, 0.02, 1.0]]]]
+out = {}
+for dt in (jnp.float32, jnp.float64):
+    a = [jnp.asarray(x, dt if i != 6 else bool) for i, x in enumerate(args)]
+    out[jnp.dtype(dt).name] = float(native.pair_values(lobe.nodes(dt), *a)[0][0, 0])
+print(json.dumps({"ok": ok, "before": before, "after": native.status(jnp.float64)["kernel"],
+                  "D": out}))
+"""
+    r = _python(code)
+    assert r["ok"] and r["before"] == "jnp" and r["after"] == "native", r
+    D32, D64 = r["D"]["float32"], r["D"]["float64"]
+    assert D64 != 0 and abs(D32 - D64) <= 1e-5 * abs(D64), r
+
+
+@needs_native
 def test_status_and_cli_describe_the_kernel(capsys):
     """`status` names the loaded library, its key and what the key covers;
     ``python -m jscratch.native --json`` prints the same in a fresh process and exits 0."""

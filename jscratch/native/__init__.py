@@ -354,6 +354,11 @@ def prepare(dtype=jnp.float32) -> None:
         return
     if name is None or not enabled() or not _on_cpu():
         return
+    _start(name)
+
+
+def _start(name: str) -> None:
+    """`prepare`'s build of the library `name` on its thread, once per process."""
     with _build_lock:
         if name in _build:
             return
@@ -431,7 +436,7 @@ def _targets_of(dt) -> list[tuple[str, str]]:
 @functools.cache
 def _load_once(name: str) -> bool:
     dt = next(d for d, n in _DTYPES.items() if n == name)
-    prepare(dt)
+    _start(name)
     build = _build[name]
     build["thread"].join()
     try:
@@ -454,6 +459,21 @@ def _load_once(name: str) -> bool:
     how = (f"compiled ({info['seconds']} s)" if info["built"] else "found in the cache")
     _loaded[name] = {"ok": True, "why": f"{how} and registered as an XLA FFI target"}
     return True
+
+
+def _registered(dtype) -> jnp.dtype:
+    """`dtype`, its kernels built and registered as FFI targets before a call to them is traced
+    (a caller may have asked `available` for another dtype; `override` does not stop a direct
+    call). Raises RuntimeError, saying why, where they cannot be."""
+    dt = jnp.dtype(dtype)
+    name = _DTYPES.get(dt)
+    why = ("no native kernel for " + dt.name if name is None
+           else "disabled (JSCRATCH_NATIVE=0)" if not _settings()[0]
+           else "the default backend is not the CPU" if not _on_cpu()
+           else None if _load(name) else _loaded[name]["why"])
+    if why is not None:
+        raise RuntimeError(f"jscratch's native kernel cannot run for {dt.name}: {why}")
+    return dt
 
 
 def available(dtype) -> bool:
@@ -504,8 +524,9 @@ def status(dtype=jnp.float32) -> dict:
 
 
 def lit_values(n_gl: int, ua, ub, Ya, Yb, X, h, b, t, alpha):
-    """`lit_partials`' first output alone (the forward pass; cheaper). Needs `available`."""
-    dt = jnp.dtype(ua.dtype)
+    """`lit_partials`' first output alone (the forward pass; cheaper). Needs `available` for
+    its dtype (else RuntimeError, saying why)."""
+    dt = _registered(ua.dtype)
     call = jax.ffi.ffi_call(_TARGETS[dt, False][0], jax.ShapeDtypeStruct(X.shape, dt),
                             vmap_method="broadcast_all")
     return call(ua, ub, Ya, Yb, X, h, b, t, alpha, n_gl=int(n_gl), threads=threads())
@@ -516,8 +537,8 @@ def lit_partials(n_gl: int, ua, ub, Ya, Yb, X, h, b, t, alpha):
     half-width ``X`` in widths, ``(...)``) under the half vector ``h`` (``(..., 3)``, board frame)
     for a scratch along ``t`` and across ``b`` (``(..., 2)``) with roughness ``alpha``
     (``(...)``), and its partials: ``(lit, (d_ua, d_ub, d_Ya, d_Yb, d_X, d_h, d_b, d_t,
-    d_alpha))``, shapes as the inputs. Jittable and vmappable; needs `available`."""
-    dt = jnp.dtype(ua.dtype)
+    d_alpha))``, shapes as the inputs. Jittable and vmappable; needs `available` for its dtype."""
+    dt = _registered(ua.dtype)
     args = (ua, ub, Ya, Yb, X, h, b, t, alpha)
     out = (jax.ShapeDtypeStruct(X.shape, dt),) + tuple(jax.ShapeDtypeStruct(a.shape, dt)
                                                        for a in args)
@@ -530,7 +551,8 @@ def lit_partials(n_gl: int, ua, ub, Ya, Yb, X, h, b, t, alpha):
 def lit(n_gl: int, ua, ub, Ya, Yb, X, h, b, t, alpha):
     """`lit_values`, differentiable: its reverse pass multiplies `lit_partials`' partials by the
     cotangent (`ndf`'s `_lit_sum` reverse pass chained through the slab and the lobe parameters,
-    per pair-view in one native call). Works under `jax.shard_map`. Needs `available`."""
+    per pair-view in one native call). Works under `jax.shard_map`. Needs `available` for its
+    dtype."""
     args = (ua, ub, Ya, Yb, X, h, b, t, alpha)
     return functools.reduce(_varying_like, args, lit_values(n_gl, *args))
 
@@ -569,7 +591,8 @@ def pair_values(n_gl: int, footprint, p0, p1, width, depth, alpha, valid, h, pro
     and that geometry's ``area`` give them (the geometry once per pair, every view on its pieces
     that are not points). ``footprint`` ``(n, 4, 2)``, ``p0, p1`` ``(n, 2)``, ``width, depth,
     alpha`` ``(n,)`` (m, m, m, 1), ``valid`` ``(n,)`` bool (padding slots: exact zeros), ``h``
-    ``(V, n, 3)`` board-frame half vectors. Needs `available`; works under `jax.shard_map`.
+    ``(V, n, 3)`` board-frame half vectors. Needs `available` for their dtype; works under
+    `jax.shard_map`.
 
     ``profile`` (static) chooses the groove (docs/model.md §2, §13):
 
@@ -582,7 +605,7 @@ def pair_values(n_gl: int, footprint, p0, p1, width, depth, alpha, valid, h, pro
       float32, 24 in float64).
 
     Anything else: `InputError`."""
-    dt = jnp.dtype(width.dtype)
+    dt = _registered(width.dtype)
     code = _profile(profile)
     args = (footprint, p0, p1, width, depth, alpha, valid, h)
     call = jax.ffi.ffi_call(_PAIR_TARGETS[dt, False][0],
@@ -599,7 +622,7 @@ def pair_vjp(n_gl: int, footprint, p0, p1, width, depth, alpha, valid, h, ct_D, 
     padding slots; the footprint is data). The geometry's Jacobian is computed in forward mode
     (six tangents) and chained with every view's partials (`lit_partials`' formulas for the
     paper's profile, `native_arc.h`'s for the arc). ``profile`` as in `pair_values`."""
-    dt = jnp.dtype(width.dtype)
+    dt = _registered(width.dtype)
     code = _profile(profile)
     args = (footprint, p0, p1, width, depth, alpha, valid, h, ct_D, ct_A)
     out = tuple(jax.ShapeDtypeStruct(x.shape, dt) for x in (p0, p1, width, depth, alpha, h))
@@ -616,7 +639,7 @@ def pair_jacobian(n_gl: int, footprint, p0, p1, width, depth, alpha, valid, h, p
     slots). `pair_vjp` at cotangents ``(ct_D, ct_A)`` is ``sum_v ct_D[v] J_D[v] + ct_A J_A`` (and
     ``ct_D[v] J_h[v]``): a reverse pass that keeps these needs no second evaluation. ``profile``
     as in `pair_values`."""
-    dt = jnp.dtype(width.dtype)
+    dt = _registered(width.dtype)
     code = _profile(profile)
     args = (footprint, p0, p1, width, depth, alpha, valid, h)
     V, n = h.shape[0], width.shape[0]
@@ -661,7 +684,7 @@ def bin_cells(fl, ints, *, shape, strip_capacity: int, rows: int, pair_capacity:
     pitch ``hx, hy`` and board height ``sy`` (metres), as Python floats (rounded to the dtype
     inside, as jnp rounds them). Jittable; under `jax.vmap` one call per batch element. Needs
     `available`."""
-    dt = jnp.dtype(fl.dtype)
+    dt = _registered(fl.dtype)
     L = int(pair_capacity)
     out = (jax.ShapeDtypeStruct((L,), jnp.int32), jax.ShapeDtypeStruct((L,), jnp.int32),
            jax.ShapeDtypeStruct((L,), jnp.bool_), jax.ShapeDtypeStruct((), jnp.bool_),
