@@ -726,7 +726,7 @@ def main(argv=None) -> int:
                 f"up to {st['threads']} threads)" if st["kernel"] == "native"
                 else "the jnp path (jscratch.ndf)")
         print(f"jscratch native kernel: {st['kernel']}: {what}")
-        print(f"library: {st['library']}")
+        print(f"library (float32; float64's is built when first asked for): {st['library']}")
         covers = ", ".join(f"{_COVERS.get(k, k)} {v}" for k, v in (st["covers"] or {}).items()
                            if k != "compiler_version")
         print(f"key: {st['key']}" + (f" (covers {covers}, compiler version)" if covers else ""))
