@@ -346,6 +346,14 @@ def test_settings_are_read_once_and_checked(monkeypatch):
     assert (native.enabled(), native.threads()) == before
 
 
+def test_a_kernel_call_for_a_dtype_without_kernels_is_refused_in_one_line():
+    """A direct call for a dtype the kernels do not cover is an `InputError` naming the dtype."""
+    z = lambda *shape: jnp.zeros(shape, jnp.int32)
+    with pytest.raises(InputError, match=r"cannot run for int32 here \(no native kernel for int32"):
+        native.pair_values(4, z(1, 4, 2), z(1, 2), z(1, 2), z(1), z(1), z(1), jnp.ones((1,), bool),
+                           z(1, 1, 3))
+
+
 @needs_native
 def test_a_kernel_call_loads_its_own_dtype():
     """Asking `available` for float32 builds and registers the float32 kernels alone; a direct

@@ -464,7 +464,8 @@ def _load_once(name: str) -> bool:
 def _registered(dtype) -> jnp.dtype:
     """`dtype`, its kernels built and registered as FFI targets before a call to them is traced
     (a caller may have asked `available` for another dtype; `override` does not stop a direct
-    call). Raises RuntimeError, saying why, where they cannot be."""
+    call). Raises `InputError`, saying why, where they cannot be: a caller asks `available`
+    first."""
     dt = jnp.dtype(dtype)
     name = _DTYPES.get(dt)
     why = ("no native kernel for " + dt.name if name is None
@@ -472,7 +473,8 @@ def _registered(dtype) -> jnp.dtype:
            else "the default backend is not the CPU" if not _on_cpu()
            else None if _load(name) else _loaded[name]["why"])
     if why is not None:
-        raise RuntimeError(f"jscratch's native kernel cannot run for {dt.name}: {why}")
+        raise InputError(f"jscratch's native kernel cannot run for {dt.name} here ({why}): "
+                         "ask native.available(dtype) first")
     return dt
 
 
@@ -525,7 +527,7 @@ def status(dtype=jnp.float32) -> dict:
 
 def lit_values(n_gl: int, ua, ub, Ya, Yb, X, h, b, t, alpha):
     """`lit_partials`' first output alone (the forward pass; cheaper). Needs `available` for
-    its dtype (else RuntimeError, saying why)."""
+    its dtype (else `InputError`, saying why)."""
     dt = _registered(ua.dtype)
     call = jax.ffi.ffi_call(_TARGETS[dt, False][0], jax.ShapeDtypeStruct(X.shape, dt),
                             vmap_method="broadcast_all")
