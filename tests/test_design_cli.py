@@ -182,3 +182,24 @@ def test_text_file_is_not_a_result(tmp_path):
     with pytest.raises(DesignFileError) as e:
         load_result(tmp_path / "x")
     assert "\n" not in str(e.value) and "allow_pickle" not in str(e.value)
+
+
+def test_without_quiet_the_run_says_what_it_does_before_its_first_step(tmp_path):
+    """Without ``--quiet`` (a fresh process, as a user runs it): a status line names each phase
+    before the first step (setting up, compiling), then the steps' progress bar counts the
+    iterations, then the summary; on a first run (an empty kernel cache, where a compiler is
+    found) the status line says that the native kernel is being built."""
+    import shutil
+
+    env_cache = {"JSCRATCH_CACHE": str(tmp_path / "cache")}
+    proc = subprocess.run([sys.executable, "-m", "jscratch.design", *TINY, "--out",
+                           str(tmp_path / "out")], capture_output=True, text=True, timeout=600,
+                          env={**os.environ, "JAX_PLATFORMS": "cpu", **env_cache})
+    assert proc.returncode == 0, proc.stderr
+    err = proc.stderr.replace("\r", "\n")
+    phases = ["design: setting up", "design: compiling the step", "design: 100%|"]
+    at = [err.find(p) for p in phases]
+    assert all(i >= 0 for i in at) and at == sorted(at), (at, err[-2000:])
+    assert "3/3" in err and proc.stdout.startswith("wrote ")
+    if shutil.which("g++") or shutil.which("c++") or shutil.which("clang++"):
+        assert "building the native kernel (first run only)" in err, err[-2000:]

@@ -102,19 +102,26 @@ def design(
                     "versions": mesh_mod.versions()})
     raw = mesh_mod.checkpoint_bytes(checkpoint) if resume and mesh is not None else None
     # ---
-    params, optimizer, ctx = setup(tnp, views, board, config, mesh)
-    t = time.perf_counter()
-    parts["setup"] = t - t_start
-    warm = None
-    if resume:
-        like = State(0, params, optimizer.init(params), None, {}, 0)
-        state = load_checkpoint(checkpoint, like, config, thash, raw)
-    else:
-        state, warm = initial_state(params, optimizer, ctx, tnp, config)
-    compile_seconds = None
-    if warm is not None:
-        warm.join()
-        compile_seconds = warm.seconds
+    phase = _Phase(progress, config)  # what the run does before its first step, on one line
+    try:
+        phase.show("setting up")
+        params, optimizer, ctx = setup(tnp, views, board, config, mesh)
+        t = time.perf_counter()
+        parts["setup"] = t - t_start
+        warm = None
+        if resume:
+            like = State(0, params, optimizer.init(params), None, {}, 0)
+            state = load_checkpoint(checkpoint, like, config, thash, raw)
+        else:
+            phase.show("compiling the step; the initial render")
+            state, warm = initial_state(params, optimizer, ctx, tnp, config)
+        compile_seconds = None
+        if warm is not None:
+            phase.show("compiling the step")
+            warm.join()
+            compile_seconds = warm.seconds
+    finally:
+        phase.close()
     parts["initial_state"] = time.perf_counter() - t
     n_iter = config.iterations if stop_after is None else min(config.iterations, stop_after)
     state, step_times, loop = _iterate(state, optimizer, ctx, config, n_iter, checkpoint, thash,
@@ -345,6 +352,32 @@ def _check_health(health, state, config, checkpoint, thash):
                 f"non-finite or out-of-range {what} at iteration {state.iteration}{where}: "
                 f"the optimisation stopped{saved}. Lower the learning rate of that group "
                 "or freeze it.")
+
+
+class _Phase:
+    """With `progress`: one status line (tqdm, elapsed seconds) for what the run does before its
+    first step, saying when the native kernel is being built (a first run); cleared when the
+    progress bar of the steps starts."""
+
+    def __init__(self, progress: bool, config):
+        self.dtype = getattr(config, "dtype", "float32")
+        self.bar = None
+        if progress:
+            from tqdm.auto import tqdm
+
+            self.bar = tqdm(total=None, desc="design: starting", bar_format="{desc} ({elapsed})",
+                            leave=False, dynamic_ncols=True)
+
+    def show(self, what: str) -> None:
+        if self.bar is not None:
+            build = "; building the native kernel (first run only)" if native.building(
+                self.dtype) else ""
+            self.bar.set_description_str(f"design: {what}{build}")
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
 
 
 def _iterate(state, optimizer, ctx, config, n_iter, checkpoint, thash, progress):

@@ -22,7 +22,7 @@ and float32). A third kernel, the grid binning's strip and cell stage (`bin_cell
 gives the same bits as its jnp path (`tests/test_grid.py`).
 
 - `prepare(dtype=float32)`: start that dtype's build on a background thread (the design does,
-  before its setup).
+  before its setup); `building(dtype)`: whether the compiler is running for it now.
 - `available(dtype) -> bool`: whether the kernels can run for arrays of `dtype` here: the
   native kernel is enabled (`enabled`), the default backend is the CPU and the kernel was built
   and loaded. Otherwise jscratch uses the jnp path.
@@ -97,7 +97,7 @@ import numpy as np
 
 from jscratch.errors import InputError, error_line
 
-__all__ = ["PROFILES", "NativeKernelWarning", "available", "bin_cells", "enabled",
+__all__ = ["PROFILES", "NativeKernelWarning", "available", "bin_cells", "building", "enabled",
            "keep_freed_memory", "lit",
            "lit_partials", "lit_values", "main", "override", "pair_jacobian", "pair_values",
            "pair_vjp", "pairs", "prepare", "status", "threads"]
@@ -294,6 +294,8 @@ def _compile(name: str = "f32") -> dict:
     if lib.exists():
         return info
     t0 = time.perf_counter()
+    if name in _build:  # (what `building` reports)
+        _build[name]["compiling"] = True
     lib.parent.mkdir(parents=True, exist_ok=True)
     flags = [*_FLAGS, f"-DJSCRATCH_DTYPE_{name.upper()}", f"-I{jax.ffi.include_dir()}"]
     with tempfile.TemporaryDirectory(dir=lib.parent) as tmp:
@@ -355,6 +357,13 @@ def prepare(dtype=jnp.float32) -> None:
     if name is None or not enabled() or not _on_cpu():
         return
     _start(name)
+
+
+def building(dtype=jnp.float32) -> bool:
+    """Whether the compiler is running now for `dtype`'s library (a first run; a library found
+    in the cache is not a build). For progress messages; starts nothing."""
+    build = _build.get(_DTYPES.get(jnp.dtype(dtype)))
+    return bool(build and build.get("compiling") and build["thread"].is_alive())
 
 
 def _start(name: str) -> None:
