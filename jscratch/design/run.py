@@ -102,7 +102,7 @@ def design(
                     "versions": mesh_mod.versions()})
     raw = mesh_mod.checkpoint_bytes(checkpoint) if resume and mesh is not None else None
     # ---
-    phase = _Phase(progress, config)  # what the run does before its first step, on one line
+    phase = _Phase(progress, config.dtype)  # what the run does before its first step, one line
     try:
         phase.show("setting up")
         params, optimizer, ctx = setup(tnp, views, board, config, mesh)
@@ -359,8 +359,8 @@ class _Phase:
     first step, saying when the native kernel is being built (a first run); cleared when the
     progress bar of the steps starts."""
 
-    def __init__(self, progress: bool, config):
-        self.dtype = getattr(config, "dtype", "float32")
+    def __init__(self, progress: bool, dtype: str):
+        self.dtype = dtype
         self.bar = None
         if progress:
             from tqdm.auto import tqdm
