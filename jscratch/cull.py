@@ -60,6 +60,8 @@ Imports: `jscratch.grid` (pair lists), `jscratch.ndf`.
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -68,12 +70,14 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from jscratch.errors import InputError
 from jscratch.grid import Pairs, checked_scratches
 from jscratch.ndf import local_frame
+from jscratch.scene import PROFILES
 
 __all__ = [
     "DEFAULT_EPS",
     "cull",
     "cull_coverage",
     "cull_ratio",
+    "view_keep",
 ]
 
 DEFAULT_EPS = 1e-3
@@ -83,7 +87,7 @@ views) it keeps ~55 % of the pairs for a radiance error of ~3e-4 of the image's 
 kept, ~2e-3). A design does not cull by default (`DesignConfig.cull_eps = 0`, docs/model.md §11)."""
 
 
-@jax.jit
+@functools.partial(jax.jit, static_argnames="profile")
 def cull_ratio(
     pairs: Pairs,
     p0: Float[ArrayLike, "N 2"],
@@ -92,6 +96,7 @@ def cull_ratio(
     depth: Float[ArrayLike, "N"],
     alpha: Float[ArrayLike, "N"],
     h_pixel: Float[ArrayLike, "P 3"],
+    profile: str = "paper",
 ) -> Float[Array, " L"]:
     """Rigorous bound `rho` per pair with `D_hat <= rho * A / (pi alpha^2)` (jittable).
 
@@ -106,7 +111,9 @@ def cull_ratio(
     Derivation: module docstring.
 
     **Arguments:** `pairs`; current `p0`, `p1` `(N, 2)`, `width`, `depth`, `alpha` (`(N,)` or
-    scalar); `h_pixel` `(P, 3)` unit board-frame half vector per pixel (`P = H * W`).
+    scalar); `h_pixel` `(P, 3)` unit board-frame half vector per pixel (`P = H * W`); `profile`
+    (static) the groove's (`Scratches.profile`): the ball cutter's arc has a narrower fan of
+    normals than the paper groove of the same footprint, so its bound is tighter.
 
     **Returns:** `(L,)` bound ratio, in `[0, 1]` for `alpha < 1`; padding slots get 0.
     """
@@ -124,29 +131,79 @@ def cull_ratio(
     if h_pixel.ndim != 2 or h_pixel.shape[-1] != 3:
         raise InputError(f"h_pixel must have shape (H*W, 3), got {h_pixel.shape}")
     h_pixel = eqx.error_if(h_pixel, ~jnp.all(jnp.isfinite(h_pixel)), "h_pixel has non-finite entries")
-    t, b, length = local_frame(p0, p1)
-    # cos/sin of psi_max from 2 u_max = sqrt(1 - exp(-2d/w)) =: sqrt(s): tan(psi_max/2) = 2 u_max.
-    s = -jnp.expm1(-2.0 * depth / width)
-    cos_m = (1 - s) / (1 + s)
-    sin_m = 2 * jnp.sqrt(s) / (1 + s)
+    _, b, length = local_frame(p0, p1)
+    cos_m, sin_m = _wall(width, depth, profile)
     i = jnp.clip(pairs.scratch, 0, n - 1)
     h = h_pixel[jnp.clip(pairs.pixel, 0, h_pixel.shape[0] - 1)]
-    ti, bi = t[i], b[i]
-    hx = h[:, 0] * bi[:, 0] + h[:, 1] * bi[:, 1]
-    hz = h[:, 2]
-    cm, sm = cos_m[i], sin_m[i]
+    rho = _rho(h, b[i], length[i], cos_m[i], sin_m[i], alpha[i])
+    return jnp.where(pairs.valid, rho, 0.0)
+
+
+def _wall(width, depth, profile: str):
+    """``(cos, sin)`` of the steepest wall angle of each groove: the paper groove's ``psi_max``,
+    ``tan(psi_max / 2) = sqrt(s)``, ``s = 1 - exp(-2d/w)``; the ball cutter's arc (stored as the
+    paper groove with its footprint, `arc.arc_groove`) ``theta_max``, ``sin theta_max = a / R =
+    sqrt(s)``, ``cos theta_max = sqrt(1 - s) = exp(-d/w)`` (a narrower fan of normals, so a
+    tighter bound)."""
+    if profile not in PROFILES:
+        raise InputError(f"profile={profile!r}: expected one of {', '.join(map(repr, PROFILES))}")
+    s = -jnp.expm1(-2.0 * depth / width)
+    if profile == "arc":
+        return jnp.exp(-depth / width), jnp.sqrt(s)
+    return (1 - s) / (1 + s), 2 * jnp.sqrt(s) / (1 + s)
+
+
+def _rho(h, b, length, cos_m, sin_m, a):
+    """`cull_ratio`'s bound from the board-frame half vector `h` (``(..., 3)``, unit), the
+    scratch's across vector `b` (``(..., 2)``), `length`, wall angle and roughness `a`
+    (broadcast against ``h[..., 0]``)."""
+    dtype = h.dtype
+    hx = h[..., 0] * b[..., 0] + h[..., 1] * b[..., 1]
+    hz = h[..., 2]
     # The maximiser psi* = atan2(|hx|, hz) lies on the arc iff hz > 0 and |hx| cos <= hz sin.
-    on_arc = (hz > 0) & (jnp.abs(hx) * cm <= hz * sm)
-    c_max = jnp.where(on_arc, jnp.sqrt(hx * hx + hz * hz), hz * cm + jnp.abs(hx) * sm)
+    on_arc = (hz > 0) & (jnp.abs(hx) * cos_m <= hz * sin_m)
+    c_max = jnp.where(on_arc, jnp.sqrt(hx * hx + hz * hz), hz * cos_m + jnp.abs(hx) * sin_m)
     c_max = jnp.minimum(c_max + 4 * jnp.finfo(dtype).eps, 1.0)
-    a = alpha[i]
     a2 = a * a
     denom = jnp.where(a < 1, c_max * c_max * (a2 - 1) + 1, 1.0)
-    rho = jnp.where(c_max > 0, a2 * a2 / (denom * denom), 0.0)
+    rho = jnp.where(c_max <= 0, 0.0, a2 * a2 / (denom * denom))  # (a NaN stays NaN)
     rho = rho * (1 + 8 * jnp.finfo(dtype).eps)  # (the last operations' rounding)
     rho = jnp.where(a < 1, jnp.minimum(rho, 1.0), rho)
-    rho = jnp.where((length[i] > 0) | (a >= 1), rho, 0.0)  # zero-length: D_hat = A = 0
-    return jnp.where(pairs.valid, rho, 0.0)
+    return jnp.where((length > 0) | (a >= 1), rho, 0.0)  # zero-length: D_hat = A = 0
+
+
+def view_keep(
+    h: Float[ArrayLike, "V n 3"],
+    p0: Float[ArrayLike, "n 2"],
+    p1: Float[ArrayLike, "n 2"],
+    width: Float[ArrayLike, "n"],
+    depth: Float[ArrayLike, "n"],
+    alpha: Float[ArrayLike, "n"],
+    eps: float,
+    profile: str = "paper",
+) -> Bool[Array, "V n"]:
+    """Which pair-views of ``n`` pairs under ``V`` views to evaluate at tolerance `eps`
+    (jittable; what `render.render_pairs`' ``skip_eps`` skips, docs/model.md §11).
+
+    Pair-view ``(v, i)`` is skipped when its bound ``rho_v`` (`cull_ratio`) is below `eps` and
+    ``v`` is not the pair's brightest view (largest ``rho``): a skipped pair-view's ``D_hat``
+    is below ``eps A / (pi alpha^2)``, and no groove loses every view. ``eps = 0`` keeps all; a
+    NaN bound keeps every view of its pair (the NaN reaches the result).
+
+    **Arguments:** `h` ``(V, n, 3)`` each pair's board-frame half vector per view (normalised
+    here); the pair's scratch `p0`, `p1` ``(n, 2)``, `width`, `depth`, `alpha` ``(n,)`` (m, m,
+    m, 1; for ``profile="arc"`` the stored groove, `arc.arc_groove`); `eps` (static float).
+
+    **Returns:** ``(V, n)`` bool.
+    """
+    h = jnp.asarray(h)
+    if eps == 0:
+        return jnp.ones(h.shape[:-1], bool)
+    h = h / jnp.sqrt(jnp.sum(h * h, axis=-1, keepdims=True))
+    _, b, length = local_frame(jnp.asarray(p0), jnp.asarray(p1))
+    cos_m, sin_m = _wall(jnp.asarray(width), jnp.asarray(depth), profile)
+    rho = _rho(h, b[None], length[None], cos_m[None], sin_m[None], jnp.asarray(alpha)[None])
+    return ~((rho < eps) & (rho < jnp.max(rho, axis=0, keepdims=True)))
 
 
 def _checked_eps(eps, dtype) -> Array:

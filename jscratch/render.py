@@ -55,7 +55,7 @@ import numpy as np
 from jax.sharding import PartitionSpec
 from jaxtyping import Array, Float
 
-from jscratch import arc, lobe, native, ndf
+from jscratch import arc, cull, lobe, native, ndf
 from jscratch.compile_options import grad_compiler_options
 from jscratch.bvh import DEFAULT_CHUNK, bin_pairs, cull_pairs, pixels_per_shard
 from jscratch.errors import InputError
@@ -107,6 +107,14 @@ class _Cfg(NamedTuple):
     need_D: bool
     need_A: bool
     profile: str  # `Scratches.profile`
+    skip_eps: float = 0.0  # pair-views skipped below this bound (`cull.view_keep`; shared lists)
+
+    def keep(self, p0, p1, w, d, a, h):
+        """The jnp path's pair-views to evaluate ``(V, chunk)`` (`cull.view_keep`; the native
+        kernel decides the same itself), or None for all."""
+        if self.skip_eps == 0 or not self.need_D:
+            return None
+        return cull.view_keep(h, p0, p1, w, d, a, self.skip_eps, self.profile)
 
     def nodes(self, dtype) -> int:
         """Gauss-Legendre nodes per piece of the profile's lit integral (the native kernel's)."""
@@ -243,12 +251,15 @@ def _fwd_local(cfg: _Cfg, params, h_loc, out, scr, valid):
         p0, p1, w, d, a, h = _gather(params, h_rows, sc, local)
         if native.available(dt):
             D, A = native.pair_values(cfg.nodes(dt), *_chunk_native(cfg, xe, ye, pix, vc, p0, p1,
-                                                                    w, d, a, h), profile=cfg.profile)
+                                                                    w, d, a, h), profile=cfg.profile,
+                                      skip_eps=cfg.skip_eps)
             Ds = Ds.at[:, local].add(D, mode="drop") if cfg.need_D else Ds
             return Ds, (As.at[local].add(A, mode="drop") if cfg.need_A else As)
         geometry, budget = _chunk_geometry(cfg, xe, ye, pix, vc, p0, p1, w, d)
         if cfg.need_D:
             D = jax.lax.switch(budget, _budgets(cfg, _chunk_lit), geometry, vc, a, h)
+            keep = cfg.keep(p0, p1, w, d, a, h)
+            D = D if keep is None else jnp.where(keep, D, jnp.zeros((), dt))
             Ds = Ds.at[:, local].add(D, mode="drop")
         if cfg.need_A:
             As = As.at[local].add(jnp.where(vc, geometry.area, 0), mode="drop")
@@ -280,13 +291,16 @@ def _bwd_local(cfg: _Cfg, params, h_loc, out, scr, valid, gD, gA):
             args = _chunk_native(cfg, xe, ye, pix, vc, p0, p1, w, d, a, h)
             ctD = gD.at[:, local].get(mode="clip")[:len(args[-1])]  # (no rows without D)
             ctA = gA.at[local].get(mode="clip") if cfg.need_A else jnp.zeros_like(w)
-            *dp, dh = native.pair_vjp(cfg.nodes(dt), *args, ctD, ctA, profile=cfg.profile)
+            *dp, dh = native.pair_vjp(cfg.nodes(dt), *args, ctD, ctA, profile=cfg.profile,
+                                      skip_eps=cfg.skip_eps)
             return scatter(carry, sc, local, *dp, dh if cfg.need_D else jnp.zeros_like(h))
         geometry, geometry_vjp, budget = jax.vjp(
             lambda *x: _chunk_geometry(cfg, xe, ye, pix, vc, *x), p0, p1, w, d, has_aux=True)
         # Only the outputs the caller uses are differentiated (no dead reverse work).
         if cfg.need_D:
             ctD = gD.at[:, local].get(mode="clip")
+            keep = cfg.keep(p0, p1, w, d, a, h)
+            ctD = ctD if keep is None else jnp.where(keep, ctD, jnp.zeros((), dt))
             g_geometry, da, dh = jax.lax.switch(budget, _budgets(cfg, lit_vjp), geometry, vc, a, h,
                                                 ctD)
         else:
@@ -350,7 +364,8 @@ def _jac_fwd(cfg: _Cfg, params, h_loc, out, scr, valid):
         pix, local = _split_index(cfg, xs[0])
         p0, p1, w, d, a, h = _gather(params, h_rows, xs[1], local)
         D, A, *J = native.pair_jacobian(cfg.nodes(dt), *_chunk_native(
-            cfg, xe, ye, pix, xs[2], p0, p1, w, d, a, h), profile=cfg.profile)
+            cfg, xe, ye, pix, xs[2], p0, p1, w, d, a, h), profile=cfg.profile,
+            skip_eps=cfg.skip_eps)
         Ds = Ds.at[:, local].add(D, mode="drop") if cfg.need_D else Ds
         return (Ds, As.at[local].add(A, mode="drop") if cfg.need_A else As), tuple(J)
 
@@ -482,7 +497,7 @@ def _sort_pairs(out, scr, valid, klass, shards: int):
 
 
 def _run_pair_sums(scratches: Scratches, board: Board, h_views, out, scr, valid, *, per_view,
-                   chunk, mesh, axes, need_D, need_A):
+                   chunk, mesh, axes, need_D, need_A, skip_eps=0.0):
     """Pad every shard's segment of the pair list to a multiple of the chunk, pad the pixel axis
     to ``Pb * n_shards`` and call `_pair_sums`; returns sums over the board's ``P`` pixels."""
     shards = _n_shards(mesh, axes)
@@ -502,7 +517,7 @@ def _run_pair_sums(scratches: Scratches, board: Board, h_views, out, scr, valid,
         fill = jnp.zeros(h_views.shape[:1] + (Pb * shards - P, 3), h_views.dtype).at[..., 2].set(1)
         h_views = jnp.concatenate([h_views, fill], 1)
     cfg = _Cfg(board.H, board.W, board.Sx, board.Sy, chunk, mesh, axes, Pb, per_view, need_D,
-               need_A, scratches.profile)
+               need_A, scratches.profile, float(skip_eps))
     params = (scratches.p0, scratches.p1, scratches.width, scratches.depth, scratches.alpha)
 
     def order(params, out, scr, valid, k):  # pad and sort ``k`` segments
@@ -619,7 +634,7 @@ def render_pairs(scratches: Scratches, views: Views, board: Board, pairs,
                  coverage_pairs=None, *, chunk: int = DEFAULT_CHUNK,
                  mesh: jax.sharding.Mesh | None = None,
                  axis_names: str | Sequence[str] | None = None,
-                 checked: bool = True) -> Float[Array, "m h w"]:
+                 checked: bool = True, skip_eps: float = 0.0) -> Float[Array, "m h w"]:
     """Render linear radiance from precomputed pair lists (jittable, differentiable).
 
     **Arguments:**
@@ -631,6 +646,12 @@ def render_pairs(scratches: Scratches, views: Views, board: Board, pairs,
     - `coverage_pairs`: the pair list the coverage ``c`` is summed over (a shared, unculled ``(L,)``
       list). Default: ``pairs`` itself when shared, else each view's own list (exact only when the
       per-view lists are unculled: a culled pair still covers the board).
+    - `skip_eps` (static float in ``[0, 1]``, shared `pairs` only): skip the pair-views
+      `cull.view_keep` drops at this tolerance (each below ``skip_eps A / (pi alpha^2)``, never a
+      pair's brightest view; their values and gradients are zero, the coverage keeps every pair;
+      docs/model.md §11). The native kernel computes the bound itself and skips the work of a
+      view that no pair of a SIMD block keeps; the jnp path evaluates the pair-views and zeroes
+      them. ``0`` (default) skips none.
     - `chunk`: pairs per chunk per device (memory knob; results do not depend on it beyond rounding).
     - `mesh`, `axis_names`: shard the pixel axis over these mesh axes (default: all axes of
       `mesh`); the pair lists must then be laid out for ``n_shards`` pixel blocks (`bin_pairs` /
@@ -671,6 +692,11 @@ def render_pairs(scratches: Scratches, views: Views, board: Board, pairs,
     # A shared list is evaluated for every view at once (views vmapped inside the chunk, the
     # scratch geometry gathered once); per-view lists are flattened to outputs v*P_pad + pixel.
     out, scr, valid, shared = flat(pairs, M, "pairs")
+    if not (isinstance(skip_eps, (int, float)) and 0 <= skip_eps <= 1):
+        raise InputError(f"render_pairs: skip_eps must be a float in [0, 1], got {skip_eps!r}")
+    if skip_eps > 0 and not shared:
+        raise InputError("render_pairs: skip_eps > 0 needs one pair list shared by the views "
+                         "(per-view lists are culled already)")
     if coverage_pairs is not None:
         cout, cscr, cvalid, cshared = flat(coverage_pairs, 1, "coverage_pairs")
         if not cshared:
@@ -682,7 +708,8 @@ def render_pairs(scratches: Scratches, views: Views, board: Board, pairs,
         Ds, As = jnp.zeros((M, P), dtype), jnp.zeros((1 if shared else M, P), dtype)
     else:
         Ds, As = _run_pair_sums(scratches, board, geo_h, out, scr, valid, per_view=not shared,
-                                need_D=True, need_A=coverage_pairs is None, **kw)
+                                need_D=True, need_A=coverage_pairs is None,
+                                skip_eps=skip_eps, **kw)
     if coverage_pairs is not None:
         if n == 0:
             As = jnp.zeros((1, P), dtype)

@@ -230,10 +230,53 @@ def test_cull_error_bound_with_the_ndf_kernel(random_layout):
 
 
 
+def _arc_peak(p0, p1, width, depth, alpha, h, n_theta=40001):
+    """`pi alpha^2 max D` over the ball cutter's normals ``(-sin t, 0, cos t)``, ``|t| <= t_max``,
+    ``sin t_max = a / R`` (`arc.arc_groove`'s stored ``(w, d) = (2R, -2R log(1 - p/R))``: ``a / R
+    = sqrt(1 - exp(-2d/w))``), by dense sampling of the angle (float64): what the arc's `rho`
+    bounds."""
+    p0, p1, width, depth, alpha, h = (np.asarray(x, np.float64)
+                                      for x in (p0, p1, width, depth, alpha, h))
+    v = p1 - p0
+    t = v / np.hypot(v[:, 0], v[:, 1])[:, None]
+    hx = h[:, 0] * t[:, 1] - h[:, 1] * t[:, 0]
+    t_max = np.arcsin(np.sqrt(-np.expm1(-2 * depth / width)))
+    theta = t_max[:, None] * np.linspace(-1, 1, n_theta)
+    nh = -np.sin(theta) * hx[:, None] + np.cos(theta) * h[:, 2, None]
+    return _ggx(nh, alpha[:, None]).max(-1) * np.pi * alpha**2
+
+
 @pytest.mark.float64
-def test_cull_ratio_bounds_the_arc_groove(random_layout):
+def test_cull_ratio_of_the_arc_is_a_tight_bound_of_its_normals(random_layout):
+    """``profile="arc"``: `rho` bounds the GGX over the ball cutter's own (narrower) fan of
+    normals and is attained by it, in float64 and float32, from grazing half vectors (``h_z``
+    from 1e-4) to steep ones, plunge ratios 1e-4-1; it is never above the paper groove's bound
+    of the same footprint, and below half of it for some pairs."""
+    from jscratch import arc
+
+    rng = np.random.default_rng(12)
+    pairs, (p0, p1, _, _, alpha, h) = _one_pair_per_scratch(
+        rng, random_layout, 288, (0.1, 1.0), 0.6, lambda rng, n: 10.0 ** rng.uniform(-4, 0.5, n), 9)
+    R = 1.25e-4 * np.exp(rng.uniform(-1, 1, 288))
+    width, depth = (np.asarray(x, np.float64) for x in arc.arc_groove(
+        R * np.exp(rng.uniform(np.log(1e-4), 0, 288)), R))
+    for dtype in (jnp.float64, jnp.float32):
+        args = [jnp.asarray(x, dtype) for x in (p0, p1, width, depth, alpha, h)]
+        rho = np.asarray(cull.cull_ratio(pairs, *args, profile="arc"), np.float64)
+        paper = np.asarray(cull.cull_ratio(pairs, *args), np.float64)
+        d_max = _arc_peak(*args)
+        assert np.all(d_max <= rho * (1 + 1e-9) + 1e-300), dtype
+        assert np.all(d_max >= 0.98 * rho - 1e-12), dtype
+        assert np.all(rho <= paper) and np.sum(rho < 0.5 * paper) > 10, dtype
+    assert np.sum(rho < 1e-4) > 10 and np.sum(rho > 0.1) > 10
+
+
+@pytest.mark.float64
+@pytest.mark.parametrize("profile", ["paper", "arc"])
+def test_cull_ratio_bounds_the_arc_groove(random_layout, profile):
     """Ball-cutter arcs (`arc.pair_integral_of("arc")`, stored as ``w = 2R`` and the arc's depth):
-    the paper groove's bound still holds pair by pair, since the arc's wall angles lie within it."""
+    the paper groove's bound holds pair by pair, since the arc's wall angles lie within it, and
+    so does the arc's own, tighter one (``profile="arc"``), against the arc's pair integral."""
     from jscratch import arc
 
     board, shape = BOARD, (32, 32)
@@ -257,7 +300,7 @@ def test_cull_ratio_bounds_the_arc_groove(random_layout):
     h = half_vectors(board, shape, up(2.0), up(0.5))
     d_hat, area = (np.where(valid, np.asarray(v), 0.0) for v in kernel(
         h[pix], fps, p0[s], p1[s], width[s], depth[s], alpha[s]))
-    rho = np.asarray(cull.cull_ratio(pairs, p0, p1, width, depth, alpha, h))
+    rho = np.asarray(cull.cull_ratio(pairs, p0, p1, width, depth, alpha, h, profile=profile))
     assert np.all(d_hat <= rho * area / (np.pi * alpha[s] ** 2) * (1 + 1e-6) + 1e-18)
     assert int((valid & (rho < 1e-3)).sum()) > 100 and float(d_hat.max()) > 0
 
@@ -319,3 +362,41 @@ def test_cull_errors():
         cull.cull(pairs, p0, p1, 1e-4, 1e-4, 0.0, h, 1e-3)
     with pytest.raises(Exception, match="eps must be finite and >= 0"):
         cull.cull(pairs, p0, p1, 1e-4, 1e-4, 0.04, h, -1.0)
+
+
+@pytest.mark.parametrize("profile", ["paper", "arc"])
+def test_view_keep_drops_only_faint_pair_views_and_never_a_pair_s_brightest(profile):
+    """`cull.view_keep`: a pair-view is dropped exactly when its bound (`cull_ratio` of that
+    view's half vector) is below `eps` and below the pair's largest over the views; every pair
+    keeps at least one view; `eps = 0` keeps all; a NaN half vector is kept (its NaN must reach
+    the result, not be zeroed)."""
+    rng = np.random.default_rng(4)
+    n, V = 400, 3
+    mid = rng.uniform(0.05, 0.25, (n, 2))
+    ang = rng.uniform(0, 2 * np.pi, n)
+    u = np.stack([np.cos(ang), np.sin(ang)], -1)
+    p0, p1 = mid - 0.01 * u, mid + 0.01 * u
+    p0[:5] = p1[:5]  # zero length: D_hat = 0, every bound 0
+    width = rng.uniform(1e-4, 5e-4, n)
+    depth = width * rng.uniform(0.05, 1.0, n)
+    alpha = rng.uniform(0.02, 0.3, n)
+    h = rng.normal(size=(V, n, 3))
+    h[..., 2] = np.abs(h[..., 2]) * 10.0 ** rng.uniform(-3, 0.5, (V, n))
+    h[0, 7] = np.nan
+    pairs = bvh.Pairs(pixel=jnp.arange(n, dtype=jnp.int32), scratch=jnp.arange(n, dtype=jnp.int32),
+                      valid=jnp.ones(n, bool), overflow=jnp.array(False))
+    hn = h / np.linalg.norm(h, axis=-1, keepdims=True)
+    hn[0, 7] = [0.0, 0.0, 1.0]  # (`cull_ratio` refuses NaN; its bound is NaN below)
+    rho = np.stack([np.asarray(cull.cull_ratio(pairs, p0, p1, width, depth, alpha, hn[v],
+                                               profile=profile)) for v in range(V)])
+    rho[0, 7] = np.nan
+    for eps in (1e-4, 1e-2):
+        keep = np.asarray(cull.view_keep(h, p0, p1, width, depth, alpha, eps, profile))
+        drop = (rho < eps) & (rho < rho.max(0))
+        ok = np.isfinite(rho).all(0)
+        np.testing.assert_array_equal(keep[:, ok], ~drop[:, ok])
+        assert keep.any(0).all() and keep[:, 7].all()
+        assert 0.1 < keep[:, ok].mean() < 0.95
+    assert np.asarray(cull.view_keep(h, p0, p1, width, depth, alpha, 0.0, profile)).all()
+    with pytest.raises(ValueError, match="profile"):
+        cull.view_keep(h, p0, p1, width, depth, alpha, 1e-3, "round")

@@ -20,7 +20,7 @@ import jaxlib
 import numpy as np
 import pytest
 
-from jscratch import arc, lobe, native, ndf
+from jscratch import arc, cull, lobe, native, ndf
 from jscratch.bench import ndf_cases
 from jscratch.errors import InputError
 
@@ -691,6 +691,48 @@ def test_pair_jacobian_contracts_to_the_reverse_pass(dtype, profile):
     for x in (JD, Jh):
         assert np.all(np.asarray(x)[:, bad] == 0)
     assert np.all(np.asarray(JA)[bad] == 0) and np.all(np.isfinite(np.asarray(JD)))
+
+
+@needs_native
+@pytest.mark.float64
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+@pytest.mark.parametrize("profile", ["paper", "arc"])
+def test_pair_kernels_skip_exactly_what_view_keep_drops(dtype, profile):
+    """With ``skip_eps`` every kernel gives, bit for bit, what it gives without, with the
+    pair-views `cull.view_keep` drops zeroed: the values, the Jacobians, and the reverse pass at
+    cotangents zeroed there (the kernel computes the bound itself). A NaN half vector keeps every
+    view of its pair; padding stays exact zeros; a bad ``skip_eps`` is refused in one line."""
+    fp, p0, p1, w, d, a, valid, H = (_pair_population if profile == "paper"
+                                     else _arc_population)(dtype)
+    i_nan = int(np.nonzero(np.asarray(valid))[0][3])
+    H = H.at[0, i_nan, 0].set(jnp.nan)
+    args = (fp, p0, p1, w, d, a, valid, H)
+    ng = (lobe.nodes if profile == "paper" else arc.nodes)(dtype)
+    rng = np.random.default_rng(5)
+    ctD = jnp.asarray(rng.normal(size=H.shape[:2]), dtype)
+    ctA = jnp.asarray(rng.normal(size=p0.shape[:1]), dtype)
+    D0, A0 = native.pair_values(ng, *args, profile=profile)
+    J0 = native.pair_jacobian(ng, *args, profile=profile)
+    ok = np.asarray(valid)[None]
+    for eps in (1e-4, 1e-2):
+        keep = cull.view_keep(H, p0, p1, w, d, a, eps, profile)
+        kept = np.asarray(keep)
+        assert 0.05 < 1 - kept[np.broadcast_to(ok, kept.shape)].mean() < 0.6
+        assert kept[:, i_nan].all() and np.isnan(np.asarray(D0)[0, i_nan])
+        z = lambda x: jnp.where(keep.reshape(keep.shape + (1,) * (x.ndim - 2)), x, 0)  # noqa: E731
+        D1, A1 = native.pair_values(ng, *args, profile=profile, skip_eps=eps)
+        for x, y in ((z(D0), D1), (A0, A1)):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+        J1 = native.pair_jacobian(ng, *args, profile=profile, skip_eps=eps)
+        for x, y in zip((z(J0[0]), J0[1], z(J0[2]), z(J0[3]), J0[4]), J1):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+        g0 = native.pair_vjp(ng, *args, z(ctD), ctA, profile=profile)
+        g1 = native.pair_vjp(ng, *args, ctD, ctA, profile=profile, skip_eps=eps)
+        for x, y in zip(g0, g1):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    for bad in (-1e-3, 2.0, float("nan"), "1e-3"):
+        with pytest.raises(InputError, match="skip_eps must be a float in \\[0, 1\\]"):
+            native.pair_values(ng, *args, profile=profile, skip_eps=bad)
 
 
 # --------------------------------------------------------------------------------------------

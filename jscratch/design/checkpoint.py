@@ -95,7 +95,7 @@ def load_checkpoint(path: str, like: State, config: DesignConfig, thash: str,
         raise DesignError(f"checkpoint {path!r} was made for different target images")
     saved = DesignConfig.from_dict(meta["config"])
     keys = ("n_scratches", "seed", "parameterisation", "freeze", "dtype", "cull_eps",
-            "coverage_eps", "skin")
+            "coverage_eps", "skip_eps", "skin")
     for k in keys:
         if getattr(saved, k) != getattr(config, k):
             raise DesignError(f"checkpoint {path!r} was made with {k} = {getattr(saved, k)!r}, "

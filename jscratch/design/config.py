@@ -102,6 +102,10 @@ class DesignConfig:
     coverage_eps: float = option(0.0, "coverage-pass culling tolerance, with --cull-eps > 0 (0: "
                                  "every pair; fewer coverage pairs, but dark regions can lose "
                                  "contrast)")
+    skip_eps: float = option(0.0, "the step skips a pair-view whose NDF bound is below this "
+                             "fraction of the pair's peak value, unless it is the pair's "
+                             "brightest view (0: every pair-view; 5e-5: a step 8 % faster, "
+                             "but more ghosting: docs/model.md §11)")
     skin: float = option(0.0, "groove inflation for binning (0: rebin when a groove leaves its "
                          "binned cells)", unit="m")
     discard: bool = option(True, "discard the least useful scratches after the optimisation")
@@ -190,7 +194,7 @@ class DesignConfig:
                 raise DesignError(f"DesignConfig.loss: unknown fields {unknown}") from None
         if not isinstance(self.loss, loss_mod.LossConfig):
             bad("loss", "a jscratch.loss.LossConfig")
-        for name in ("cull_eps", "coverage_eps"):  # a tolerance of 1 culls every pair (§11)
+        for name in ("cull_eps", "coverage_eps", "skip_eps"):  # 1 would cull every pair (§11)
             number(name, 0.0, 1.0, "in [0, 1) (a fraction of a pair's peak value)")
             if getattr(self, name) >= 1:
                 bad(name, "in [0, 1) (a fraction of a pair's peak value)")

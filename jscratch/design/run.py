@@ -184,7 +184,8 @@ def setup(tnp, views, board, config, mesh=None):
             config.design_loss(board.n_pixels)).bind), jnp.asarray(tnp, dt))
         params, optimizer, lrs, cam, lig, hs, ndf_max = _setup_scene(views, board, config, dt)
         bound = binding.result()
-    ctx = Context(cam, lig, hs, ndf_max, bound, lrs, board, int(config.chunk), mesh)
+    ctx = Context(cam, lig, hs, ndf_max, bound, lrs, board, int(config.chunk), mesh,
+                  float(config.skip_eps))
     return mesh_mod.place(params, mesh), optimizer, mesh_mod.place(ctx, mesh)
 
 

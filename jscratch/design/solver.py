@@ -16,7 +16,7 @@ from jax import lax
 import optax
 from jaxtyping import Array
 
-from jscratch import bvh
+from jscratch import bvh, cull
 from jscratch import loss as loss_mod
 from jscratch.compile_options import few_calls_jit, grad_compiler_options
 from jscratch.contributions import scratch_contributions
@@ -41,6 +41,8 @@ class Context(eqx.Module):
     chunk: int = eqx.field(static=True)
     # The `jax.sharding.Mesh` the image work is split over (`jscratch.design.mesh`), or None.
     mesh: Any = eqx.field(static=True, default=None)
+    # The step's pair-view skipping tolerance (`render.render_pairs`' ``skip_eps``).
+    skip_eps: float = eqx.field(static=True, default=0.0)
 
 
 @functools.lru_cache(maxsize=None)
@@ -69,13 +71,35 @@ def view_lists(params: DesignParams, lists: bvh.PairLists, ctx: Context) -> bvh.
     return bvh.update_lists(lists, s, ctx.hs, ctx.board_ndf)
 
 
-def radiance(params: DesignParams, lists: bvh.PairLists, ctx: Context) -> Array:
-    """Radiance ``(M, H, W)`` from `view_lists`' culled lists. Without the renderer's traced
-    checks (``checked=False``): the setup draws valid scratches, a resumed checkpoint is checked
-    when it is read, and every step checks what it updates (`_health`)."""
+#: One pair in this many is counted for the pair-views a skipping step evaluates.
+COUNT_STRIDE = 16
+
+
+def _kept_counts(params: DesignParams, lists: bvh.PairLists, ctx: Context) -> Array:
+    """Per view, the pair-views of the shared list that ``ctx.skip_eps`` keeps (`cull.view_keep`:
+    what the step's renderer evaluates), ``(M,)`` int32, estimated from every `COUNT_STRIDE`-th
+    slot (counting them all took ~5 % of a default step)."""
+    s = jax.lax.stop_gradient(params).scratches()
+    pix, scr, valid = (x[::COUNT_STRIDE] for x in (lists.shared.pixel, lists.shared.scratch,
+                                                   lists.shared.valid))
+    i = jnp.clip(scr, 0, s.n - 1)
+    h = ctx.hs[:, jnp.clip(pix, 0, ctx.hs.shape[1] - 1)]
+    keep = cull.view_keep(h, s.p0[i], s.p1[i], s.width[i], s.depth[i], s.alpha[i], ctx.skip_eps,
+                          s.profile)
+    share = jnp.sum(keep & valid[None], axis=1) / jnp.maximum(jnp.sum(valid), 1)
+    return jnp.round(share * jnp.sum(lists.shared.valid)).astype(jnp.int32)
+
+
+def radiance(params: DesignParams, lists: bvh.PairLists, ctx: Context, *,
+             skip: bool = False) -> Array:
+    """Radiance ``(M, H, W)`` from `view_lists`' culled lists; with `skip`, the pair-views below
+    ``ctx.skip_eps`` skipped (shared lists only: per-view lists are culled already). Without the
+    renderer's traced checks (``checked=False``): the setup draws valid scratches, a resumed
+    checkpoint is checked when it is read, and every step checks what it updates (`_health`)."""
     views = Views(ctx.camera, ctx.light, params.intensity())
+    skip_eps = ctx.skip_eps if skip and not lists.culled else 0.0
     rad = render_pairs(params.scratches(), views, ctx.board, *lists.for_render(), chunk=ctx.chunk,
-                       mesh=ctx.mesh, checked=False)
+                       mesh=ctx.mesh, checked=False, skip_eps=skip_eps)
     # (on a mesh: the small images gathered, so the loss runs replicated, not split into strips)
     return mesh_mod.replicated(rad, ctx.mesh)
 
@@ -174,9 +198,11 @@ def _step_impl(params: DesignParams, opt_state, lists: bvh.PairLists, ctx: Conte
     overflows its capacities (``lists.shared.overflow``), the host rebuilds it with larger ones
     (`bvh.rebin_lists`)."""
     culled = view_lists(params, lists, ctx)
+    if ctx.skip_eps > 0 and not culled.culled:  # (the counts: the pair-views evaluated)
+        culled = dataclasses.replace(culled, counts=_kept_counts(params, culled, ctx))
 
     def f(p):
-        terms = ctx.loss.terms(display(radiance(p, culled, ctx)))
+        terms = ctx.loss.terms(display(radiance(p, culled, ctx, skip=True)))
         return terms["total"], terms
 
     (value, terms), grads = eqx.filter_value_and_grad(f, has_aux=True)(params)

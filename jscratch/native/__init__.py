@@ -596,7 +596,15 @@ def _profile(profile) -> int:
     return PROFILES[profile]
 
 
-def pair_values(n_gl: int, footprint, p0, p1, width, depth, alpha, valid, h, profile="paper"):
+def _skip_attr(skip_eps) -> np.float32:
+    """The kernels' ``skip_eps`` attribute, else `InputError`."""
+    if not (isinstance(skip_eps, (int, float, np.floating)) and 0 <= skip_eps <= 1):
+        raise InputError(f"skip_eps must be a float in [0, 1], got {skip_eps!r}")
+    return np.float32(skip_eps)
+
+
+def pair_values(n_gl: int, footprint, p0, p1, width, depth, alpha, valid, h, profile="paper",
+                skip_eps=0.0):
     """The whole pair integral of ``n`` pixel-scratch pairs under ``V`` views, natively:
     ``(D_hat, A)``, ``(V, n)`` and ``(n,)``, as ``ndf.lit_integral(ndf.pair_geometry(...), ...)``
     and that geometry's ``area`` give them (the geometry once per pair, every view on its pieces
@@ -615,50 +623,60 @@ def pair_values(n_gl: int, footprint, p0, p1, width, depth, alpha, valid, h, pro
       `arc.arc_lit_integral`; ``n_gl`` the nodes of its rule on every piece (`arc.nodes`: 8 in
       float32, 24 in float64).
 
+    ``skip_eps`` (static, in ``[0, 1]``): skip the pair-views `cull.view_keep` drops at this
+    tolerance (bound ``rho < skip_eps`` and not the pair's brightest view): exact zeros in the
+    values and in every derivative, and no work where every pair of a SIMD block skips a view.
+    The kernel computes the bound itself (`cull.cull_ratio`'s, in the dtype's arithmetic: a
+    pair-view within rounding of the tolerance may fall either side). ``0`` (default) skips none.
     Anything else: `InputError`."""
     dt = _registered(width.dtype)
     code = _profile(profile)
+    skip = _skip_attr(skip_eps)
     args = (footprint, p0, p1, width, depth, alpha, valid, h)
     call = jax.ffi.ffi_call(_PAIR_TARGETS[dt, False][0],
                             (jax.ShapeDtypeStruct(h.shape[:-1], dt),
                              jax.ShapeDtypeStruct(width.shape, dt)))
-    D, A = call(*args, n_gl=int(n_gl), profile=code, threads=threads())
+    D, A = call(*args, n_gl=int(n_gl), profile=code, skip_eps=skip, threads=threads())
     return (functools.reduce(_varying_like, args, D), functools.reduce(_varying_like, args, A))
 
 
 def pair_vjp(n_gl: int, footprint, p0, p1, width, depth, alpha, valid, h, ct_D, ct_A,
-             profile="paper"):
+             profile="paper", skip_eps=0.0):
     """The reverse pass of `pair_values` at the cotangents ``ct_D`` ``(V, n)`` and ``ct_A``
     ``(n,)``: ``(d_p0, d_p1, d_width, d_depth, d_alpha, d_h)``, shaped as those inputs (zeros on
     padding slots; the footprint is data). The geometry's Jacobian is computed in forward mode
     (six tangents) and chained with every view's partials (`lit_partials`' formulas for the
-    paper's profile, `native_arc.h`'s for the arc). ``profile`` as in `pair_values`."""
+    paper's profile, `native_arc.h`'s for the arc). ``profile``, ``skip_eps`` as in
+    `pair_values`."""
     dt = _registered(width.dtype)
     code = _profile(profile)
+    skip = _skip_attr(skip_eps)
     args = (footprint, p0, p1, width, depth, alpha, valid, h, ct_D, ct_A)
     out = tuple(jax.ShapeDtypeStruct(x.shape, dt) for x in (p0, p1, width, depth, alpha, h))
     call = jax.ffi.ffi_call(_PAIR_TARGETS[dt, True][0], out)
-    res = call(*args, n_gl=int(n_gl), profile=code, threads=threads())
+    res = call(*args, n_gl=int(n_gl), profile=code, skip_eps=skip, threads=threads())
     return tuple(functools.reduce(_varying_like, args, r) for r in res)
 
 
-def pair_jacobian(n_gl: int, footprint, p0, p1, width, depth, alpha, valid, h, profile="paper"):
+def pair_jacobian(n_gl: int, footprint, p0, p1, width, depth, alpha, valid, h, profile="paper",
+                  skip_eps=0.0):
     """`pair_values` and the pairs' Jacobians, natively, in one pass: ``(D_hat (V, n), A (n),
     J_D (V, n, 7), J_h (V, n, 3), J_A (n, 6))``, ``J_D`` the derivatives of each view's
     ``D_hat`` with respect to ``(p0x, p0y, p1x, p1y, width, depth, alpha)``, ``J_h`` with respect
     to that view's ``h``, ``J_A`` those of ``A`` with respect to the first six (zeros on padding
     slots). `pair_vjp` at cotangents ``(ct_D, ct_A)`` is ``sum_v ct_D[v] J_D[v] + ct_A J_A`` (and
-    ``ct_D[v] J_h[v]``): a reverse pass that keeps these needs no second evaluation. ``profile``
-    as in `pair_values`."""
+    ``ct_D[v] J_h[v]``): a reverse pass that keeps these needs no second evaluation. ``profile``,
+    ``skip_eps`` as in `pair_values`."""
     dt = _registered(width.dtype)
     code = _profile(profile)
+    skip = _skip_attr(skip_eps)
     args = (footprint, p0, p1, width, depth, alpha, valid, h)
     V, n = h.shape[0], width.shape[0]
     out = (jax.ShapeDtypeStruct((V, n), dt), jax.ShapeDtypeStruct((n,), dt),
            jax.ShapeDtypeStruct((V, n, 7), dt), jax.ShapeDtypeStruct((V, n, 3), dt),
            jax.ShapeDtypeStruct((n, 6), dt))
     res = jax.ffi.ffi_call(_JAC_TARGETS[dt][0], out)(*args, n_gl=int(n_gl), profile=code,
-                                                      threads=threads())
+                                                      skip_eps=skip, threads=threads())
     return tuple(functools.reduce(_varying_like, args, r) for r in res)
 
 

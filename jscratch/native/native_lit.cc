@@ -39,6 +39,7 @@
 #include <cstdlib>
 #include <condition_variable>
 #include <functional>
+#include <limits>
 #include <memory>
 #include <mutex>
 #if defined(__FMA__) && defined(__AVX__)
@@ -868,6 +869,7 @@ struct PairArgs {
   size_t n = 0, nv = 0;
   const T *fp, *p0, *p1, *w, *d, *alpha, *h, *ctD = nullptr, *ctA = nullptr;
   const bool* valid;
+  float skip_eps = 0;  // > 0: skip the pair-views `skip_bound` puts below it (`cull.view_keep`)
   T *D = nullptr, *A = nullptr;                               // values
   T *dp0 = nullptr, *dp1 = nullptr, *dw = nullptr, *dd = nullptr, *dalpha = nullptr,
     *dh = nullptr;                                            // reverse pass
@@ -969,6 +971,36 @@ size_t pairs_in_order(size_t i0, size_t i1, const PairArgs<T>& a, size_t* ord) {
   return m;
 }
 
+// Views whose skipping bounds a block keeps (more views: computed again when used).
+constexpr size_t kKeptBounds = 8;
+
+// `cull.cull_ratio`'s bound rho of view v's pair-view in each lane (padding lanes: the board
+// normal): the GGX at the largest n.h over the groove's fan of normals, whose widest wall has
+// cosine `wc` and sine `ws`, as a fraction of its peak; 4 ulps added to n.h and 8 ulps of
+// itself to rho against rounding; 0 for a scratch of zero length (`has_len` false: D_hat = 0).
+// A NaN input gives NaN, which nothing skips.
+template <typename T, typename V, typename M>
+V skip_bound(const PairArgs<T>& a, size_t v, const size_t* id, M valid, M has_len, V bx, V by,
+             V wc, V ws, V al) {
+  constexpr int L = Vec<T>::L;
+  const V zero = V{}, one = splat<V>(1);
+  const T ulp = std::numeric_limits<T>::epsilon();
+  V h[3];
+  for (int l = 0; l < L; ++l)
+    for (int c = 0; c < 3; ++c) h[c][l] = valid[l] ? a.h[(v * a.n + id[l]) * 3 + c] : T(c == 2);
+  const V inv = one / vsqrt<T>(h[0] * h[0] + h[1] * h[1] + h[2] * h[2]);
+  const V hx = (h[0] * bx + h[1] * by) * inv, hz = h[2] * inv, ax = vabs<T>(hx);
+  const auto peak_on_fan = (hz > 0) & (ax * wc <= hz * ws);  // n.h peaks inside the fan
+  V c = sel<V>(peak_on_fan, vsqrt<T>(hx * hx + hz * hz), hz * wc + ax * ws);
+  c = c + 4 * ulp;
+  c = sel<V>(c > one, one, c);  // (min, keeping a NaN)
+  const V a2 = al * al;
+  const auto smooth = al < one;  // GGX increases in n.h (else it peaks at n.h -> 0: alpha^4)
+  const V den = sel<V>(smooth, c * c * (a2 - 1) + 1, one);
+  const V rho = sel<V>(c <= 0, zero, a2 * a2 / (den * den)) * (1 + 8 * ulp);
+  return sel<V>(smooth, sel<V>(has_len, sel<V>(rho > one, one, rho), zero), rho);
+}
+
 // Pairs [i0, i1) (at most kPairChunk), `L` at a time in the order of `pairs_in_order` (a tail
 // repeats its last pair in the spare lanes; padding slots are evaluated as a benign dummy pair
 // and give exact zeros). Values (`kGrad` false): D, A; the reverse pass: the cotangents ctD, ctA
@@ -1056,15 +1088,60 @@ void pairs_chunk(int n_gl, const double* xs, const double* ws, size_t i0, size_t
       }
     const V pref = al * al / four_pi, sp = g.scale.v * pref;
     const V sv[kTan] = {g.X.v, zero, zero, zero, g.bx.v, g.by.v, g.tx.v, g.ty.v, al};
+    // Skipping (`skip_eps` > 0, `cull.view_keep`): a pair-view is skipped when its bound is
+    // below skip_eps and below the pair's largest over the views. The fan of normals from the
+    // groove's half-width X: sin^2 of the arc's widest wall, or tan^2 of half the paper
+    // groove's, is s = 4 X^2.
+    const bool skipping = a.skip_eps > 0;
+    V wall_c = zero, wall_s = zero, rho_max = zero, rho_v[kKeptBounds];
+    const V ex = p[2] - p[0], ey = p[3] - p[1];
+    const auto has_len = ex * ex + ey * ey > 0;
+    if (skipping) {
+      const V s = 4 * g.X.v * g.X.v;
+      if (arc) {
+        wall_s = vsqrt<T>(s);
+        wall_c = vsqrt<T>(vmax<T>(1 - s, zero));
+      } else {
+        const V r = 1 / (1 + s);
+        wall_c = (1 - s) * r;
+        wall_s = 2 * vsqrt<T>(s) * r;
+      }
+      for (size_t v = 0; v < a.nv; ++v) {
+        const V rho = skip_bound<T>(a, v, id, valid, has_len, g.bx.v, g.by.v, wall_c, wall_s, al);
+        if (v < kKeptBounds) rho_v[v] = rho;
+        rho_max = sel<V>((rho > rho_max) | (rho != rho), rho, rho_max);  // (a NaN sticks)
+      }
+    }
     V gt[kGeo], ga = zero;
     for (int t = 0; t < kGeo; ++t) gt[t] = zero;
     for (size_t v = 0; v < a.nv; ++v) {
+      // The lanes that evaluate this view: valid and not skipped.
+      decltype(V{} < V{}) on = valid;
+      if (skipping) {
+        const V rho = v < kKeptBounds ? rho_v[v]
+                                      : skip_bound<T>(a, v, id, valid, has_len, g.bx.v, g.by.v,
+                                                      wall_c, wall_s, al);
+        on = valid & ~((rho < splat<V>(a.skip_eps)) & (rho < rho_max));
+      }
+      bool any_on = false;
+      for (int l = 0; l < L; ++l) any_on = any_on || on[l];
+      if (!any_on) {  // every lane skips this view: exact zeros, nothing evaluated
+        for (int l = 0; l < lanes; ++l) {
+          const size_t r = v * a.n + id[l];
+          if constexpr (!kGrad || kJac) a.D[r] = 0;
+          if constexpr (kJac)
+            for (int t = 0; t <= kGeo; ++t) a.JD[r * (kGeo + 1) + t] = 0;
+          if constexpr (kGrad)
+            for (int c = 0; c < 3; ++c) a.dh[r * 3 + c] = 0;
+        }
+        continue;
+      }
       V hv[3], ct = zero;
       for (int l = 0; l < L; ++l) {
         const size_t i = id[l];
         for (int c = 0; c < 3; ++c) hv[c][l] = valid[l] ? a.h[(v * a.n + i) * 3 + c] : T(c == 2);
-        if constexpr (kJac) ct[l] = valid[l] ? T(1) : T(0);
-        else if constexpr (kGrad) ct[l] = valid[l] ? a.ctD[v * a.n + i] : T(0);
+        if constexpr (kJac) ct[l] = on[l] ? T(1) : T(0);
+        else if constexpr (kGrad) ct[l] = on[l] ? a.ctD[v * a.n + i] : T(0);
       }
       V s[kTan];
       for (int c = 0; c < kTan; ++c) s[c] = sv[c];
@@ -1078,7 +1155,7 @@ void pairs_chunk(int n_gl, const double* xs, const double* ws, size_t i0, size_t
         lit_lanes<T, V, kGrad>(n_gl, xs, ws, k, cu, cv, cya, cyb, s, &lit, gp[0], gp[1], gp[2],
                                gp[3], gs);
       if constexpr (!kGrad) {
-        V Dv = sel<V>(valid, sp * lit, zero);
+        V Dv = sel<V>(on, sp * lit, zero);
         for (int l = 0; l < lanes; ++l) a.D[v * a.n + id[l]] = Dv[l];
       } else {
         // dD/d(geometry) through the pieces (back to their uncompacted slots), X and the frame.
@@ -1099,16 +1176,16 @@ void pairs_chunk(int n_gl, const double* xs, const double* ws, size_t i0, size_t
           const V jt = cs * sum + ct * (g.scale.d[t] * pref * lit);
           if constexpr (kJac) {
             for (int l = 0; l < lanes; ++l)
-              a.JD[(row + id[l]) * (kGeo + 1) + t] = valid[l] ? jt[l] : T(0);
+              a.JD[(row + id[l]) * (kGeo + 1) + t] = on[l] ? jt[l] : T(0);
           } else {
             gt[t] += jt;
           }
         }
         const V jal = ct * (g.scale.v * ((2 * al / four_pi) * lit) + sp * gs[8]);
         if constexpr (kJac) {
-          const V Dv = sel<V>(valid, sp * lit, zero);
+          const V Dv = sel<V>(on, sp * lit, zero);
           for (int l = 0; l < lanes; ++l) {
-            a.JD[(row + id[l]) * (kGeo + 1) + kGeo] = valid[l] ? jal[l] : T(0);
+            a.JD[(row + id[l]) * (kGeo + 1) + kGeo] = on[l] ? jal[l] : T(0);
             a.D[row + id[l]] = Dv[l];
           }
         } else {
@@ -1116,7 +1193,7 @@ void pairs_chunk(int n_gl, const double* xs, const double* ws, size_t i0, size_t
         }
         for (int l = 0; l < lanes; ++l)
           for (int c = 0; c < 3; ++c)
-            a.dh[(v * a.n + id[l]) * 3 + c] = valid[l] ? cs[l] * gs[1 + c][l] : T(0);
+            a.dh[(v * a.n + id[l]) * 3 + c] = on[l] ? cs[l] * gs[1 + c][l] : T(0);
       }
     }
     if constexpr (!kGrad) {
@@ -1157,13 +1234,16 @@ void pairs_range(int n_gl, const double* xs, const double* ws, size_t i0, size_t
 }
 
 template <typename T, bool kGrad, bool kJac = false>
-ffi::Error run_pairs(ffi::ThreadPool& pool, int64_t n_gl, int64_t profile, int64_t threads,
-                     size_t n_fp, size_t n_h, size_t n_ct, PairArgs<T>& a, const size_t* counts) {
+ffi::Error run_pairs(ffi::ThreadPool& pool, int64_t n_gl, int64_t profile, float skip_eps,
+                     int64_t threads, size_t n_fp, size_t n_h, size_t n_ct, PairArgs<T>& a,
+                     const size_t* counts) {
   // counts: p0, p1, w, d, alpha, valid (ctA for the reverse pass: counts[6]).
   const size_t n = a.n;
   if (n == 0) return ffi::Error::Success();
   bool ok = n_fp == 8 * n && counts[0] == 2 * n && counts[1] == 2 * n && n_gl >= 1 &&
-            n_gl <= kMaxNodes && n_h % (3 * n) == 0 && (profile == 0 || profile == 1);
+            n_gl <= kMaxNodes && n_h % (3 * n) == 0 && (profile == 0 || profile == 1) &&
+            skip_eps >= 0 && skip_eps <= 1;
+  a.skip_eps = skip_eps;
   for (int f = 2; f < (kGrad && !kJac ? 7 : 6); ++f) ok = ok && counts[f] == n;
   a.nv = n_h / (3 * n);
   if (kGrad && !kJac) ok = ok && n_ct == a.nv * n;
@@ -1171,7 +1251,7 @@ ffi::Error run_pairs(ffi::ThreadPool& pool, int64_t n_gl, int64_t profile, int64
     return ffi::Error(ffi::ErrorCode::kInvalidArgument,
                       "jscratch pairs: inputs must be (n, 4, 2) footprints, (n, 2) p0 and p1, "
                       "(n,) width, depth, alpha and valid, (V, n, 3) h (and (V, n) ctD, (n,) ctA), "
-                      "profile 0 (paper) or 1 (arc)");
+                      "profile 0 (paper) or 1 (arc), skip_eps in [0, 1]");
   // The n_gl-point rule, then (for the arc's far pieces, `arc_piece`) the n_gl / 2-point rule.
   double xs[2 * kMaxNodes], ws[2 * kMaxNodes];
   gauss_legendre(static_cast<int>(n_gl), xs, ws);
@@ -1198,8 +1278,8 @@ template <ffi::DataType DT>
 ffi::Error PairsImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT> p0,
                      ffi::Buffer<DT> p1, ffi::Buffer<DT> w, ffi::Buffer<DT> d,
                      ffi::Buffer<DT> alpha, ffi::Buffer<ffi::DataType::PRED> valid,
-                     ffi::Buffer<DT> h, int64_t n_gl, int64_t profile, int64_t threads,
-                     ffi::ResultBuffer<DT> D,
+                     ffi::Buffer<DT> h, int64_t n_gl, int64_t profile, float skip_eps,
+                     int64_t threads, ffi::ResultBuffer<DT> D,
                      ffi::ResultBuffer<DT> A) {
   using T = ffi::NativeType<DT>;
   PairArgs<T> a;
@@ -1207,7 +1287,7 @@ ffi::Error PairsImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT> p
   a.D = D->typed_data(); a.A = A->typed_data();
   const size_t counts[6] = {p0.element_count(), p1.element_count(), w.element_count(),
                             d.element_count(), alpha.element_count(), valid.element_count()};
-  return run_pairs<T, false>(pool, n_gl, profile, threads, fp.element_count(),
+  return run_pairs<T, false>(pool, n_gl, profile, skip_eps, threads, fp.element_count(),
                              h.element_count(), 0, a, counts);
 }
 
@@ -1216,7 +1296,8 @@ ffi::Error PairsVjpImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT
                         ffi::Buffer<DT> p1, ffi::Buffer<DT> w, ffi::Buffer<DT> d,
                         ffi::Buffer<DT> alpha, ffi::Buffer<ffi::DataType::PRED> valid,
                         ffi::Buffer<DT> h, ffi::Buffer<DT> ctD, ffi::Buffer<DT> ctA,
-                        int64_t n_gl, int64_t profile, int64_t threads, ffi::ResultBuffer<DT> dp0,
+                        int64_t n_gl, int64_t profile, float skip_eps, int64_t threads,
+                        ffi::ResultBuffer<DT> dp0,
                         ffi::ResultBuffer<DT> dp1, ffi::ResultBuffer<DT> dw,
                         ffi::ResultBuffer<DT> dd, ffi::ResultBuffer<DT> dalpha,
                         ffi::ResultBuffer<DT> dh) {
@@ -1229,16 +1310,16 @@ ffi::Error PairsVjpImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT
   const size_t counts[7] = {p0.element_count(), p1.element_count(), w.element_count(),
                             d.element_count(), alpha.element_count(), valid.element_count(),
                             ctA.element_count()};
-  return run_pairs<T, true>(pool, n_gl, profile, threads, fp.element_count(), h.element_count(),
-                            ctD.element_count(), a, counts);
+  return run_pairs<T, true>(pool, n_gl, profile, skip_eps, threads, fp.element_count(),
+                            h.element_count(), ctD.element_count(), a, counts);
 }
 
 template <ffi::DataType DT>
 ffi::Error PairsJacImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT> p0,
                         ffi::Buffer<DT> p1, ffi::Buffer<DT> w, ffi::Buffer<DT> d,
                         ffi::Buffer<DT> alpha, ffi::Buffer<ffi::DataType::PRED> valid,
-                        ffi::Buffer<DT> h, int64_t n_gl, int64_t profile, int64_t threads,
-                        ffi::ResultBuffer<DT> D, ffi::ResultBuffer<DT> A,
+                        ffi::Buffer<DT> h, int64_t n_gl, int64_t profile, float skip_eps,
+                        int64_t threads, ffi::ResultBuffer<DT> D, ffi::ResultBuffer<DT> A,
                         ffi::ResultBuffer<DT> JD, ffi::ResultBuffer<DT> dh,
                         ffi::ResultBuffer<DT> JA) {
   using T = ffi::NativeType<DT>;
@@ -1248,7 +1329,7 @@ ffi::Error PairsJacImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT
   a.dh = dh->typed_data(); a.JA = JA->typed_data();
   const size_t counts[6] = {p0.element_count(), p1.element_count(), w.element_count(),
                             d.element_count(), alpha.element_count(), valid.element_count()};
-  return run_pairs<T, true, true>(pool, n_gl, profile, threads, fp.element_count(),
+  return run_pairs<T, true, true>(pool, n_gl, profile, skip_eps, threads, fp.element_count(),
                                   h.element_count(), 0, a, counts);
 }
 
@@ -1297,13 +1378,14 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchLitValuesF64, LitValuesImpl<ffi::DataType:
 
 #define JSCRATCH_PAIRS_BIND(DT)                                                            \
   JSCRATCH_PAIRS_ARGS(DT)                                                                  \
-      .Attr<int64_t>("n_gl").Attr<int64_t>("profile").Attr<int64_t>("threads")            \
-      .Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()
+      .Attr<int64_t>("n_gl").Attr<int64_t>("profile").Attr<float>("skip_eps")             \
+      .Attr<int64_t>("threads").Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()
 
 #define JSCRATCH_PAIRS_VJP_BIND(DT)                                                        \
   JSCRATCH_PAIRS_ARGS(DT)                                                                  \
       .Arg<ffi::Buffer<DT>>().Arg<ffi::Buffer<DT>>()                                       \
-      .Attr<int64_t>("n_gl").Attr<int64_t>("profile").Attr<int64_t>("threads")            \
+      .Attr<int64_t>("n_gl").Attr<int64_t>("profile").Attr<float>("skip_eps")             \
+      .Attr<int64_t>("threads")                                                            \
       .Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()                \
       .Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()
 
@@ -1326,7 +1408,8 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchPairsVjpF64, PairsVjpImpl<ffi::DataType::F
 
 #define JSCRATCH_PAIRS_JAC_BIND(DT)                                                        \
   JSCRATCH_PAIRS_ARGS(DT)                                                                  \
-      .Attr<int64_t>("n_gl").Attr<int64_t>("profile").Attr<int64_t>("threads")            \
+      .Attr<int64_t>("n_gl").Attr<int64_t>("profile").Attr<float>("skip_eps")             \
+      .Attr<int64_t>("threads")                                                            \
       .Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()                \
       .Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()
 
