@@ -155,7 +155,7 @@ def _culled_lists(lists: PairLists, s: Scratches, hs, board_ndf) -> list[Pairs]:
     """The ``M`` per-view culled lists (`cull` with ``hs[j]``) and the coverage list
     (`cull_coverage`, or the shared list), at the shared list's capacity (jittable)."""
     shared = lists.shared
-    out = [cull(shared, s.p0, s.p1, s.width, s.depth, s.alpha, hs[j], lists.cull_eps)
+    out = [cull(shared, s.p0, s.p1, s.width, s.depth, s.alpha, hs[j], lists.cull_eps, s.profile)
            for j in range(hs.shape[0])]
     if lists.coverage_eps > 0:
         return out + [cull_coverage(shared, s.alpha, board_ndf, lists.coverage_eps)]
@@ -340,7 +340,7 @@ def cull_pairs(pairs, scratches: Scratches, views: Views, board: Board, eps: flo
         raise InputError(f"cull_pairs: `eps` must be finite and > 0; got {eps}")
     hs = half_vectors(views, board, scratches.dtype)
     keep = [np.asarray(cull(pairs, scratches.p0, scratches.p1, scratches.width,
-                            scratches.depth, scratches.alpha, hs[j], eps).valid)
+                            scratches.depth, scratches.alpha, hs[j], eps, scratches.profile).valid)
             for j in range(views.m)]
     return pairs_of(*layout(np.asarray(pairs.pixel), np.asarray(pairs.scratch), keep,
                             scratches.n, board, shards, chunk))

@@ -1,6 +1,7 @@
 """Culling pairs that cannot matter: a rigorous per-pair bound on the scratch NDF (`cull_ratio`),
-the per-view cull (`cull`) and the coverage cull (`cull_coverage`) of a pair list. The per-view
-lists at fixed capacities built from them are `bvh.PairLists`.
+the per-view cull (`cull`) and the coverage cull (`cull_coverage`) of a pair list, and the
+pair-views a shared list's renderer skips (`view_keep`). The per-view lists at fixed capacities
+built from them are `bvh.PairLists`.
 
 **View culling: the bound.** For one view, pixel `P` with half vector `h` and scratch `i`,
 docs/model.md §3 gives `D_hat = ∫∫_{F ∩ groove} D_x(h, n(x)) dx dy <= A * max_x D_x(h, n(x))`. In the
@@ -29,7 +30,15 @@ vectors), so that the bound survives rounding. `cull_ratio` computes
 The bound holds for the ball's arc too (`Scratches.profile == "arc"`, stored as the paper groove
 with its footprint, ``w = 2R``): the arc's wall angles ``asin(x / R)`` lie within that groove's
 ``2 atan(x / R)`` (``asin s <= 2 atan s`` on ``[0, 1]``), so its normals are a subset of the arc
-above.
+above. With ``profile="arc"`` the bound uses the arc's own fan, ``sin theta_max = a / R =
+sqrt(s)``, ``cos theta_max = exp(-d/w)``: never looser, and tighter the deeper the plunge.
+
+**Skipping pair-views** (`view_keep`, `render.render_pairs`' ``skip_eps``). A shared list
+renders every pair under every view; pair-view ``v`` of a pair is skipped when ``rho_v < eps``
+and ``v`` is not the pair's brightest view, so each skipped value is below ``eps A / (pi
+alpha^2)`` (the per-pixel bound below holds) and no groove loses all its light and gradient. The
+native kernel computes the same bound per SIMD lane and skips the work of a view that no lane of
+a block keeps (docs/model.md §11).
 
 **View culling: the rendered error.** Per pixel the dropped pairs lower `D_P = sum_i D_hat_i / S_P`
 (never raise it) by
@@ -214,7 +223,7 @@ def _checked_eps(eps, dtype) -> Array:
     return eqx.error_if(eps, ~(jnp.isfinite(eps) & (eps >= 0)), "eps must be finite and >= 0")
 
 
-@jax.jit
+@functools.partial(jax.jit, static_argnames="profile")
 def cull(
     pairs: Pairs,
     p0: Float[ArrayLike, "N 2"],
@@ -224,6 +233,7 @@ def cull(
     alpha: Float[ArrayLike, "N"],
     h_pixel: Float[ArrayLike, "P 3"],
     eps: float | Float[ArrayLike, ""] = DEFAULT_EPS,
+    profile: str = "paper",
 ) -> Pairs:
     """Clear `valid` of pairs whose `D_hat` bound is below `eps * A / (pi alpha^2)` (jittable).
 
@@ -233,11 +243,12 @@ def cull(
     docs/model.md §4 must still come from the unculled list, else the board term adds its own error (module
     docstring). Use `grid.compact` to turn the dropped slots into saved time.
 
-    **Arguments:** as `cull_ratio`, plus `eps >= 0` (scalar; may be traced).
+    **Arguments:** as `cull_ratio` (`profile` the groove's, static), plus `eps >= 0` (scalar;
+    may be traced).
 
     **Returns:** `Pairs` of the same capacity with fewer valid slots.
     """
-    rho = cull_ratio(pairs, p0, p1, width, depth, alpha, h_pixel)
+    rho = cull_ratio(pairs, p0, p1, width, depth, alpha, h_pixel, profile)
     eps = _checked_eps(eps, rho.dtype)
     valid = pairs.valid & ~(rho < eps)
     return eqx.tree_at(lambda p: p.valid, pairs, valid)

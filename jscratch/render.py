@@ -250,8 +250,8 @@ def _fwd_local(cfg: _Cfg, params, h_loc, out, scr, valid):
         pix, local = _split_index(cfg, oc)
         p0, p1, w, d, a, h = _gather(params, h_rows, sc, local)
         if native.available(dt):
-            D, A = native.pair_values(cfg.nodes(dt), *_chunk_native(cfg, xe, ye, pix, vc, p0, p1,
-                                                                    w, d, a, h), profile=cfg.profile,
+            args = _chunk_native(cfg, xe, ye, pix, vc, p0, p1, w, d, a, h)
+            D, A = native.pair_values(cfg.nodes(dt), *args, profile=cfg.profile,
                                       skip_eps=cfg.skip_eps)
             Ds = Ds.at[:, local].add(D, mode="drop") if cfg.need_D else Ds
             return Ds, (As.at[local].add(A, mode="drop") if cfg.need_A else As)

@@ -104,7 +104,7 @@ class DesignConfig:
                                  "contrast)")
     skip_eps: float = option(0.0, "the step skips a pair-view whose NDF bound is below this "
                              "fraction of the pair's peak value, unless it is the pair's "
-                             "brightest view (0: every pair-view; 5e-5: a step 8 % faster, "
+                             "brightest view (0: every pair-view; 5e-5: a step 6 % faster, "
                              "but more ghosting: docs/model.md §11)")
     skin: float = option(0.0, "groove inflation for binning (0: rebin when a groove leaves its "
                          "binned cells)", unit="m")

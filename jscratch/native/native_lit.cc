@@ -22,7 +22,10 @@
 // (valid false) are evaluated as a benign dummy pair and give exact zeros.
 //
 // Attributes: n_gl Gauss-Legendre nodes per piece, threads (the most workers one call uses, the
-// calling thread included).
+// calling thread included); the whole-pair kernels' skip_eps: a pair-view whose bound
+// (`skip_bound`, `cull.cull_ratio`'s) is below it and below its pair's largest over the views is
+// skipped (exact zeros in D and every derivative; a view that no lane of a block keeps is not
+// evaluated at all), as `cull.view_keep` chooses them (0: none).
 //
 // Threads: the lanes are cut into chunks (`kChunk` pair-views, `kPairChunk` pairs: whole vectors;
 // the cut depends on n alone) that the calling thread and up to threads - 1 tasks on XLA's
