@@ -28,7 +28,8 @@ import numpy as np
 
 from jscratch import native
 from jscratch.bench import machine_line
-from jscratch.design import DesignConfig, default_targets
+from jscratch.bench.rendering import design_step_state
+from jscratch.design import DesignConfig
 from jscratch.design import run, solver
 from jscratch.machine import MachineProfile
 from jscratch.render import display
@@ -60,15 +61,7 @@ def main():
     native.prepare()
     machine = dict(MachineProfile().to_dict(), groove_fit=args.groove_fit)
     cfg = DesignConfig(n_scratches=args.scratches, machine=machine)
-    targets, _ = default_targets(args.views, (args.size, args.size))
-    tnp, views, board = run.check_inputs(targets, None, None, cfg)
-    params, adam, ctx = run.setup(tnp, views, board, cfg)
-    state, warm = run.initial_state(params, adam, ctx, tnp, cfg)
-    warm.join()
-    p, opt, lists = state.params, state.opt_state, state.lists
-    for _ in range(args.warm):
-        p, opt, _, new_lists, _, _, _ = solver.step(p, opt, lists, ctx, adam)
-        lists = new_lists if new_lists is not None else lists
+    p, opt, lists, ctx, adam = design_step_state(cfg, args.views, args.size, args.warm)
     pairs = int(np.asarray(lists.shared.valid).sum())
     print(f"{args.views} views, {args.scratches} scratches, {args.size} px, {cfg.groove} grooves "
           f"({cfg.machine_profile().groove_fit}), after {args.warm} steps: {pairs:,} pairs, "

@@ -19,9 +19,9 @@ import numpy as np
 
 from jscratch import native
 from jscratch.bench import machine_line
-from jscratch.design import run, solver
+from jscratch.bench.rendering import design_step_state
+from jscratch.design import solver
 from jscratch.design.config import DesignConfig
-from jscratch.design.io import default_targets
 
 
 def main() -> None:
@@ -36,18 +36,10 @@ def main() -> None:
     print(machine_line())
     native.keep_freed_memory()  # as the design does
     native.prepare()
-    cfg = DesignConfig(n_scratches=args.scratches)
-    targets, _ = default_targets(args.views, (256, 256))
-    tnp, views, board = run.check_inputs(targets, None, None, cfg)
-    params, adam, ctx = run.setup(tnp, views, board, cfg)
-    state, warm = run.initial_state(params, adam, ctx, tnp, cfg)
-    warm.join()
-    p, opt, lists = state.params, state.opt_state, state.lists
+    p, opt, lists, ctx, adam = design_step_state(DesignConfig(n_scratches=args.scratches),
+                                                 args.views, 256, args.warm)
     epss = [0.0] + [float(e) for e in args.eps.split(",") if float(e) != 0]
     ctxs = {e: dataclasses.replace(ctx, skip_eps=e) for e in epss}
-    for _ in range(args.warm):
-        p, opt, _, new_lists, _, _, _ = solver.step(p, opt, lists, ctxs[0.0], adam)
-        lists = new_lists if new_lists is not None else lists
     pairs = int(np.asarray(lists.shared.valid).sum())
     print(f"{args.views} views, {args.scratches} scratches, 256 px, after {args.warm} steps: "
           f"{pairs:,} pairs, kernel {native.status()['kernel']}; {args.rounds} rounds")

@@ -46,6 +46,25 @@ from jscratch.shading import display
 DEFAULT_VIEWS = 4
 
 
+def design_step_state(config, views: int, size: int, warm: int):
+    """The default targets' design (`config`, ``views`` views at ``size`` px) set up as
+    `jscratch.design.run` sets it up, after ``warm`` steps: ``(params, opt_state, lists, ctx,
+    adam)`` for `jscratch.design.solver.step` (the design-step benchmarks' starting point)."""
+    from jscratch.design import run, solver
+    from jscratch.design.io import default_targets
+
+    targets, _ = default_targets(views, (size, size))
+    tnp, v, board = run.check_inputs(targets, None, None, config)
+    params, adam, ctx = run.setup(tnp, v, board, config)
+    state, compiling = run.initial_state(params, adam, ctx, tnp, config)
+    compiling.join()
+    p, opt, lists = state.params, state.opt_state, state.lists
+    for _ in range(warm):
+        p, opt, _, new_lists, _, _, _ = solver.step(p, opt, lists, ctx, adam)
+        lists = new_lists if new_lists is not None else lists
+    return p, opt, lists, ctx, adam
+
+
 def time_median(fn, repeats: int) -> float:
     """Median wall time of `repeats` `block_until_ready` calls of `fn()` after one warm-up."""
     return median_time(fn, repeats)[0]

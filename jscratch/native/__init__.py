@@ -596,11 +596,11 @@ def _profile(profile) -> int:
     return PROFILES[profile]
 
 
-def _skip_attr(skip_eps) -> np.float32:
+def _skip_attr(skip_eps) -> np.float64:
     """The kernels' ``skip_eps`` attribute, else `InputError`."""
     if not (isinstance(skip_eps, (int, float, np.floating)) and 0 <= skip_eps <= 1):
         raise InputError(f"skip_eps must be a float in [0, 1], got {skip_eps!r}")
-    return np.float32(skip_eps)
+    return np.float64(skip_eps)
 
 
 def pair_values(n_gl: int, footprint, p0, p1, width, depth, alpha, valid, h, profile="paper",

@@ -872,7 +872,7 @@ struct PairArgs {
   size_t n = 0, nv = 0;
   const T *fp, *p0, *p1, *w, *d, *alpha, *h, *ctD = nullptr, *ctA = nullptr;
   const bool* valid;
-  float skip_eps = 0;  // > 0: skip the pair-views `skip_bound` puts below it (`cull.view_keep`)
+  double skip_eps = 0;  // > 0: skip the pair-views `skip_bound` puts below it (`cull.view_keep`)
   T *D = nullptr, *A = nullptr;                               // values
   T *dp0 = nullptr, *dp1 = nullptr, *dw = nullptr, *dd = nullptr, *dalpha = nullptr,
     *dh = nullptr;                                            // reverse pass
@@ -1237,7 +1237,7 @@ void pairs_range(int n_gl, const double* xs, const double* ws, size_t i0, size_t
 }
 
 template <typename T, bool kGrad, bool kJac = false>
-ffi::Error run_pairs(ffi::ThreadPool& pool, int64_t n_gl, int64_t profile, float skip_eps,
+ffi::Error run_pairs(ffi::ThreadPool& pool, int64_t n_gl, int64_t profile, double skip_eps,
                      int64_t threads, size_t n_fp, size_t n_h, size_t n_ct, PairArgs<T>& a,
                      const size_t* counts) {
   // counts: p0, p1, w, d, alpha, valid (ctA for the reverse pass: counts[6]).
@@ -1281,7 +1281,7 @@ template <ffi::DataType DT>
 ffi::Error PairsImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT> p0,
                      ffi::Buffer<DT> p1, ffi::Buffer<DT> w, ffi::Buffer<DT> d,
                      ffi::Buffer<DT> alpha, ffi::Buffer<ffi::DataType::PRED> valid,
-                     ffi::Buffer<DT> h, int64_t n_gl, int64_t profile, float skip_eps,
+                     ffi::Buffer<DT> h, int64_t n_gl, int64_t profile, double skip_eps,
                      int64_t threads, ffi::ResultBuffer<DT> D,
                      ffi::ResultBuffer<DT> A) {
   using T = ffi::NativeType<DT>;
@@ -1299,7 +1299,7 @@ ffi::Error PairsVjpImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT
                         ffi::Buffer<DT> p1, ffi::Buffer<DT> w, ffi::Buffer<DT> d,
                         ffi::Buffer<DT> alpha, ffi::Buffer<ffi::DataType::PRED> valid,
                         ffi::Buffer<DT> h, ffi::Buffer<DT> ctD, ffi::Buffer<DT> ctA,
-                        int64_t n_gl, int64_t profile, float skip_eps, int64_t threads,
+                        int64_t n_gl, int64_t profile, double skip_eps, int64_t threads,
                         ffi::ResultBuffer<DT> dp0,
                         ffi::ResultBuffer<DT> dp1, ffi::ResultBuffer<DT> dw,
                         ffi::ResultBuffer<DT> dd, ffi::ResultBuffer<DT> dalpha,
@@ -1321,7 +1321,7 @@ template <ffi::DataType DT>
 ffi::Error PairsJacImpl(ffi::ThreadPool pool, ffi::Buffer<DT> fp, ffi::Buffer<DT> p0,
                         ffi::Buffer<DT> p1, ffi::Buffer<DT> w, ffi::Buffer<DT> d,
                         ffi::Buffer<DT> alpha, ffi::Buffer<ffi::DataType::PRED> valid,
-                        ffi::Buffer<DT> h, int64_t n_gl, int64_t profile, float skip_eps,
+                        ffi::Buffer<DT> h, int64_t n_gl, int64_t profile, double skip_eps,
                         int64_t threads, ffi::ResultBuffer<DT> D, ffi::ResultBuffer<DT> A,
                         ffi::ResultBuffer<DT> JD, ffi::ResultBuffer<DT> dh,
                         ffi::ResultBuffer<DT> JA) {
@@ -1381,13 +1381,13 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchLitValuesF64, LitValuesImpl<ffi::DataType:
 
 #define JSCRATCH_PAIRS_BIND(DT)                                                            \
   JSCRATCH_PAIRS_ARGS(DT)                                                                  \
-      .Attr<int64_t>("n_gl").Attr<int64_t>("profile").Attr<float>("skip_eps")             \
+      .Attr<int64_t>("n_gl").Attr<int64_t>("profile").Attr<double>("skip_eps")             \
       .Attr<int64_t>("threads").Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()
 
 #define JSCRATCH_PAIRS_VJP_BIND(DT)                                                        \
   JSCRATCH_PAIRS_ARGS(DT)                                                                  \
       .Arg<ffi::Buffer<DT>>().Arg<ffi::Buffer<DT>>()                                       \
-      .Attr<int64_t>("n_gl").Attr<int64_t>("profile").Attr<float>("skip_eps")             \
+      .Attr<int64_t>("n_gl").Attr<int64_t>("profile").Attr<double>("skip_eps")             \
       .Attr<int64_t>("threads")                                                            \
       .Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()                \
       .Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()
@@ -1411,7 +1411,7 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(JscratchPairsVjpF64, PairsVjpImpl<ffi::DataType::F
 
 #define JSCRATCH_PAIRS_JAC_BIND(DT)                                                        \
   JSCRATCH_PAIRS_ARGS(DT)                                                                  \
-      .Attr<int64_t>("n_gl").Attr<int64_t>("profile").Attr<float>("skip_eps")             \
+      .Attr<int64_t>("n_gl").Attr<int64_t>("profile").Attr<double>("skip_eps")             \
       .Attr<int64_t>("threads")                                                            \
       .Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()                \
       .Ret<ffi::Buffer<DT>>().Ret<ffi::Buffer<DT>>()
