@@ -27,13 +27,15 @@ share a compilation.
 
 The grid and cull kernels are re-exported here (`Pairs`, `GridSpec`, `allocate`, `update`,
 `build_pairs`, `needs_rebin`, `maybe_update`, `compact`, `pair_tolerance`; `cull`,
-`cull_coverage`, `cull_ratio`): they take raw arrays and run inside jit.
+`cull_coverage`, `cull_ratio`, `view_keep`): they take raw arrays and run inside jit.
+`flat_pairs` and `pair_checks` are `render.render_pairs`' reading of the lists it is given.
 
 Imports: `jscratch.grid`, `jscratch.cull`, `jscratch.scene`, `jscratch.shading` (half vectors).
 """
 
 from __future__ import annotations
 
+import functools
 import math
 
 import equinox as eqx
@@ -46,6 +48,7 @@ from jscratch.cull import DEFAULT_EPS as DEFAULT_EPS
 from jscratch.cull import cull as cull
 from jscratch.cull import cull_coverage as cull_coverage
 from jscratch.cull import cull_ratio as cull_ratio
+from jscratch.cull import view_keep as view_keep
 from jscratch.grid import DEFAULT_MARGIN as DEFAULT_MARGIN
 from jscratch.grid import GridSpec as GridSpec
 from jscratch.grid import Pairs as Pairs
@@ -77,17 +80,20 @@ __all__ = [
     "cull_coverage",
     "cull_pairs",
     "cull_ratio",
+    "flat_pairs",
     "grow_lists",
     "layout",
     "list_counts",
     "maybe_update",
     "needs_rebin",
+    "pair_checks",
     "pair_tolerance",
     "pairs_of",
     "pixels_per_shard",
     "rebin_lists",
     "update",
     "update_lists",
+    "view_keep",
 ]
 
 
@@ -344,3 +350,68 @@ def cull_pairs(pairs, scratches: Scratches, views: Views, board: Board, eps: flo
             for j in range(views.m)]
     return pairs_of(*layout(np.asarray(pairs.pixel), np.asarray(pairs.scratch), keep,
                             scratches.n, board, shards, chunk))
+
+
+# --------------------------------------------------------------------------------------------
+# The renderer's reading of a pair list
+
+
+def flat_pairs(pairs, M: int, n: int, name: str, shards: int, P_pad: int):
+    """`render.render_pairs`' view of a pair list: flattened to output indices, keeping ``shards`` equal per-shard segments (each
+    input list is ``shards`` equal segments; they are interleaved so that segment ``s`` of the
+    result holds segment ``s`` of every view): a single `Pairs` ``(L,)`` shared by all views
+    (output = pixel), a `Pairs` with leading view axis ``(M, L)``, or a sequence of ``M`` `Pairs`
+    (output ``v * P_pad + pixel``). Returns ``(out, scratch, valid, overflow, shared)``."""
+
+    def segments(x):
+        if x.shape[-1] % shards:
+            raise InputError(
+                f"render_pairs: `{name}` has length {x.shape[-1]}, not a multiple of the {shards}"
+                f" pixel shards of the mesh; build it with bin_pairs(..., shards={shards})")
+        return x.reshape(x.shape[:-1] + (shards, x.shape[-1] // shards))
+
+    if isinstance(pairs, (list, tuple)):
+        if len(pairs) != M:
+            raise InputError(f"render_pairs: `{name}` has {len(pairs)} pair lists for {M} views")
+        parts = [flat_pairs(p, 1, n, name, shards, P_pad) for p in pairs]
+        cat = lambda xs: jnp.concatenate([segments(x) for x in xs], 1).reshape(-1)
+        return (cat([p[0] + j * P_pad for j, p in enumerate(parts)]), cat([p[1] for p in parts]),
+                cat([p[2] for p in parts]),
+                functools.reduce(jnp.logical_or, [p[3] for p in parts]), False)
+    pix, scr, valid = jnp.asarray(pairs.pixel), jnp.asarray(pairs.scratch), jnp.asarray(pairs.valid)
+    if not (pix.shape == scr.shape == valid.shape) or pix.ndim not in (1, 2):
+        raise InputError(f"render_pairs: `{name}` fields pixel, scratch, valid must share a shape"
+                         f" (L,) or (M, L); got {pix.shape}, {scr.shape}, {valid.shape}")
+    if not (jnp.issubdtype(pix.dtype, jnp.integer) and jnp.issubdtype(scr.dtype, jnp.integer)):
+        raise InputError(f"render_pairs: `{name}` pixel and scratch indices must be integers")
+    overflow = jnp.any(jnp.asarray(pairs.overflow))
+    valid = valid.astype(bool)
+    if pix.ndim == 2:
+        if pix.shape[0] != M:
+            raise InputError(f"render_pairs: `{name}` has a leading view axis of {pix.shape[0]}"
+                             f" for {M} views")
+        out = pix + (jnp.arange(M, dtype=pix.dtype) * P_pad)[:, None]
+        inter = lambda x: jnp.swapaxes(segments(x), 0, 1).reshape(-1)  # (shards, M, Ls) order
+        return inter(out), inter(scr), inter(valid), overflow, False
+    segments(pix)
+    return pix, scr, valid, overflow, True
+
+
+def pair_checks(out, scr, valid, overflow, *, shared: bool, M: int, P: int, Pb: int,
+                 shards: int, n: int, name: str) -> list:
+    """``(condition, message)`` checks of a `flat_pairs` list for `eqx.error_if` (`render_pairs`): no overflow,
+    indices in range, and (with several shards) every valid pair in its shard's pixel block."""
+    P_pad = Pb * shards
+    view, pix = (jnp.zeros_like(out), out) if shared else (out // P_pad, out % P_pad)
+    bad = valid & ((out < 0) | (pix >= P) | (view >= M) | (scr < 0) | (scr >= n))
+    checks = [(overflow, f"render_pairs: `{name}` overflowed its capacity (incomplete pair list);"
+                         " rebuild it with bvh.build_pairs"),
+              (jnp.any(bad), f"render_pairs: `{name}` has a valid pair with a pixel or scratch"
+                             " index out of range")]
+    if shards > 1:
+        seg = jnp.arange(out.shape[0]) // (out.shape[0] // shards)
+        checks.append((jnp.any(valid & (pix // Pb != seg)),
+                       f"render_pairs: `{name}` is not laid out for {shards} pixel shards (segment"
+                       f" s must hold only pixels [s*{Pb}, (s+1)*{Pb})); build it with"
+                       f" bin_pairs(..., shards={shards})"))
+    return checks

@@ -55,9 +55,10 @@ import numpy as np
 from jax.sharding import PartitionSpec
 from jaxtyping import Array, Float
 
-from jscratch import arc, cull, lobe, native, ndf
+from jscratch import arc, lobe, native, ndf
 from jscratch.compile_options import grad_compiler_options
-from jscratch.bvh import DEFAULT_CHUNK, bin_pairs, cull_pairs, pixels_per_shard
+from jscratch.bvh import (DEFAULT_CHUNK, bin_pairs, cull_pairs, flat_pairs, pair_checks,
+                          pixels_per_shard, view_keep)
 from jscratch.errors import InputError
 from jscratch.scene import (
     Board,
@@ -107,14 +108,14 @@ class _Cfg(NamedTuple):
     need_D: bool
     need_A: bool
     profile: str  # `Scratches.profile`
-    skip_eps: float = 0.0  # pair-views skipped below this bound (`cull.view_keep`; shared lists)
+    skip_eps: float = 0.0  # pair-views skipped below this bound (`bvh.view_keep`; shared lists)
 
     def keep(self, p0, p1, w, d, a, h):
-        """The jnp path's pair-views to evaluate ``(V, chunk)`` (`cull.view_keep`; the native
+        """The jnp path's pair-views to evaluate ``(V, chunk)`` (`bvh.view_keep`; the native
         kernel decides the same itself), or None for all."""
         if self.skip_eps == 0 or not self.need_D:
             return None
-        return cull.view_keep(h, p0, p1, w, d, a, self.skip_eps, self.profile)
+        return view_keep(h, p0, p1, w, d, a, self.skip_eps, self.profile)
 
     def nodes(self, dtype) -> int:
         """Gauss-Legendre nodes per piece of the profile's lit integral (the native kernel's)."""
@@ -569,67 +570,6 @@ def _check_values(scratches: Scratches, views: Views):
     return eqx.tree_at(lambda t: t.width, scratches, w), views
 
 
-def _pair_arrays(pairs, M: int, n: int, name: str, shards: int, P_pad: int):
-    """Flatten a pair list to output indices, keeping ``shards`` equal per-shard segments (each
-    input list is ``shards`` equal segments; they are interleaved so that segment ``s`` of the
-    result holds segment ``s`` of every view): a single `Pairs` ``(L,)`` shared by all views
-    (output = pixel), a `Pairs` with leading view axis ``(M, L)``, or a sequence of ``M`` `Pairs`
-    (output ``v * P_pad + pixel``). Returns ``(out, scratch, valid, overflow, shared)``."""
-
-    def segments(x):
-        if x.shape[-1] % shards:
-            raise InputError(
-                f"render_pairs: `{name}` has length {x.shape[-1]}, not a multiple of the {shards}"
-                f" pixel shards of the mesh; build it with bin_pairs(..., shards={shards})")
-        return x.reshape(x.shape[:-1] + (shards, x.shape[-1] // shards))
-
-    if isinstance(pairs, (list, tuple)):
-        if len(pairs) != M:
-            raise InputError(f"render_pairs: `{name}` has {len(pairs)} pair lists for {M} views")
-        parts = [_pair_arrays(p, 1, n, name, shards, P_pad) for p in pairs]
-        cat = lambda xs: jnp.concatenate([segments(x) for x in xs], 1).reshape(-1)
-        return (cat([p[0] + j * P_pad for j, p in enumerate(parts)]), cat([p[1] for p in parts]),
-                cat([p[2] for p in parts]),
-                functools.reduce(jnp.logical_or, [p[3] for p in parts]), False)
-    pix, scr, valid = jnp.asarray(pairs.pixel), jnp.asarray(pairs.scratch), jnp.asarray(pairs.valid)
-    if not (pix.shape == scr.shape == valid.shape) or pix.ndim not in (1, 2):
-        raise InputError(f"render_pairs: `{name}` fields pixel, scratch, valid must share a shape"
-                         f" (L,) or (M, L); got {pix.shape}, {scr.shape}, {valid.shape}")
-    if not (jnp.issubdtype(pix.dtype, jnp.integer) and jnp.issubdtype(scr.dtype, jnp.integer)):
-        raise InputError(f"render_pairs: `{name}` pixel and scratch indices must be integers")
-    overflow = jnp.any(jnp.asarray(pairs.overflow))
-    valid = valid.astype(bool)
-    if pix.ndim == 2:
-        if pix.shape[0] != M:
-            raise InputError(f"render_pairs: `{name}` has a leading view axis of {pix.shape[0]}"
-                             f" for {M} views")
-        out = pix + (jnp.arange(M, dtype=pix.dtype) * P_pad)[:, None]
-        inter = lambda x: jnp.swapaxes(segments(x), 0, 1).reshape(-1)  # (shards, M, Ls) order
-        return inter(out), inter(scr), inter(valid), overflow, False
-    segments(pix)
-    return pix, scr, valid, overflow, True
-
-
-def _pair_checks(out, scr, valid, overflow, *, shared: bool, M: int, P: int, Pb: int,
-                 shards: int, n: int, name: str) -> list:
-    """``(condition, message)`` checks of a flattened pair list for `eqx.error_if`: no overflow,
-    indices in range, and (with several shards) every valid pair in its shard's pixel block."""
-    P_pad = Pb * shards
-    view, pix = (jnp.zeros_like(out), out) if shared else (out // P_pad, out % P_pad)
-    bad = valid & ((out < 0) | (pix >= P) | (view >= M) | (scr < 0) | (scr >= n))
-    checks = [(overflow, f"render_pairs: `{name}` overflowed its capacity (incomplete pair list);"
-                         " rebuild it with bvh.build_pairs"),
-              (jnp.any(bad), f"render_pairs: `{name}` has a valid pair with a pixel or scratch"
-                             " index out of range")]
-    if shards > 1:
-        seg = jnp.arange(out.shape[0]) // (out.shape[0] // shards)
-        checks.append((jnp.any(valid & (pix // Pb != seg)),
-                       f"render_pairs: `{name}` is not laid out for {shards} pixel shards (segment"
-                       f" s must hold only pixels [s*{Pb}, (s+1)*{Pb})); build it with"
-                       f" bin_pairs(..., shards={shards})"))
-    return checks
-
-
 def render_pairs(scratches: Scratches, views: Views, board: Board, pairs,
                  coverage_pairs=None, *, chunk: int = DEFAULT_CHUNK,
                  mesh: jax.sharding.Mesh | None = None,
@@ -683,9 +623,9 @@ def render_pairs(scratches: Scratches, views: Views, board: Board, pairs,
     geo_h = half_vectors(views, board, dtype)  # (M, P, 3)
 
     def flat(p, m, what):
-        out, scr, valid, over, shared = _pair_arrays(p, m, n, what, shards, Pb * shards)
+        out, scr, valid, over, shared = flat_pairs(p, m, n, what, shards, Pb * shards)
         if checked:
-            checks.extend(_pair_checks(out, scr, valid, over, shared=shared, M=m, P=P, Pb=Pb,
+            checks.extend(pair_checks(out, scr, valid, over, shared=shared, M=m, P=P, Pb=Pb,
                                        shards=shards, n=n, name=what))
         return out, scr, valid, shared
 

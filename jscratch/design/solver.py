@@ -16,7 +16,7 @@ from jax import lax
 import optax
 from jaxtyping import Array
 
-from jscratch import bvh, cull
+from jscratch import bvh
 from jscratch import loss as loss_mod
 from jscratch.compile_options import few_calls_jit, grad_compiler_options
 from jscratch.contributions import scratch_contributions
@@ -84,7 +84,7 @@ def _kept_counts(params: DesignParams, lists: bvh.PairLists, ctx: Context) -> Ar
                                                    lists.shared.valid))
     i = jnp.clip(scr, 0, s.n - 1)
     h = ctx.hs[:, jnp.clip(pix, 0, ctx.hs.shape[1] - 1)]
-    keep = cull.view_keep(h, s.p0[i], s.p1[i], s.width[i], s.depth[i], s.alpha[i], ctx.skip_eps,
+    keep = bvh.view_keep(h, s.p0[i], s.p1[i], s.width[i], s.depth[i], s.alpha[i], ctx.skip_eps,
                           s.profile)
     share = jnp.sum(keep & valid[None], axis=1) / jnp.maximum(jnp.sum(valid), 1)
     return jnp.round(share * jnp.sum(lists.shared.valid)).astype(jnp.int32)
