@@ -57,8 +57,6 @@ def main():
     ap.add_argument("--repeats", type=int, default=9)
     args = ap.parse_args()
     print(machine_line())
-    native.keep_freed_memory()  # as the design does
-    native.prepare()
     machine = dict(MachineProfile().to_dict(), groove_fit=args.groove_fit)
     cfg = DesignConfig(n_scratches=args.scratches, machine=machine)
     p, opt, lists, ctx, adam = design_step_state(cfg, args.views, args.size, args.warm)

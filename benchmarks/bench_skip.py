@@ -34,8 +34,6 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=15)
     args = ap.parse_args()
     print(machine_line())
-    native.keep_freed_memory()  # as the design does
-    native.prepare()
     p, opt, lists, ctx, adam = design_step_state(DesignConfig(n_scratches=args.scratches),
                                                  args.views, 256, args.warm)
     epss = [0.0] + [float(e) for e in args.eps.split(",") if float(e) != 0]

@@ -49,9 +49,14 @@ DEFAULT_VIEWS = 4
 def design_step_state(config, views: int, size: int, warm: int):
     """The default targets' design (`config`, ``views`` views at ``size`` px) set up as
     `jscratch.design.run` sets it up, after ``warm`` steps: ``(params, opt_state, lists, ctx,
-    adam)`` for `jscratch.design.solver.step` (the design-step benchmarks' starting point)."""
+    adam)`` for `jscratch.design.solver.step` (the design-step benchmarks' starting point), the
+    native kernel built and the allocator set as the design sets them."""
+    from jscratch import native
     from jscratch.design import run, solver
     from jscratch.design.io import default_targets
+
+    native.keep_freed_memory()
+    native.prepare(config.dtype)
 
     targets, _ = default_targets(views, (size, size))
     tnp, v, board = run.check_inputs(targets, None, None, config)
