@@ -357,9 +357,9 @@ def cull_pairs(pairs, scratches: Scratches, views: Views, board: Board, eps: flo
 
 
 def flat_pairs(pairs, M: int, n: int, name: str, shards: int, P_pad: int):
-    """`render.render_pairs`' view of a pair list: flattened to output indices, keeping ``shards`` equal per-shard segments (each
-    input list is ``shards`` equal segments; they are interleaved so that segment ``s`` of the
-    result holds segment ``s`` of every view): a single `Pairs` ``(L,)`` shared by all views
+    """`render.render_pairs`' view of a pair list: flattened to output indices, keeping
+    ``shards`` equal per-shard segments (each input list is ``shards`` equal segments; they are
+    interleaved so that segment ``s`` of the result holds segment ``s`` of every view): a single `Pairs` ``(L,)`` shared by all views
     (output = pixel), a `Pairs` with leading view axis ``(M, L)``, or a sequence of ``M`` `Pairs`
     (output ``v * P_pad + pixel``). Returns ``(out, scratch, valid, overflow, shared)``."""
 
@@ -399,8 +399,9 @@ def flat_pairs(pairs, M: int, n: int, name: str, shards: int, P_pad: int):
 
 def pair_checks(out, scr, valid, overflow, *, shared: bool, M: int, P: int, Pb: int,
                  shards: int, n: int, name: str) -> list:
-    """``(condition, message)`` checks of a `flat_pairs` list for `eqx.error_if` (`render_pairs`): no overflow,
-    indices in range, and (with several shards) every valid pair in its shard's pixel block."""
+    """``(condition, message)`` checks of a `flat_pairs` list for `eqx.error_if` (in
+    `render_pairs`): no overflow, indices in range, and (with several shards) every valid pair in
+    its shard's pixel block."""
     P_pad = Pb * shards
     view, pix = (jnp.zeros_like(out), out) if shared else (out // P_pad, out % P_pad)
     bad = valid & ((out < 0) | (pix >= P) | (view >= M) | (scr < 0) | (scr >= n))
