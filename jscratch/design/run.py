@@ -132,6 +132,7 @@ def design(
         config.discard or config.target_ssim is not None) and stop_after is None)
     parts["finish"] = time.perf_counter() - t
     result.metrics["pair_views_evaluated"] = loop.pop("pair_views")
+    result.metrics["skip_eps"] = ctx.skip_eps
     result.metrics.update({
         "time_total": time.perf_counter() - t_start,
         "time_first_step": step_times[0] if step_times else None,
@@ -173,6 +174,13 @@ def check_inputs(targets, views, board, config, checkpoint=None, resume=False):
     return tnp, views, board
 
 
+def skip_eps(config) -> float:
+    """The step's pair-view skipping tolerance: ``config.skip_eps`` where the native kernel
+    evaluates the pairs (it skips their work), else 0 (the jnp path would evaluate the skipped
+    pair-views and zero them: no time saved, docs/model.md §11)."""
+    return float(config.skip_eps) if native.available(jnp.dtype(config.dtype)) else 0.0
+
+
 def setup(tnp, views, board, config, mesh=None):
     """The initial parameters (the structure a checkpoint is restored into), the optimiser and the
     step's `Context` (on `mesh`, its arrays replicated there: `jscratch.design.mesh`)."""
@@ -185,7 +193,7 @@ def setup(tnp, views, board, config, mesh=None):
         params, optimizer, lrs, cam, lig, hs, ndf_max = _setup_scene(views, board, config, dt)
         bound = binding.result()
     ctx = Context(cam, lig, hs, ndf_max, bound, lrs, board, int(config.chunk), mesh,
-                  float(config.skip_eps))
+                  skip_eps(config))
     return mesh_mod.place(params, mesh), optimizer, mesh_mod.place(ctx, mesh)
 
 
