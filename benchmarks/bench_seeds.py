@@ -1,7 +1,7 @@
 """Design settings compared over several seeds, paired: is a change in SSIM or ghosting larger
 than what any float32-sized perturbation of the optimisation already does?
 
-    python benchmarks/bench_seeds.py --arm full="--skip-eps 0" --arm skip5e5= \
+    python benchmarks/bench_seeds.py --arm full="--skip-eps 0" --arm skip5e5="--skip-eps 5e-5" \
         [--arm fewer="--skip-eps 0 --iterations 94"] [--seeds 0-7] [--out benchmarks/results/seeds]
 
 A design is chaotic in its details: one seed's per-view SSIM and ghosting move by several

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jscratch import designfile, native
+from jscratch import designfile
 from jscratch import render
 from jscratch.design import (
     DesignConfig,
@@ -56,7 +56,7 @@ def test_cli_end_to_end_resume_and_nan(tmp_path, capsys):
     metrics = json.loads((full / "metrics.json").read_text())
     for key in ("ssim", "psnr", "ghosting", "time_total", "pairs_per_view", "discarded", "loss"):
         assert key in metrics
-    assert metrics["skip_eps"] == (5e-5 if native.available(jnp.float32) else 0.0)
+    assert metrics["skip_eps"] == 0.0  # (every pair-view evaluated by default)
     assert len(metrics["ssim"]) == 2 and metrics["iterations"] == 4
     # the pair counts and the time per part: every step evaluates each view's pairs
     assert metrics["pair_views_evaluated"] == 4 * 2 * metrics["pairs_total"] > 0 or (
@@ -274,8 +274,7 @@ def test_culled_path_matches_unculled_at_tiny_eps():
     views = render.views_on_circle(2, math.radians(50), board=board)
     runs = {}
     for name, eps in (("unculled", 0.0), ("culled", 1e-12)):
-        cfg = _tiny_config(iterations=3, discard=False, cull_eps=eps, coverage_eps=eps,
-                           skip_eps=0.0)  # (the unculled step evaluates every pair-view)
+        cfg = _tiny_config(iterations=3, discard=False, cull_eps=eps, coverage_eps=eps)
         runs[name] = design(targets, views, board, cfg)
     a, b = runs["unculled"], runs["culled"]
     assert len(b.metrics["pairs_per_view"]) == 2 and b.metrics["coverage_pairs"] > 0

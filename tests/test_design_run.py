@@ -13,9 +13,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jscratch import bvh, native
+from jscratch import bvh
 from jscratch.design import DesignConfig, design
-from jscratch.design.run import pair_lists, rebin, setup, skip_eps
+from jscratch.design.run import pair_lists, rebin, setup
 from jscratch.designfile import DesignError
 from jscratch.scene import Board, Scratches, views_on_circle
 
@@ -72,18 +72,3 @@ def test_setup_pair_lists_and_rebin():
     again, _ = bvh.build_pairs(m.p0, m.p1, m.width, m.depth, board=(0.3, 0.3), shape=(16, 16))
     assert _kept(rebin(lists, moved, ctx).shared) == _kept(again) != _kept(full)
 
-
-def test_the_step_skips_pair_views_only_with_the_native_kernel():
-    """`setup`'s context: `DesignConfig.skip_eps` (default 5e-5) where the native kernel evaluates
-    the pairs, 0 on the jnp path (which would evaluate the skipped pair-views and zero them)."""
-    targets, views, board = _inputs()
-    assert DesignConfig().skip_eps == 5e-5
-    for on in (True, False):
-        with native.override(enabled=on):
-            for eps in (0.0, 2e-5):
-                _, _, ctx = setup(targets, views, board, dataclasses.replace(CFG, skip_eps=eps))
-                want = eps if native.available(jnp.float32) else 0.0
-                assert ctx.skip_eps == want and skip_eps(dataclasses.replace(CFG, skip_eps=eps)) \
-                    == want
-    with native.override(enabled=False):
-        assert not native.available(jnp.float32)

@@ -34,13 +34,15 @@ default run: loss 0.0136 unculled against 0.0323 at ``cull_eps = 1e-3``); a cull
 pair's brightest view keeps those but raises the ghosting, since what it drops is the ghost image
 itself, and an absolute one that keeps each pair's brightest view costs the first view's SSIM
 from ``1e-4`` on, even culling gradients alone (docs/model.md §11, `benchmarks/RESULTS.md`).
-What is skipped by default is decided inside the native kernel (``skip_eps``, default ``5e-5``):
-the step keeps the shared list and the kernel skips the pair-views `cull.view_keep` drops (below
-``skip_eps`` of their peak, never a pair's brightest view), 6 % of a default step. Over eight seeds,
-paired, the designs differ from unskipped ones by -0.003 to 0.000 SSIM and -0.001 to +0.004
-ghosting per view (one seed alone moves by more than that when a learning rate changes by 1e-4);
-at ``1e-4`` the first view loses 0.009 SSIM. Without the native kernel nothing is skipped (the
-jnp path would evaluate and zero them); ``skip_eps = 0`` evaluates every pair-view.
+With ``skip_eps > 0`` the step keeps the shared list and the kernel skips the pair-views
+`cull.view_keep` drops (below ``skip_eps`` of their peak, never a pair's brightest view): the
+first cull that saves time (6 % of a default step at ``5e-5``; the jnp path evaluates and zeroes
+them, saving nothing). It is off by default because the designs come out slightly worse, by
+amounts that only seeds paired resolve (one seed moves by as much when a learning rate changes
+by 1e-4): at ``5e-5`` over eight seeds the first view's SSIM -0.003 and the third view's
+ghosting +0.004, the loss +1 % (what stopping at 94 iterations saves and costs), and at 3 views
+x 60,000 (a dense design) the first view's SSIM -0.007, the loss +4 % and 9 % fewer scratches
+kept (docs/model.md §11).
 The renderer (`render.render_pairs`) gives radiance, `render.display` gives display values, and
 the loss (`loss.make_loss`) its value and gradient; Adam updates the parameters. Inside the same jitted step `bvh.needs_rebin` says whether
 the shared list still holds every pair for the new parameters and, only when it does not, the list

@@ -174,13 +174,6 @@ def check_inputs(targets, views, board, config, checkpoint=None, resume=False):
     return tnp, views, board
 
 
-def skip_eps(config) -> float:
-    """The step's pair-view skipping tolerance: ``config.skip_eps`` where the native kernel
-    evaluates the pairs (it skips their work), else 0 (the jnp path would evaluate the skipped
-    pair-views and zero them: no time saved, docs/model.md §11)."""
-    return float(config.skip_eps) if native.available(jnp.dtype(config.dtype)) else 0.0
-
-
 def setup(tnp, views, board, config, mesh=None):
     """The initial parameters (the structure a checkpoint is restored into), the optimiser and the
     step's `Context` (on `mesh`, its arrays replicated there: `jscratch.design.mesh`)."""
@@ -193,7 +186,7 @@ def setup(tnp, views, board, config, mesh=None):
         params, optimizer, lrs, cam, lig, hs, ndf_max = _setup_scene(views, board, config, dt)
         bound = binding.result()
     ctx = Context(cam, lig, hs, ndf_max, bound, lrs, board, int(config.chunk), mesh,
-                  skip_eps(config))
+                  float(config.skip_eps))
     return mesh_mod.place(params, mesh), optimizer, mesh_mod.place(ctx, mesh)
 
 
