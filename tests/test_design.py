@@ -256,6 +256,7 @@ def test_skipping_pair_views_matches_the_full_optimisation_within_its_tolerance(
     assert runs[1e-12].history["total"] == a.history["total"]
     assert not np.any(moved(runs[1e-12]))
     b = runs[5e-5]
+    assert (a.metrics["skip_eps"], b.metrics["skip_eps"]) == (0.0, 5e-5)
     evaluated = b.metrics["pair_views_evaluated"] / a.metrics["pair_views_evaluated"]
     assert 0.3 < evaluated < 0.8, evaluated
     np.testing.assert_allclose(b.history["total"], a.history["total"], rtol=2e-3)

@@ -71,4 +71,3 @@ def test_setup_pair_lists_and_rebin():
     m = moved.scratches()
     again, _ = bvh.build_pairs(m.p0, m.p1, m.width, m.depth, board=(0.3, 0.3), shape=(16, 16))
     assert _kept(rebin(lists, moved, ctx).shared) == _kept(again) != _kept(full)
-

@@ -32,8 +32,8 @@ class DesignResult:
       ``discarded``, ``kept``, ``pairs_total`` (pairs binned in the final shared list),
       ``pair_capacity`` (its slots), ``pairs_per_view``, ``coverage_pairs`` (pairs in the
       coverage pass after `cull.cull_coverage`), ``pair_views_evaluated`` (summed over the
-      steps), ``skip_eps`` (the steps' pair-view skipping tolerance), ``rebins`` (rebuilds of the shared list: in the steps
-      and at prune rounds),
+      steps), ``skip_eps`` (the steps' pair-view skipping tolerance), ``rebins`` (rebuilds of
+      the shared list: in the steps and at prune rounds),
       timing (s): ``time_total``, ``time_first_step`` (the first step's wall time; the step is
       compiled meanwhile on a second thread, whose wall time is ``time_compile_step``),
       ``time_step_median``, ``time_discard``, ``time_parts`` (``setup``, ``initial_state``,
