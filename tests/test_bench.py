@@ -5,7 +5,9 @@ import json
 import math
 import shlex
 
-from jscratch import bench
+import jax.numpy as jnp
+
+from jscratch import bench, native
 
 
 def test_quick_bench_writes_finite_results(tmp_path):
@@ -28,6 +30,19 @@ def test_quick_bench_writes_finite_results(tmp_path):
     assert st["n_cases"] >= 1000
     assert st["nonfinite_values_f32"] == 0 and st["cases_with_nonfinite_gradients_f32"] == 0
     assert st["worst_f32_err_over_tol"] <= 1.0
+    # Every pair kernel a render can run, float32 against the float64 closed form of its groove.
+    paths = {p["kernel"]: p for p in st["paths"]}
+    assert set(paths) == {"ndf.pair_integral, paper profile", "arc.arc_lit_integral, arc",
+                          "native, paper profile", "native, arc"}
+    for name, p in paths.items():
+        if "skipped" in p:
+            assert name.startswith("native") and not native.available(jnp.float32), name
+            continue
+        assert p["nonfinite_values"] == 0 and p["cases_with_nonfinite_gradients"] == 0, name
+        assert p["worst_err_over_tol"] <= 1.0 and p["cases_over_tol"] == 0, name
+        assert p["worst_err_over_pixel_peak"] < 1e-4, name
+    assert "| native, arc |" in (tmp_path / "bench.md").read_text() or "skipped" in paths[
+        "native, arc"]
     assert (tmp_path / "kernel_pareto.png").stat().st_size > 1000
     assert "| closed form |" in (tmp_path / "bench.md").read_text()
     # Renderer, brute force and optimiser sections.

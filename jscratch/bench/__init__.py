@@ -13,9 +13,11 @@ reported apart), then takes the median of repeated `block_until_ready` runs. Res
    against the independent reference `jscratch.bench.ndf_reference` (exact clipping, adaptive
    quadrature). Pareto plot ``kernel_pareto.png``.
 2. ``stability``: a sweep over alpha (1e-4 ... 0.9), grazing ``hz``, ``hy`` near 0, width over
-   footprint and depth over width, footprint positions across the groove; worst float32 error
-   (against the float64 closed form, itself checked against the reference in the test suite) and
-   the count of non-finite values and gradients. 10^5+ cases in full mode.
+   footprint and depth over width, footprint positions across the groove, through every pair
+   kernel a render can run (jnp and native, the paper's profile and the ball cutter's arc);
+   worst float32 error (against the float64 closed form of the same groove, itself checked
+   against the reference in the test suite) and the count of non-finite values and gradients.
+   10^5+ cases in full mode.
 3. ``render``: forward and forward+backward time per view, pairs per second, binning share and
    peak memory for the standard scenes, and culling ``eps`` against image error.
 4. ``brute``: the analytic renderer against the brute-force supersampled renderer: the time each

@@ -1,6 +1,6 @@
 """Sections 1-2 of `python -m jscratch.bench`: the kernel (closed form against Gauss-Legendre
 quadrature, error against the independent reference `jscratch.bench.ndf_reference` on the cases
-of `jscratch.bench.ndf_cases`) and the numerical stability sweep."""
+of `jscratch.bench.ndf_cases`) and the numerical stability sweep of every pair kernel."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jscratch import ndf
+from jscratch import arc, lobe, native, ndf
 from jscratch.bench import ndf_cases, ndf_reference
 from jscratch.bench.timing import compile_once, md_table, plot, time_compiled
 from jscratch.render import grad_compiler_options
@@ -194,55 +194,153 @@ def stability_cases(n: int, seed: int = 1):
     return ndf_cases.Cases(h, fp, p0, p1, w, d, alpha)
 
 
+def _sweep_errors(D32, A32, Dr, Ar, alpha, pixel_area):
+    """Float32 ``(D, A)`` against the float64 reference ``(Dr, Ar)`` (float64 numpy, ``(n,)``):
+    ``ratio`` = error over the tolerance ``max(1e-3 |Dr|, 1e-5 Ar / (pi alpha))`` per case, and the
+    worst error in units of the brightest value a pixel can have, ``pixel_area / (pi alpha^2)``
+    (a fully covered pixel at the GGX peak: what a render can show); the area's worst error in
+    units of the pixel's area."""
+    scale = Ar / (np.pi * alpha)
+    tol = np.maximum(1e-3 * np.abs(Dr), 1e-5 * scale)
+    ratio = np.where(tol > 0, np.abs(D32 - Dr) / np.where(tol > 0, tol, 1), np.abs(D32) * 1e30)
+    return ratio, {
+        "nonfinite_values": int((~np.isfinite(D32)).sum() + (~np.isfinite(A32)).sum()),
+        "worst_err_over_tol": float(ratio.max()),
+        "cases_over_tol": int((ratio > 1).sum()),
+        "within_tolerance_fraction": float(np.mean(ratio <= 1)),
+        "worst_err_over_pixel_peak": float(np.max(np.abs(D32 - Dr) * np.pi * alpha**2
+                                                  / pixel_area)),
+        "worst_area_err_over_pixel": float(np.max(np.abs(A32 - Ar)) / pixel_area),
+    }
+
+
+def _arc_cases(C: "ndf_cases.Cases") -> "ndf_cases.Cases":
+    """`C` read as ball-cutter grooves (``width = 2R``, ``depth`` that of `arc.arc_groove`): the
+    depth capped where the plunge reaches the arc's cap ``rho = 1 - 2^-20`` (deeper is the same
+    groove)."""
+    cap = -C.width * np.log1p(-arc._RHO_CAP)
+    return C._replace(depth=np.minimum(C.depth, cap.astype(C.depth.dtype)))
+
+
+def _native_sweep(profile: str, C32: "ndf_cases.Cases"):
+    """The native kernel (float32, one view per pair) over the sweep: ``(D, A)`` as float64 numpy
+    and, per case, whether every derivative is finite: the design's Jacobian pass
+    (`native.pair_jacobian`: ``J_D``, ``J_h``, ``J_A``) and the reverse pass at unit cotangents
+    (`native.pair_vjp`)."""
+    n_gl = lobe.nodes(jnp.float32) if profile == "paper" else arc.nodes(jnp.float32)
+    h = jnp.asarray(C32.h)[None]
+    args = tuple(jnp.asarray(a) for a in (C32.footprint, C32.p0, C32.p1, C32.width, C32.depth,
+                                          C32.alpha))
+    valid = jnp.ones(C32.width.shape, bool)
+    D, A, J_D, J_h, J_A = jax.jit(functools.partial(native.pair_jacobian, n_gl,
+                                                    profile=profile))(*args, valid, h)
+    ones = jnp.ones(C32.width.shape, jnp.float32)
+    vjp = jax.jit(functools.partial(native.pair_vjp, n_gl, profile=profile))(
+        *args, valid, h, ones[None], ones)
+    n = C32.width.shape[0]
+    finite = [np.isfinite(np.asarray(x)).reshape(-1, n, x.shape[-1]).all(axis=(0, 2))
+              for x in (J_D, J_h)]
+    finite += [np.isfinite(np.asarray(J_A)).all(axis=1)]
+    finite += [np.isfinite(np.asarray(g)).reshape(n, -1).all(axis=1) if g.shape[0] == n else
+               np.isfinite(np.asarray(g)).reshape(-1, n, 3).all(axis=(0, 2)) for g in vjp]
+    return (np.asarray(D[0], np.float64), np.asarray(A, np.float64),
+            np.logical_and.reduce(finite))
+
+
+def _by_alpha(alpha, ratio) -> list[dict]:
+    """The worst and median of ``ratio`` (error over tolerance) per decade of ``alpha``."""
+    bins = []
+    edges = [1e-4, 1e-3, 1e-2, 1e-1, 0.9 + 1e-9]
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        sel = (alpha >= lo) & (alpha < hi)
+        if sel.any():
+            bins.append({"alpha": f"[{lo:g}, {hi:g})", "n": int(sel.sum()),
+                         "worst_err_over_tol": float(ratio[sel].max()),
+                         "median_err_over_tol": float(np.median(ratio[sel]))})
+    return bins
+
+
+_ARC_PAIR = arc.pair_integral_of("arc")  # one function object: one compilation per shape
+
+
 def bench_stability(quick: bool, out: Path) -> dict:
+    """The sweep of `stability_cases` through every pair kernel a render can run, in float32
+    against the float64 closed form of the same groove at the float32-rounded inputs: the
+    single-pair kernels (`ndf.pair_integral`, the paper's profile, whose per-view stage is
+    `native.lit` where the native kernel is available; `arc.arc_lit_integral`, the ball cutter's
+    arc, in jnp: the fallback and GPU path) and the native whole-pair kernel with both profiles
+    (a design's path on the CPU). The top-level figures are `ndf.pair_integral`'s; ``paths`` has
+    one row per kernel."""
 
     n = 2048 if quick else 131072
     C = stability_cases(n)
     # The same functions and chunk shape as the kernel section's closed-form timings, so the
     # compilations are shared (`compile_once`).
     chunk = _kernel_timing_pairs(quick)
-    fwd, grads = _vmapped(ndf.pair_integral), _per_pair_grads(ndf.pair_integral)
-    C32 = C.astype(np.float32).args()
-    C64 = C.astype(np.float64).args()
     first = np.arange(chunk) % n  # a whole first chunk: the shapes the functions compile for
-    head = tuple(a[first] for a in C32)
-    D32, A32 = _run_in_chunks(compile_once(fwd, *head)[0], C32, chunk)
-    D64, A64 = _run_in_chunks(compile_once(fwd, *(a[first] for a in C64))[0], C64, chunk)
-    g = _run_in_chunks(compile_once(grads, *head, options=grad_compiler_options())[0], C32,
-                       chunk)
-    bad_g = int(np.any([~np.isfinite(x.reshape(n, -1)).any(axis=1) for x in g], axis=0).sum())
-    # The float64 closed form at the float32-rounded inputs is the reference here.
-    Dref, Aref = _run_in_chunks(compile_once(fwd, *(a[first].astype(np.float64) for a in C32))[0],
-                                tuple(a.astype(np.float64) for a in C32), chunk)
-    scale = Aref / (np.pi * C.astype(np.float32).alpha.astype(np.float64))
-    tol = np.maximum(1e-3 * np.abs(Dref), 1e-5 * scale)
-    ratio = np.where(tol > 0, np.abs(D32 - Dref) / np.where(tol > 0, tol, 1), np.abs(D32) * 1e30)
-    worst = int(np.argmax(ratio))
-    bins = []
-    edges = [1e-4, 1e-3, 1e-2, 1e-1, 0.9 + 1e-9]
-    for lo, hi in zip(edges[:-1], edges[1:]):
-        sel = (C.alpha >= lo) & (C.alpha < hi)
-        if sel.any():
-            bins.append({"alpha": f"[{lo:g}, {hi:g})", "n": int(sel.sum()),
-                         "worst_err_over_tol": float(ratio[sel].max()),
-                         "median_err_over_tol": float(np.median(ratio[sel]))})
+    pixel_area = float(ndf_cases.PIXEL) ** 2
+    paths = []
+    for profile in ("paper", "arc"):
+        Cp = C if profile == "paper" else _arc_cases(C)
+        Cp32 = Cp.astype(np.float32)
+        one = ndf.pair_integral if profile == "paper" else _ARC_PAIR
+        fwd, grads = _vmapped(one), _per_pair_grads(one)
+        C32 = Cp32.args()
+        C64 = tuple(a.astype(np.float64) for a in C32)
+        head = tuple(a[first] for a in C32)
+        # The float64 closed form at the float32-rounded inputs is the reference here.
+        Dr, Ar = _run_in_chunks(compile_once(fwd, *(a[first] for a in C64))[0], C64, chunk)
+        alpha = Cp32.alpha.astype(np.float64)
+        D32, A32 = _run_in_chunks(compile_once(fwd, *head)[0], C32, chunk)
+        g = _run_in_chunks(compile_once(grads, *head, options=grad_compiler_options())[0], C32,
+                           chunk)
+        good_g = np.logical_and.reduce([np.isfinite(x.reshape(n, -1)).all(axis=1) for x in g])
+        ratio, row = _sweep_errors(D32, A32, Dr, Ar, alpha, pixel_area)
+        row["cases_with_nonfinite_gradients"] = int((~good_g).sum())
+        groove = "paper profile" if profile == "paper" else "arc"
+        jnp_name = "ndf.pair_integral" if profile == "paper" else "arc.arc_lit_integral"
+        paths.append({"kernel": f"{jnp_name}, {groove}", **row})
+        if profile == "paper":  # the top-level figures
+            top = dict(row)
+            D64, A64 = _run_in_chunks(compile_once(fwd, *(a[first] for a in Cp.args()))[0],
+                                      Cp.args(), chunk)
+            top["nonfinite_values_f64"] = int((~np.isfinite(D64)).sum() + (~np.isfinite(A64)).sum())
+            worst = int(np.argmax(ratio))
+            worst_case = {k: np.asarray(v[worst]).tolist() for k, v in zip(C._fields, C.args())}
+            bins = _by_alpha(C.alpha, ratio)
+        if native.available(jnp.float32):
+            Dn, An, good_n = _native_sweep(profile, Cp32)
+            _, row = _sweep_errors(Dn, An, Dr, Ar, alpha, pixel_area)
+            paths.append({"kernel": f"native, {groove}", **row,
+                          "cases_with_nonfinite_gradients": int((~good_n).sum())})
+        else:
+            paths.append({"kernel": f"native, {groove}",
+                          "skipped": f"native kernel unavailable: {native.status()['why']}"})
     res = {
         "n_cases": n,
-        "nonfinite_values_f32": int((~np.isfinite(D32)).sum() + (~np.isfinite(A32)).sum()),
-        "nonfinite_values_f64": int((~np.isfinite(D64)).sum() + (~np.isfinite(A64)).sum()),
-        "cases_with_nonfinite_gradients_f32": bad_g,
-        "worst_f32_err_over_tol": float(ratio[worst]),
-        "within_tolerance_fraction": float(np.mean(ratio <= 1)),
-        "worst_case": {k: np.asarray(v[worst]).tolist() for k, v in zip(C._fields, C.args())},
+        "nonfinite_values_f32": top["nonfinite_values"],
+        "nonfinite_values_f64": top["nonfinite_values_f64"],
+        "cases_with_nonfinite_gradients_f32": top["cases_with_nonfinite_gradients"],
+        "worst_f32_err_over_tol": top["worst_err_over_tol"],
+        "within_tolerance_fraction": top["within_tolerance_fraction"],
+        "worst_case": worst_case,
         "by_alpha": bins,
-        "note": "tolerance = max(1e-3 |ref|, 1e-5 A/(pi alpha)) (the kernel's float32 accuracy bound); "
-                "reference = float64 closed form at the float32-rounded inputs.",
+        "paths": paths,
+        "note": "tolerance = max(1e-3 |ref|, 1e-5 A/(pi alpha)) (the kernel's float32 accuracy "
+                "bound); reference = float64 closed form of the same groove at the float32-rounded "
+                "inputs; pixel peak = pixel area / (pi alpha^2). The arc rows read each case's "
+                "width as 2R, its depth capped at the arc's (`arc.arc_groove`).",
     }
+    cols = ["kernel", "nonfinite_values", "cases_with_nonfinite_gradients", "worst_err_over_tol",
+            "cases_over_tol", "worst_err_over_pixel_peak", "worst_area_err_over_pixel"]
     res["markdown"] = (
         f"{n} cases; non-finite values f32/f64: {res['nonfinite_values_f32']}/"
-        f"{res['nonfinite_values_f64']}; cases with non-finite f32 gradients: {bad_g}; worst "
-        f"f32 error / tolerance: {res['worst_f32_err_over_tol']:.3g}; within tolerance: "
-        f"{100 * res['within_tolerance_fraction']:.3f}%\n\n" + md_table(bins, ["alpha", "n", "worst_err_over_tol", "median_err_over_tol"])
+        f"{res['nonfinite_values_f64']}; cases with non-finite f32 gradients: "
+        f"{res['cases_with_nonfinite_gradients_f32']}; worst f32 error / tolerance: "
+        f"{res['worst_f32_err_over_tol']:.3g}; within tolerance: "
+        f"{100 * res['within_tolerance_fraction']:.3f}%\n\n"
+        + md_table(bins, ["alpha", "n", "worst_err_over_tol", "median_err_over_tol"])
+        + "\n\nEvery pair kernel, float32 against the float64 closed form of its groove:\n\n"
+        + md_table([p for p in paths if "skipped" not in p], cols)
     )
     return res
-
