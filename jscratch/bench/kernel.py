@@ -215,11 +215,13 @@ def _sweep_errors(D32, A32, Dr, Ar, alpha, pixel_area):
 
 
 def _arc_cases(C: "ndf_cases.Cases") -> "ndf_cases.Cases":
-    """`C` read as ball-cutter grooves (``width = 2R``, ``depth`` that of `arc.arc_groove`): the
-    depth capped where the plunge reaches the arc's cap ``rho = 1 - 2^-20`` (deeper is the same
+    """`C` read as ball-cutter grooves: radius ``R = width / 2``, plunge ``rho R`` with ``rho =
+    1 - exp(-depth / width)`` (the paper groove's depth read back), stored as `arc.arc_groove`
+    stores them (its depth capped where ``rho`` reaches the arc's cap; deeper is the same
     groove)."""
-    cap = -C.width * np.log1p(-arc._RHO_CAP)
-    return C._replace(depth=np.minimum(C.depth, cap.astype(C.depth.dtype)))
+    radius = C.width / 2
+    _, depth = arc.arc_groove(-np.expm1(-C.depth / C.width) * radius, radius)
+    return C._replace(depth=np.asarray(depth, C.depth.dtype))
 
 
 def _native_sweep(profile: str, C32: "ndf_cases.Cases"):
