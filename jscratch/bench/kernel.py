@@ -240,11 +240,8 @@ def _native_sweep(profile: str, C32: "ndf_cases.Cases"):
     vjp = jax.jit(functools.partial(native.pair_vjp, n_gl, profile=profile))(
         *args, valid, h, ones[None], ones)
     n = C32.width.shape[0]
-    finite = [np.isfinite(np.asarray(x)).reshape(-1, n, x.shape[-1]).all(axis=(0, 2))
-              for x in (J_D, J_h)]
-    finite += [np.isfinite(np.asarray(J_A)).all(axis=1)]
-    finite += [np.isfinite(np.asarray(g)).reshape(n, -1).all(axis=1) if g.shape[0] == n else
-               np.isfinite(np.asarray(g)).reshape(-1, n, 3).all(axis=(0, 2)) for g in vjp]
+    per_case = (J_D[0], J_h[0], J_A, *vjp[:5], vjp[5][0])  # one view: (n, ...) each
+    finite = [np.isfinite(np.asarray(x)).reshape(n, -1).all(axis=1) for x in per_case]
     return (np.asarray(D[0], np.float64), np.asarray(A, np.float64),
             np.logical_and.reduce(finite))
 
