@@ -359,9 +359,10 @@ def cull_pairs(pairs, scratches: Scratches, views: Views, board: Board, eps: flo
 def flat_pairs(pairs, M: int, n: int, name: str, shards: int, P_pad: int):
     """`render.render_pairs`' view of a pair list: flattened to output indices, keeping
     ``shards`` equal per-shard segments (each input list is ``shards`` equal segments; they are
-    interleaved so that segment ``s`` of the result holds segment ``s`` of every view): a single `Pairs` ``(L,)`` shared by all views
-    (output = pixel), a `Pairs` with leading view axis ``(M, L)``, or a sequence of ``M`` `Pairs`
-    (output ``v * P_pad + pixel``). Returns ``(out, scratch, valid, overflow, shared)``."""
+    interleaved so that segment ``s`` of the result holds segment ``s`` of every view): a single
+    `Pairs` ``(L,)`` shared by all views (output = pixel), a `Pairs` with leading view axis
+    ``(M, L)``, or a sequence of ``M`` `Pairs` (output ``v * P_pad + pixel``). Returns ``(out,
+    scratch, valid, overflow, shared)``."""
 
     def segments(x):
         if x.shape[-1] % shards:
