@@ -288,14 +288,18 @@ def arc_groove(plunge: ArrayLike, radius: ArrayLike) -> tuple[Array, Array]:
 
 
 def arc_lit_integral(geometry: ndf.PairGeometry, h: Float[ArrayLike, "3"],
-                     alpha: Float[ArrayLike, ""]) -> Float[Array, ""]:
+                     alpha: Float[ArrayLike, ""], *, pieces: int = ndf.N_PIECES
+                     ) -> Float[Array, ""]:
     """One view's ``D_hat`` (m^2) for an arc groove, from its geometry
     ``ndf.pair_geometry(footprint, p0, p1, *arc_groove(plunge, radius))`` under the half vector
     `h` (``(3,)``, board frame, normalised here) with roughness `alpha`, in the geometry's dtype.
     The counterpart of `jscratch.ndf.lit_integral` for this profile: the groove's half-width in
     ``u`` is ``U = u_of_v(2 X)`` (``X`` the geometry's half-width in widths), the lit slab is cut
     in ``v / 2`` (`ndf`'s cut), the ends mapped to ``u`` and the pieces integrated by
-    `_piece_integrals`. Jittable, vmappable, reverse-mode differentiable."""
+    `_piece_integrals`. `pieces` (static) as in `ndf.lit_integral`: only the geometry's first
+    `pieces` pieces that are not points (up to ``ndf.N_COMPACT``; more: all ``ndf.N_PIECES``),
+    exact in value and gradient wherever ``geometry.count <= pieces``. Jittable, vmappable,
+    reverse-mode differentiable (the cut through its hand-written transpose)."""
     dt = geometry.area.dtype
     h, alpha = jnp.asarray(h, dt), jnp.asarray(alpha, dt)
     G = geometry
@@ -307,8 +311,9 @@ def arc_lit_integral(geometry: ndf.PairGeometry, h: Float[ArrayLike, "3"],
     u_m, u_p = ndf.lit_interval(hx, hz)
     u_lo = jnp.maximum(-U, u_m)
     u_hi = jnp.maximum(jnp.minimum(U, u_p), u_lo)
+    first = (tuple(x[:pieces] for x in G.first) if pieces <= ndf.N_COMPACT else G.pieces)
     (ca, cb, Ya, Yb), (lo_a, hi_a, lo_b, hi_b) = ndf.cut_to_slab(
-        *G.pieces, v_of_u(u_lo) / 2, v_of_u(u_hi) / 2)
+        *first, v_of_u(u_lo) / 2, v_of_u(u_hi) / 2)
 
     def to_u(x, lo, hi):
         # Slab bounds and groove edges are known in u exactly; other ends are mapped.

@@ -450,9 +450,9 @@ def _cut(ua, ub, Ya, Yb, lo, hi) -> _Cut:
 def cut_to_slab(ua, ub, Ya, Yb, lo, hi):
     """`pair_geometry`'s pieces cut to the slab `lo <= u <= hi` as a view cuts them (`_cut`;
     `jscratch.arc` cuts in its own coordinate): `((ua, ub, Ya, Yb), (lo_a, hi_a, lo_b, hi_b))`,
-    the flags saying which ends were clamped to which bound. Differentiable (autodiff)."""
-    c = _cut(ua, ub, Ya, Yb, lo, hi)
-    return (c.ua, c.ub, c.Ya, c.Yb), (c.lo_a, c.hi_a, c.lo_b, c.hi_b)
+    the flags saying which ends were clamped to which bound. Reverse mode through the cut's
+    hand-written transpose (`_cut_transpose`), as `pair_geometry`'s own cut."""
+    return _cut_pieces(ua, ub, Ya, Yb, lo, hi), (ua < lo, ua > hi, ub < lo, ub > hi)
 
 
 def _cut_transpose(c: _Cut, g_ca, g_cb, g_Ya, g_Yb):

@@ -184,13 +184,13 @@ def _chunk_geometry(cfg: _Cfg, xe, ye, pix, valid, p0, p1, w, d):
 def _chunk_lit(profile: str, pieces: int, geometry, valid, a, h):
     """Per-pair ``D_hat`` ``(V, chunk)``, one row per view of ``h`` ``(V, chunk, 3)``, from the
     chunk's geometry with `ndf.lit_integral(..., pieces=pieces)` (`arc.arc_lit_integral` for the
-    arc profile); zero on padding slots. The geometry is shared by the views (vmap keeps it
-    unbatched)."""
+    arc profile, with the same budget); zero on padding slots. The geometry is shared by the
+    views (vmap keeps it unbatched)."""
     dt = a.dtype
     a = jnp.where(valid, a, jnp.asarray(0.5, dt))
     h = jnp.where(valid[None, :, None], h, jnp.asarray([0.0, 0.0, 1.0], dt))
-    lit = (arc.arc_lit_integral if profile == "arc"
-           else functools.partial(ndf.lit_integral, pieces=pieces))
+    lit = functools.partial(arc.arc_lit_integral if profile == "arc" else ndf.lit_integral,
+                            pieces=pieces)
     D = jax.vmap(jax.vmap(lit), in_axes=(None, 0, None))(geometry, h, a)
     return jnp.where(valid[None], D, jnp.zeros((), dt))
 

@@ -504,6 +504,40 @@ def test_lit_integral_on_the_arc_groove_is_the_pair_integral():
     assert float(ndf.groove_half_width(w, d)) == pytest.approx(a, rel=1e-14)
 
 
+@pytest.mark.float64
+def test_piece_budget_is_exact_where_the_count_fits():
+    """`arc_lit_integral(..., pieces=k)` (what a render's chunk runs: the first k pieces that are
+    not points) gives the value of all `ndf.N_PIECES` bit for bit and the same gradient with
+    respect to every input to rounding, on the cases whose geometry has at most k pieces (and
+    another value on some of those with more)."""
+    cases, _ = _population()
+
+    def one(k):
+        def lit(h, fp, p0, p1, p, r, a):
+            G = ndf.pair_geometry(fp, p0, p1, *arc.arc_groove(p, r))
+            return arc.arc_lit_integral(G, h, a, pieces=k)
+
+        return jax.jit(jax.vmap(jax.value_and_grad(lit, argnums=tuple(range(7)))))
+
+    def counts(h, fp, p0, p1, p, r, a):
+        return ndf.pair_geometry(fp, p0, p1, *arc.arc_groove(p, r)).count
+
+    args = tuple(jnp.asarray(x) for x in _stack(cases, np.float64))
+    count = np.asarray(jax.vmap(counts)(*args))
+    D6, g6 = one(ndf.N_PIECES)(*args)
+    for k in (2, ndf.N_COMPACT):
+        fits = count <= k
+        assert fits.sum() >= len(cases) // 2 and (k == ndf.N_COMPACT or not fits.all())
+        Dk, gk = one(k)(*args)
+        np.testing.assert_array_equal(np.asarray(Dk)[fits], np.asarray(D6)[fits])
+        # (and the budget is used: where more pieces are lit, fewer integrate less)
+        assert k == ndf.N_COMPACT or np.any(np.asarray(Dk)[~fits] != np.asarray(D6)[~fits])
+        for a, b in zip(gk, g6):
+            a, b = np.asarray(a)[fits], np.asarray(b)[fits]
+            assert np.all(np.isfinite(a))
+            np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-13 * np.abs(b).max())
+
+
 def _native_inputs(rows, dtype):
     """`native.pair_values`' arguments (one view) for rows of `(h, fp, p0, p1, p, R, alpha)`."""
     h, fp, p0, p1, p, r, a = (np.asarray(x, np.float64) for x in _stack(rows, np.float64))
