@@ -167,7 +167,7 @@ def test_without_a_compiler_jscratch_falls_back_to_jnp_and_warns_once(tmp_path):
     assert r["ok"] == [False, False] and np.isfinite(r["g"]) and r["g"] != 0.0, r
     assert len(r["warnings"]) == 1, r["warnings"]
     assert "native kernel is off" in r["warnings"][0] and "no-such-compiler" in r["warnings"][0]
-    assert native._COST in r["warnings"][0] and "45x slower" in native._COST
+    assert native._COST in r["warnings"][0] and "19x slower" in native._COST
     st = r["status"]
     assert st["kernel"] == "jnp" and "no-such-compiler" in st["why"], st
     assert st["enabled"] is True and st["library"] is None and st["jaxlib"] == jaxlib.__version__
