@@ -48,12 +48,19 @@ short compared with its distance from the peak, nothing is subtracted: the rule 
 
 Degenerate input (zero plunge, ``p >= R``, footprints that miss, edges parallel to the scratch,
 ends on groove edges) gives finite values and gradients: divisions and square roots that can meet
-zero go through guarded (double-``where``) forms. Reverse mode is plain autodiff; forward mode
-(`jax.jvp`) is not available (`jscratch.ndf.pair_geometry` has a custom VJP). The native kernel
-(``jscratch/native/native_arc.h``) has hand-written partials (docs/model.md §13).
+zero go through guarded (double-``where``) forms. Reverse mode is written by hand: each piece's
+partials with respect to its ends, their ``Y`` and the lobe parameters come from the same pass
+over the nodes as its value (`_piece_partials`; the native kernel's formulas,
+``jscratch/native/native_arc.h``, docs/model.md §13), the slab cut has `jscratch.ndf`'s
+transpose, and autodiff chains the rest (the ends' map to ``u``, the slab, the lobe). Forward
+mode (`jax.jvp`) is not available. A view integrates at most three pieces at a time (the first
+pieces that are not points, or all six in two groups: XLA's CPU code for six at once was several
+times slower).
 """
 
 from __future__ import annotations
+
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -267,6 +274,185 @@ def _piece_integrals(n_gl, ua, ub, Ya, Yb, p):
     return gl + jnp.where(sub, closed, 0)
 
 
+def _piece_partials(n_gl, ua, ub, Ya, Yb, p):
+    """The partial derivatives of each piece's `_piece_integrals` with respect to its ends
+    ``ua, ub``, their ``Ya, Yb`` and the lobe parameters `p` (each ``(k,)``, the pieces' shape),
+    by hand (module docstring; the native kernel's formulas, ``native_arc.h``); zero for a point
+    (``ua == ub``, ``Ya == Yb``), whose two ends move together."""
+    c0, c10, c11, c20, c21, u1, q1, g, k, hx, hz = p
+    dt = ua.dtype
+    du = ub - ua
+    half = du / 2
+    um = ua + half
+    dY = Yb - Ya
+    den = _vdd(ub, ua)
+    denp = den > 0
+    den1 = jnp.where(denp, den, 1)
+    dYden = dY / den1
+    ds = du / q1
+    sa = (ua - u1) / q1
+    sm = sa + ds / 2
+    sub = (q1 < Q_SUB) & (jnp.abs(ds) >= jnp.maximum(1, 0.5 * jnp.abs(sm)))
+    ds_s = jnp.where(sub, ds, 1)
+    sa_s = jnp.where(sub, sa, 0)
+    q1_s = jnp.where(sub, q1, Q_SUB / 2)
+    du_s = jnp.where(sub, du, 1)
+    idu = 1 / du_s
+    dYdv = dYden * idu
+    cdt = jnp.result_type(dt, jnp.complex64)
+    z = jax.lax.complex(jnp.broadcast_to(u1, du.shape),
+                        jnp.broadcast_to(q1_s, du.shape)).astype(cdt)
+    z2 = z * z
+    iB = 1 / (1 + 4 * z2)
+    iB2 = iB * iB
+    vp = 4 * (1 - 4 * z2) * iB2
+    vpp = -32 * z * (3 - 4 * z2) * iB2 * iB
+    Ba = 1 + 4 * ua * ua
+    muz = idu * (z - ua) * (4 / Ba) * (1 - 4 * ua * z) * iB
+    Yz = Ya + dYden * muz
+    wz = Yz * vp
+    wpz = dYdv * vp * vp + Yz * vpp
+    Pi = jax.lax.complex(c20, c21).astype(cdt)
+    dPi = jax.lax.complex(c21 - 2 * c11, 2 * c10).astype(cdt)
+    zero = jnp.zeros_like(du)
+
+    def coef(F, G):
+        return (jnp.where(sub, jnp.real(F), zero), jnp.where(sub, jnp.imag(F), zero),
+                jnp.where(sub, jnp.imag(G) / 2, zero),
+                jnp.where(sub, -(jnp.real(G) - jnp.imag(F)) / 2, zero))
+
+    h = coef(wz * Pi, q1_s * wpz * Pi + wz * dPi)
+    sb_s = sa_s + ds_s
+    ea = 1 / (1 + sa_s * sa_s)
+    eb = 1 / (1 + sb_s * sb_s)
+    I0, I1, K0, K1 = _basis(sa_s, ds_s, ea, eb)
+
+    def closed(a):
+        return q1_s * (a[0] * K0 + a[1] * K1 + a[2] * I0 + a[3] * I1)
+
+    # The rule's sums over the nodes (one pass: the value's terms and every partial's).
+    xs, ws = lobe.gauss_legendre(n_gl)
+    x = jnp.asarray(xs, dt)
+    w = jnp.asarray(ws, dt)
+
+    def E(v):  # a per-piece value against the node axis
+        return v[..., None]
+
+    tau = (1 + x) / 2
+    uu = E(um) + E(half) * x
+    u2 = uu * uu
+    B = 1 + 4 * u2
+    iBu = 1 / B
+    m4u2 = 1 - 4 * u2
+    vpj = 4 * m4u2 * iBu * iBu
+    mu = jnp.where(E(denp), tau * (4 * (1 - 4 * uu * E(ua)) * iBu / E(Ba)), tau)
+    wu = (E(Ya) + E(dYden) * mu) * vpj
+    N = hz * m4u2 - 4 * hx * uu
+    inv2 = 1 / (B + k * N)
+    T2 = B * inv2
+    F2 = T2 * T2 + T2
+    s = (uu - u1) / q1
+    e = 1 / (1 + s * s)
+    se, ee = s * e, e * e
+    see, eee = se * e, ee * e
+    seee = see * e
+    A0, A1 = wu * c10 - E(h[2]), wu * c11 - E(h[3])
+    B0, B1 = wu * c20 - E(h[0]), wu * c21 - E(h[1])
+    Dt = c0 + F2 + c10 * e + c11 * se + c20 * ee + c21 * see
+    Rp = B1 * (4 * eee - 3 * ee) - 4 * B0 * seee + A1 * (2 * ee - e) - 2 * A0 * see
+    ww, wv = w * wu, w * vpj
+    def S(v):  # the rule's sum over the nodes
+        return jnp.sum(v, axis=-1)
+
+    S_vD, S_mD = S(wv * Dt), S(wv * mu * Dt)
+    S_w, S_we, S_wse, S_wee, S_wsee = S(ww), S(ww * e), S(ww * se), S(ww * ee), S(ww * see)
+    S_Rp, S_sRp = S(w * Rp), S(w * s * Rp)
+    S_e, S_se, S_ee, S_see = S(w * e), S(w * se), S(w * ee), S(w * see)
+    f = ww * (-(2 * T2 + 1) * T2 * inv2)
+    S_k, S_hx, S_hz = S(f * N), S(f * (-4 * k * uu)), S(f * (k * m4u2))
+
+    def hsum(a):
+        return a[2] * S_e + a[3] * S_se + a[0] * S_ee + a[1] * S_see
+
+    def lfull(F, G):
+        a = coef(F, G)
+        return closed(a) - half * hsum(a)
+
+    I = 1j  # noqa: E741
+    F1, G1 = vp * Pi, q1_s * vpp * Pi + vp * dPi
+    wm, wmp = muz * vp, idu * vp * vp + muz * vpp
+    Fm, Gm = wm * Pi, q1_s * wmp * Pi + wm * dPi
+    a1, am = coef(F1, G1), coef(Fm, Gm)
+    J1 = closed(a1) - half * hsum(a1) + half * S_vD
+    Jm = closed(am) - half * hsum(am) + half * S_mD
+    M1 = jnp.where(sub, closed(a1) * idu, 0) + (S_vD - hsum(a1)) / 2
+    Mm = jnp.where(sub, closed(am) * idu, 0) + (S_mD - hsum(am)) / 2
+    vppp = -96 * (1 - 24 * z2 + 16 * z2 * z2) * iB2 * iB2
+    wppz = 3 * dYdv * vp * vpp + Yz * vppp
+    eb2, ea2 = eb * eb, ea * ea
+    kin_sa = q1_s * (h[0] * (eb2 - ea2) + h[1] * (sb_s * eb2 - sa_s * ea2) + h[2] * (eb - ea)
+                     + h[3] * (sb_s * eb - sa_s * ea))
+    kin_ds = q1_s * (h[0] * eb2 + h[1] * sb_s * eb2 + h[2] * eb + h[3] * sb_s * eb)
+    dFu = wpz * Pi
+    dGu = q1_s * wppz * Pi + wpz * dPi
+    gu1 = lfull(dFu, dGu) + jnp.where(sub, -kin_sa / q1, 0) + half * (-S_Rp / q1)
+    gq1 = (lfull(I * dFu, dFu + I * dGu)
+           + jnp.where(sub, closed(h) / q1_s + (-sa_s * kin_sa - ds_s * kin_ds) / q1, 0)
+           + half * (-S_sRp / q1))
+    zc = jnp.zeros_like(wz)
+    gc = (half * S_w,
+          lfull(zc, 2 * I * wz) + half * S_we,
+          lfull(zc, -2 * wz) + half * S_wse,
+          lfull(wz, q1_s * wpz) + half * S_wee,
+          lfull(I * wz, I * (q1_s * wpz) + wz) + half * S_wsee)
+    gYb = Jm / den1
+    gYa = J1 - gYb
+
+    def at_end(u):
+        Bu = 1 + 4 * u * u
+        Nu = hz * (1 - 4 * u * u) - 4 * hx * u
+        T = Bu / (Bu + k * Nu)
+        su = (u - u1) / q1
+        eu = 1 / (1 + su * su)
+        D = c0 + T * T + T + c10 * eu + c11 * su * eu + c20 * eu * eu + c21 * su * eu * eu
+        return D, 4 * (1 - 4 * u * u) / (Bu * Bu)
+
+    Da, vpa = at_end(ua)
+    Db, vpb = at_end(ub)
+    gub = vpb * (Yb * Db - dYden * Mm / den1)
+    gua = -vpa * (Ya * Da + dYden * (M1 - Mm / den1))
+    point = (ua == ub) & (Ya == Yb)
+    dp = (*gc, gu1, gq1, zero, half * S_k, half * S_hx, half * S_hz)
+    return tuple(jnp.where(point, zero, d) for d in (gua, gub, gYa, gYb)) + (
+        tuple(jnp.where(point, zero, d) for d in dp),)
+
+
+def _sum_to(x, like):
+    """`x` summed over the leading axes it has beyond `like`'s shape (a broadcast's transpose)."""
+    like = jnp.asarray(like)
+    return jnp.sum(x, axis=tuple(range(x.ndim - like.ndim))).reshape(like.shape)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _pieces(n_gl, ua, ub, Ya, Yb, p):
+    """`_piece_integrals` with `_piece_partials` as its reverse pass."""
+    return _piece_integrals(n_gl, ua, ub, Ya, Yb, p)
+
+
+def _pieces_fwd(n_gl, ua, ub, Ya, Yb, p):
+    d_ua, d_ub, d_Ya, d_Yb, d_p = _piece_partials(n_gl, ua, ub, Ya, Yb, p)
+    return _piece_integrals(n_gl, ua, ub, Ya, Yb, p), (d_ua, d_ub, d_Ya, d_Yb, d_p, p)
+
+
+def _pieces_bwd(n_gl, res, ct):
+    d_ua, d_ub, d_Ya, d_Yb, d_p, p = res
+    return (ct * d_ua, ct * d_ub, ct * d_Ya, ct * d_Yb,
+            tuple(_sum_to(ct * d, q) for d, q in zip(d_p, p)))
+
+
+_pieces.defvjp(_pieces_fwd, _pieces_bwd)
+
+
 # ---------------------------------------------------------------------------------------------
 # The pair integral.
 
@@ -299,7 +485,14 @@ def arc_lit_integral(geometry: ndf.PairGeometry, h: Float[ArrayLike, "3"],
     `_piece_integrals`. `pieces` (static) as in `ndf.lit_integral`: only the geometry's first
     `pieces` pieces that are not points (up to ``ndf.N_COMPACT``; more: all ``ndf.N_PIECES``),
     exact in value and gradient wherever ``geometry.count <= pieces``. Jittable, vmappable,
-    reverse-mode differentiable (the cut through its hand-written transpose)."""
+    reverse-mode differentiable (by hand: the pieces' partials of `_piece_partials`, the cut's
+    transpose of `jscratch.ndf`)."""
+    return _lit_integral(geometry, h, alpha, int(pieces), True)
+
+
+def _lit_integral(geometry, h, alpha, pieces: int, hand_vjp: bool):
+    """`arc_lit_integral`; ``hand_vjp=False`` differentiates the same forward by plain autodiff
+    (the reference the tests compare the hand-written partials with)."""
     dt = geometry.area.dtype
     h, alpha = jnp.asarray(h, dt), jnp.asarray(alpha, dt)
     G = geometry
@@ -313,7 +506,7 @@ def arc_lit_integral(geometry: ndf.PairGeometry, h: Float[ArrayLike, "3"],
     u_hi = jnp.maximum(jnp.minimum(U, u_p), u_lo)
     first = (tuple(x[:pieces] for x in G.first) if pieces <= ndf.N_COMPACT else G.pieces)
     (ca, cb, Ya, Yb), (lo_a, hi_a, lo_b, hi_b) = ndf.cut_to_slab(
-        *first, v_of_u(u_lo) / 2, v_of_u(u_hi) / 2)
+        *first, v_of_u(u_lo) / 2, v_of_u(u_hi) / 2, hand_vjp=hand_vjp)
 
     def to_u(x, lo, hi):
         # Slab bounds and groove edges are known in u exactly; other ends are mapped.
@@ -323,9 +516,15 @@ def arc_lit_integral(geometry: ndf.PairGeometry, h: Float[ArrayLike, "3"],
     ua, ub = to_u(ca, lo_a, hi_a), to_u(cb, lo_b, hi_b)
     ub = jnp.where(ca == cb, ua, ub)
     L = lobe.lobe(hx, hy, hz, alpha)
-    J = _piece_integrals(nodes(dt), ua, ub, Ya, Yb, lobe.lobe_params(L))
+    integrate = functools.partial(_pieces if hand_vjp else _piece_integrals, nodes(dt))
+    p = lobe.lobe_params(L)
+    # At most N_COMPACT pieces a call: XLA's CPU code for all six at once ran 3-10x slower than
+    # for two groups of three (`benchmarks/RESULTS.md`).
+    J = sum(jnp.sum(integrate(ua[i:i + ndf.N_COMPACT], ub[i:i + ndf.N_COMPACT],
+                              Ya[i:i + ndf.N_COMPACT], Yb[i:i + ndf.N_COMPACT], p))
+            for i in range(0, ua.shape[-1], ndf.N_COMPACT))
     # -R ∮ Y D dv, with G.scale = -2R (orientation sign).
-    return G.scale * L.pref * (jnp.sum(J) / 2)
+    return G.scale * L.pref * (J / 2)
 
 
 def arc_pair_integral(

@@ -447,12 +447,14 @@ def _cut(ua, ub, Ya, Yb, lo, hi) -> _Cut:
                 point, dY, inv_du)
 
 
-def cut_to_slab(ua, ub, Ya, Yb, lo, hi):
+def cut_to_slab(ua, ub, Ya, Yb, lo, hi, *, hand_vjp: bool = True):
     """`pair_geometry`'s pieces cut to the slab `lo <= u <= hi` as a view cuts them (`_cut`;
     `jscratch.arc` cuts in its own coordinate): `((ua, ub, Ya, Yb), (lo_a, hi_a, lo_b, hi_b))`,
     the flags saying which ends were clamped to which bound. Reverse mode through the cut's
-    hand-written transpose (`_cut_transpose`), as `pair_geometry`'s own cut."""
-    return _cut_pieces(ua, ub, Ya, Yb, lo, hi), (ua < lo, ua > hi, ub < lo, ub > hi)
+    hand-written transpose (`_cut_transpose`), as `pair_geometry`'s own cut; ``hand_vjp=False``:
+    plain autodiff of the same forward (a reference)."""
+    cut = _cut_pieces if hand_vjp else _cut_values
+    return cut(ua, ub, Ya, Yb, lo, hi), (ua < lo, ua > hi, ub < lo, ub > hi)
 
 
 def _cut_transpose(c: _Cut, g_ca, g_cb, g_Ya, g_Yb):

@@ -66,7 +66,7 @@ for what is traced inside it (tests and benchmarks that compare the two paths in
 
 Fallback. Where the native kernel is enabled and the backend is the CPU but the kernel cannot be
 built or loaded (no compiler, a failed build, an FFI this jaxlib lacks), jscratch runs the jnp
-path (a default design step about 19x slower with the arc grooves, 5x with the fitted paper
+path (a default design step about 16x slower with the arc grooves, 5x with the fitted paper
 profile), and warns once per process (`NativeKernelWarning`).
 Disabled, or another backend: the jnp path without a warning; `status()` says why in each case.
 """
@@ -132,7 +132,7 @@ _FLAGS = ("-O3", "-march=native", "-fno-math-errno", "-ffp-contract=off", "-std=
 #: The dtypes the kernels run for, one library each -> the library's name (its symbols' suffix).
 _DTYPES = {jnp.dtype(jnp.float32): "f32", jnp.dtype(jnp.float64): "f64"}
 #: What the jnp path costs, in the fallback warning (`benchmarks/RESULTS.md`).
-_COST = ("the jnp path runs instead: a design step about 19x slower with the default arc "
+_COST = ("the jnp path runs instead: a design step about 16x slower with the default arc "
          "grooves, 5x with groove_fit = \"height\"")
 
 # The settings, read once (module docstring); validated on first use by `_settings`.
