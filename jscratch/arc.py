@@ -205,6 +205,19 @@ def _basis(sa, ds, ea, eb):
     return I0, I1, K0, K1
 
 
+def _subtracted(ua, du, u1, q1):
+    """Where the sharp lobe's poles are subtracted (`sub`: a sharp lobe, and a piece long compared
+    with its distance from the peak; elsewhere the poles ``s = ±i`` are far outside the piece's
+    ellipse), and there the piece's ``ds = du / q1``, ``sa = (ua - u1) / q1``, ``q1`` and ``du``
+    (safe values elsewhere): ``(sub, ds_s, sa_s, q1_s, du_s)``."""
+    ds = du / q1
+    sa = (ua - u1) / q1
+    sm = sa + ds / 2
+    sub = (q1 < Q_SUB) & (jnp.abs(ds) >= jnp.maximum(1, 0.5 * jnp.abs(sm)))
+    return (sub, jnp.where(sub, ds, 1), jnp.where(sub, sa, 0), jnp.where(sub, q1, Q_SUB / 2),
+            jnp.where(sub, du, 1))
+
+
 def _piece_integrals(n_gl, ua, ub, Ya, Yb, p):
     """``J = ∫_{ua}^{ub} Y(v(u)) v'(u) (F1 + F2) du`` for each piece (`(6,)` arrays in ``u``,
     inside the lit slab; `Y` linear in ``v`` from `Ya` to `Yb`), lobe parameters `p`
@@ -216,16 +229,7 @@ def _piece_integrals(n_gl, ua, ub, Ya, Yb, p):
     um = ua + half
     dY = Yb - Ya
     den = _vdd(ub, ua)  # (v(ub) - v(ua)) / du, > 0 unless the piece is the point u = ±1/2
-    # Where the subtraction is used: a sharp lobe, and a piece long compared with its distance
-    # from the peak (elsewhere the poles s = ±i are far outside the piece's ellipse).
-    ds = du / q1
-    sa = (ua - u1) / q1
-    sm = sa + ds / 2
-    sub = (q1 < Q_SUB) & (jnp.abs(ds) >= jnp.maximum(1, 0.5 * jnp.abs(sm)))
-    ds_s = jnp.where(sub, ds, 1)
-    sa_s = jnp.where(sub, sa, 0)
-    q1_s = jnp.where(sub, q1, Q_SUB / 2)
-    du_s = jnp.where(sub, du, 1)
+    sub, ds_s, sa_s, q1_s, du_s = _subtracted(ua, du, u1, q1)
     den_s = jnp.where(sub & (den > 0), den, 1)
 
     # Hermite data of Φ(s) = w(u) P(s) at s = i, u = z = u1 + i q1 (complex arithmetic).
@@ -289,14 +293,7 @@ def _piece_partials(n_gl, ua, ub, Ya, Yb, p):
     denp = den > 0
     den1 = jnp.where(denp, den, 1)
     dYden = dY / den1
-    ds = du / q1
-    sa = (ua - u1) / q1
-    sm = sa + ds / 2
-    sub = (q1 < Q_SUB) & (jnp.abs(ds) >= jnp.maximum(1, 0.5 * jnp.abs(sm)))
-    ds_s = jnp.where(sub, ds, 1)
-    sa_s = jnp.where(sub, sa, 0)
-    q1_s = jnp.where(sub, q1, Q_SUB / 2)
-    du_s = jnp.where(sub, du, 1)
+    sub, ds_s, sa_s, q1_s, du_s = _subtracted(ua, du, u1, q1)
     idu = 1 / du_s
     dYdv = dYden * idu
     cdt = jnp.result_type(dt, jnp.complex64)
