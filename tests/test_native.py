@@ -198,6 +198,40 @@ def test_compiler_lookup_without_compilers(monkeypatch, tmp_path):
         native._compiler()
 
 
+def test_a_transient_spawn_failure_is_retried(monkeypatch, tmp_path):
+    """Starting the compiler can fail for a moment (EFAULT, EAGAIN, ENOMEM, EINTR: a busy or
+    memory-short machine): it is started again, up to three times; another error, or a third
+    failure, is the one-line reason the kernel is off."""
+    import errno
+
+    exe = tmp_path / "cxx"
+    exe.write_text("#!/bin/sh\necho 'cxx (test) 1.0'\n")
+    exe.chmod(0o755)
+    real, calls = subprocess.run, []
+
+    def failing(codes):
+        def run(*a, **k):
+            calls.append(a[0])
+            if len(calls) <= len(codes):
+                raise OSError(codes[len(calls) - 1], os.strerror(codes[len(calls) - 1]))
+            return real(*a, **k)
+        return run
+
+    monkeypatch.setattr(native.time, "sleep", lambda s: None)
+    monkeypatch.setattr(subprocess, "run", failing([errno.EFAULT, errno.EAGAIN]))
+    assert native._compiler_version(str(exe)) == "cxx (test) 1.0" and len(calls) == 3
+    calls.clear()
+    monkeypatch.setattr(subprocess, "run", failing([errno.EFAULT] * 3))
+    with pytest.raises(RuntimeError, match="cannot be run: .*Bad address"):
+        native._compiler_version(str(exe))
+    assert len(calls) == 3
+    calls.clear()
+    monkeypatch.setattr(subprocess, "run", failing([errno.EACCES]))
+    with pytest.raises(RuntimeError, match="cannot be run: .*Permission denied"):
+        native._compiler_version(str(exe))
+    assert len(calls) == 1
+
+
 def test_cache_key_covers_source_compiler_jaxlib_and_ffi_headers(monkeypatch, tmp_path):
     """The key changes with the source text (any of the three files), the compiler's path and version, the
     jaxlib

@@ -76,6 +76,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import ctypes
+import errno
 import functools
 import hashlib
 import json
@@ -230,10 +231,30 @@ def _compiler() -> str:
     raise RuntimeError("no C++ compiler (CXX unset; no g++, c++ or clang++ on PATH)")
 
 
+#: Why starting a process can fail for a moment on a busy or memory-short machine (the same
+#: command started again succeeds): `_spawn` retries these.
+_TRANSIENT_SPAWN = frozenset({errno.EAGAIN, errno.EFAULT, errno.ENOMEM, errno.EINTR})
+
+
+def _spawn(start, *args, **kwargs):
+    """``start(*args, **kwargs)`` (`subprocess.run` or `subprocess.Popen` of the compiler), tried
+    up to three times, 0.2 s and 0.4 s apart, where starting the process fails with an error of
+    `_TRANSIENT_SPAWN`; any other error, or the third, is raised."""
+    for attempt in range(3):
+        try:
+            return start(*args, **kwargs)
+        except OSError as e:
+            if e.errno not in _TRANSIENT_SPAWN or attempt == 2:
+                raise
+            time.sleep(0.2 * (attempt + 1))
+    raise AssertionError("unreachable")
+
+
 def _compiler_version(cxx: str) -> str:
     """The compiler's ``--version`` output (all of it: the key's input; its first line names it)."""
     try:
-        proc = subprocess.run([cxx, "--version"], capture_output=True, text=True, timeout=60)
+        proc = _spawn(subprocess.run, [cxx, "--version"], capture_output=True, text=True,
+                      timeout=60)
     except (OSError, subprocess.SubprocessError) as e:
         raise RuntimeError(f"C++ compiler {cxx} cannot be run: {error_line(e)}") from None
     if proc.returncode != 0:
@@ -302,8 +323,8 @@ def _compile(name: str = "f32") -> dict:
         out = Path(tmp) / lib.name
         # The two sources compile side by side (a process each), then one link.
         objs = {src: Path(tmp) / f"{src.stem}.o" for src in (_SOURCE, _BIN_SOURCE)}
-        procs = {src: subprocess.Popen([cxx, *flags, "-c", str(src), "-o", str(o)],
-                                       stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        procs = {src: _spawn(subprocess.Popen, [cxx, *flags, "-c", str(src), "-o", str(o)],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
                  for src, o in objs.items()}
         errors = {src: p.communicate()[1] for src, p in procs.items()}
 
@@ -314,8 +335,8 @@ def _compile(name: str = "f32") -> dict:
 
         for src, p in procs.items():
             check(p.returncode, src.name, errors[src])
-        link = subprocess.run([cxx, *flags, *map(str, objs.values()), "-o", str(out)],
-                              capture_output=True, text=True)
+        link = _spawn(subprocess.run, [cxx, *flags, *map(str, objs.values()), "-o", str(out)],
+                      capture_output=True, text=True)
         check(link.returncode, "the link of " + " and ".join(o.name for o in objs.values()),
               link.stderr)
         os.replace(out, lib)  # atomic: concurrent processes see a whole library or none
