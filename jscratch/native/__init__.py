@@ -65,9 +65,10 @@ the process changes nothing):
 for what is traced inside it (tests and benchmarks that compare the two paths in one process).
 
 Fallback. Where the native kernel is enabled and the backend is the CPU but the kernel cannot be
-built or loaded (no compiler, a failed build, an FFI this jaxlib lacks), jscratch runs the jnp
-path (a default design step about 16x slower with the arc grooves, 5x with the fitted paper
-profile), and warns once per process (`NativeKernelWarning`).
+built or loaded (no compiler, a failed build, an FFI this jaxlib lacks; a compiler that cannot be
+started for a moment, on a busy or memory-short machine, is started again twice first), jscratch
+runs the jnp path (a default design step about 16x slower with the arc grooves, 5x with the
+fitted paper profile), and warns once per process (`NativeKernelWarning`).
 Disabled, or another backend: the jnp path without a warning; `status()` says why in each case.
 """
 
