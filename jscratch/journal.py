@@ -34,7 +34,8 @@ class Journal:
     One JSON object per line: a `header` (`gcode_sha256`, `n_scratches`, `work_zero`), then `done`
     records (`k` the position in the cutting order, `scratch` the design index) and `event` records
     (a `start` event per session, with its `work_zero`). Each record is flushed and fsynced before
-    the call returns. A torn last line (power lost mid-write) is ignored on reading. The carver
+    the call returns. A torn last line (power lost mid-write) is ignored on reading and cut off
+    before a resumed session appends (recorded as a `repaired` event). The carver
     creates a journal only once motion is about to be sent.
 
     **Arguments:** `path`; `gcode_sha256`; `n_scratches`; `resume`: continue an existing journal
@@ -45,7 +46,10 @@ class Journal:
     def __init__(self, path, gcode_sha256: str, n_scratches: int, *, resume: bool, header: dict | None = None):
         self.path = os.fspath(path)
         self.done = self.check(self.path, gcode_sha256, resume=resume)["done"]
+        torn = self._end_last_record() if resume else 0
         self._f = open(self.path, "a" if resume else "w", encoding="utf-8")
+        if torn:
+            self.event("repaired", dropped_bytes=torn)
         if not resume:
             self._append({"type": "header", "gcode_sha256": gcode_sha256, "n_scratches": int(n_scratches),
                           "time": time.time(), **(header or {})})
@@ -119,6 +123,30 @@ class Journal:
         """Parse a journal: returns `(header dict, number of consecutive done records from k = 0)`."""
         recs = cls.records(path)
         return recs[0], cls._count(path, recs)
+
+    def _end_last_record(self) -> int:
+        """Before appending to a journal: a final record that a power cut left without its newline
+        is ended with one if it is whole (`records` counted it), or cut off if torn (`records`
+        ignored it), so that the next record starts a line of its own.
+
+        **Returns:** the number of torn bytes removed (0 if none).
+        """
+        with open(self.path, "rb+") as f:
+            data = f.read()
+            if not data or data.endswith(b"\n"):
+                return 0
+            start = data.rfind(b"\n") + 1
+            try:
+                whole = isinstance(json.loads(data[start:].decode("utf-8")), dict)
+            except ValueError:  # json.JSONDecodeError, UnicodeDecodeError
+                whole = False
+            if whole:
+                f.write(b"\n")
+            else:
+                f.truncate(start)
+            f.flush()
+            os.fsync(f.fileno())
+            return 0 if whole else len(data) - start
 
     def _append(self, rec):
         self._f.write(json.dumps(rec) + "\n")

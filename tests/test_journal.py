@@ -67,6 +67,24 @@ def test_torn_last_line_ignored_corrupt_line_refused(tmp_path):
     with open(path, "a") as f:
         f.write('{"type": "done", "k": 1, "scr')  # power lost mid-write
     assert Journal.read(path)[1] == 1
+    intact = path.read_text()
+    # A resumed session cuts the torn record off before it appends, so the journal stays readable
+    # for every later session; a whole record that only lost its newline is kept and ended.
+    for _ in range(2):
+        j = Journal(path, "a" * 64, 3, resume=True)
+        j.confirm(j.done, 7)
+        j.close()
+        with open(path, "a") as f:
+            f.write(json.dumps({"type": "event", "event": "fault", "done": j.done}))  # no newline
+    recs = Journal.records(path)
+    assert Journal.read(path)[1] == 3 and recs[-1]["event"] == "fault"
+    assert [r.get("event") for r in recs if r["type"] == "event"] == ["repaired", "fault", "fault"]
+    assert next(r for r in recs if r.get("event") == "repaired")["dropped_bytes"] == len('{"type": "done", "k": 1, "scr')
+    j = Journal(path, "a" * 64, 3, resume=True)
+    j.event("start")
+    j.close()
+    assert all(json.loads(x) for x in path.read_text().splitlines())
+    path.write_text(intact)
     lines = path.read_text().splitlines()
     path.write_text("\n".join([lines[0], "{not json", lines[1]]) + "\n")
     with pytest.raises(JournalError, match="line 2 is corrupt"):
