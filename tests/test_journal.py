@@ -79,7 +79,8 @@ def test_torn_last_line_ignored_corrupt_line_refused(tmp_path):
     recs = Journal.records(path)
     assert Journal.read(path)[1] == 3 and recs[-1]["event"] == "fault"
     assert [r.get("event") for r in recs if r["type"] == "event"] == ["repaired", "fault", "fault"]
-    assert next(r for r in recs if r.get("event") == "repaired")["dropped_bytes"] == len('{"type": "done", "k": 1, "scr')
+    repaired = next(r for r in recs if r.get("event") == "repaired")
+    assert repaired["dropped_bytes"] == len('{"type": "done", "k": 1, "scr')
     j = Journal(path, "a" * 64, 3, resume=True)
     j.event("start")
     j.close()
