@@ -38,7 +38,9 @@ Numbers: every word is written by `jscratch.grbl.gword` (fixed decimals, no expo
 GRBL's 8-digit reader); `make_program` re-reads each line with
 `jscratch.grbl.check_words` and checks the bounds: every X/Y in ``[offset - margin, offset + S
 + margin]`` mm (``margin_mm``, default 0: design endpoints within the load tolerance are clamped
-onto the board), every Z in ``[-max plunge, safe_z]``.
+onto the board), every Z in ``[-plunge_max_mm, safe_z]``: no plunge is deeper than the profile's
+``plunge_max_mm`` (a deeper recorded plunge is refused, a fitted one is cut at that depth and
+counted unreachable).
 """
 
 from __future__ import annotations
@@ -277,7 +279,7 @@ def make_program(design: Design, cfg: MachineConfig, *, improve: bool = True, ti
     p0 = np.clip(1000.0 * design.p0[idx], 0.0, board_mm)
     p1 = np.clip(1000.0 * design.p1[idx], 0.0, board_mm)
     ordering = order_scratches(p0, p1, (0.0, 0.0), improve=improve, time_limit=time_limit)
-    design_fit = None
+    design_fit = clamped = None
     if cfg.plunge_mm is not None:
         plunge = np.full(len(idx), cfg.plunge_mm)
         fit = None
@@ -285,9 +287,19 @@ def make_program(design: Design, cfg: MachineConfig, *, improve: bool = True, ti
         plunge = 1000.0 * design.plunge[idx]
         fit = None
         design_fit = _design_fit(design, idx, cfg)
+        deep = np.flatnonzero(plunge > cfg.plunge_max_mm * (1 + 1e-6))
+        if len(deep):
+            j = int(deep[0])
+            raise DesignError(
+                f"scratch {int(idx[j])} has a recorded plunge of {plunge[j]:.4g} mm, deeper than "
+                f"machine.plunge_max_mm = {cfg.plunge_max_mm:g} mm ({len(deep)} such scratches): "
+                "refusing to cut deeper than the profile allows; fabricate with the design's own "
+                "profile, or pass --plunge")
     else:
         fit = fit_plunge(design.width[idx], design.depth[idx], cfg.cutter_radius_mm / 1000.0, mode=cfg.fit)
-        plunge = 1000.0 * fit.plunge
+        # A fitted plunge is cut within the profile's range (and so never written as Z0.000).
+        plunge = np.clip(1000.0 * fit.plunge, cfg.plunge_min_mm, cfg.plunge_max_mm)
+        clamped = plunge != 1000.0 * fit.plunge
     ox, oy = cfg.board_offset_mm
     safe = cfg.safe_z_mm
     lines, ks, ss, roles = [], [], [], []
@@ -322,7 +334,7 @@ def make_program(design: Design, cfg: MachineConfig, *, improve: bool = True, ti
     emit("M2", role="post")
 
     # Every word, re-read from the text, must be strictly formatted and every coordinate in bounds.
-    lo = (ox - cfg.margin_mm, oy - cfg.margin_mm, -float(plunge.max(initial=0.0)) - 1e-9)
+    lo = (ox - cfg.margin_mm, oy - cfg.margin_mm, -cfg.plunge_max_mm)
     hi = (ox + board_mm[0] + cfg.margin_mm, oy + board_mm[1] + cfg.margin_mm, safe)
     ext = check_program_lines(lines, lo, hi)
     cut_len = float(np.hypot(*(p1 - p0).T).sum())
@@ -349,7 +361,8 @@ def make_program(design: Design, cfg: MachineConfig, *, improve: bool = True, ti
             "rel_rms_max": float(fit.rel_rms.max()),
             "groove_width_mm": [1e3 * float(fit.groove_width.min()), 1e3 * float(fit.groove_width.max())],
             "cut_width_mm": [1e3 * float(fit.cut_width.min()), 1e3 * float(fit.cut_width.max())],
-            "unreachable": int(fit.unreachable.sum()),
+            "unreachable": int((fit.unreachable | clamped).sum()),
+            "clamped": int(clamped.sum()),
         }
     if design_fit is not None:
         info["fit"] = design_fit
@@ -412,7 +425,8 @@ def summarize(info: dict) -> str:
         f"plunge           {info['plunge_mm'][0]:.4f}-{info['plunge_mm'][1]:.4f} mm (ball R {info['cutter_radius_mm']} mm)",
     ]
     if info.get("limits_mm"):
-        out.insert(5, f"limits (mm)      {box(info['limits_mm'])}  (allowed: board + margin, -max plunge to safe Z)")
+        out.insert(5, f"limits (mm)      {box(info['limits_mm'])}  "
+                      "(allowed: board + margin, -plunge_max_mm to safe Z)")
     f = info.get("fit")
     if f and f.get("mode") == "design":
         out.append(
@@ -431,7 +445,8 @@ def summarize(info: dict) -> str:
         )
         if f["unreachable"]:
             out.append(f"WARNING          {f['unreachable']} grooves are unreachable with this cutter "
-                       "(fit error > 25% of depth or plunge at the ball's radius); consider a smaller ball")
+                       "(fit error > 25% of depth, or a plunge outside the profile's range: "
+                       f"{f.get('clamped', 0)} cut at its nearest end); consider a smaller ball")
     ac = info.get("as_carved")
     if ac:
         out.append(f"as carved        SSIM vs the design render per view {[round(x, 3) for x in ac['ssim']]} "

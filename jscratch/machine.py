@@ -130,8 +130,9 @@ class MachineProfile:
             bad("plunge_max_mm", f"< cutter_radius_mm = {r}")
         if not self.plunge_min_mm < self.plunge_max_mm:
             bad("plunge_min_mm", f"< plunge_max_mm = {self.plunge_max_mm}")
-        if self.plunge_mm is not None and not (number(self.plunge_mm) and 0 < self.plunge_mm <= r):
-            bad("plunge_mm", f"in (0, cutter_radius_mm = {r}] or absent")
+        if self.plunge_mm is not None and not (
+                number(self.plunge_mm) and 0 < self.plunge_mm <= self.plunge_max_mm):
+            bad("plunge_mm", f"in (0, plunge_max_mm = {self.plunge_max_mm}] or absent")
         if self.fit not in ("per-scratch", "global"):
             bad("fit", "'per-scratch' or 'global'")
         try:
@@ -147,6 +148,15 @@ class MachineProfile:
                 gword(letter, getattr(self, name))
             except InputError as exc:
                 raise InputError(f"machine setting {name} = {getattr(self, name)!r} does not fit GRBL: {exc}") from None
+        # A depth, height or speed that G-code would write as zero cuts nothing, travels on the
+        # surface or runs the job with the spindle still.
+        written = [("plunge_min_mm", "Z"), ("safe_z_mm", "Z"), ("plunge_mm", "Z")]
+        written += [("spindle_rpm", "S")] if self.spindle_rpm > 0 else []
+        for name, letter in written:
+            v = getattr(self, name)
+            if v is not None and float(gword(letter, v)[1:]) == 0.0:
+                bad(name, f"written as at least {letter}{gword(letter, 0)[1:-1]}1 in G-code"
+                    + (" (or 0 for no spindle commands)" if letter == "S" else ""))
 
     # ------------------------------------------------------------------------------------------
     # Files and records.

@@ -60,6 +60,36 @@ def test_fit_plunge_matches_grid_search_and_flags_unreachable():
 # G-code.
 
 
+def _deepest_z(prog) -> float:
+    return min(float(w[1:]) for line in prog.lines if not line.startswith("(")
+               for w in line.split() if w[0] == "Z")
+
+
+def test_no_plunge_deeper_than_the_profile_allows():
+    """Every `Z` of a program is at least `-plunge_max_mm`: a recorded plunge below it is refused
+    in one line naming the scratch; a fitted one is cut at `plunge_max_mm` (or `plunge_min_mm`)
+    and counted unreachable."""
+    from jscratch.designfile import DesignError
+
+    cfg = MachineConfig()
+    d = demo_design(12, seed=5)
+    plunge = np.full(12, 0.05e-3)
+    plunge[7] = 2e-3  # a hand-made file: 2 mm with a 0.125 mm ball
+    deep = d._replace(plunge=plunge)
+    with pytest.raises(DesignError, match=r"scratch 7 has a recorded plunge of 2 mm, deeper than "
+                                          r"machine.plunge_max_mm = 0.1 mm \(1 such") as e:
+        make_program(deep, cfg, time_limit=0.5)
+    assert "\n" not in str(e.value)
+    fitted = make_program(d, cfg, time_limit=0.5)
+    raw = 1000 * fit_plunge(d.width, d.depth, cfg.cutter_radius_mm / 1000).plunge
+    assert raw.max() > cfg.plunge_max_mm  # the demo's grooves fit 0.1016 mm: the case is exercised
+    assert _deepest_z(fitted) == -cfg.plunge_max_mm
+    n_out = int(((raw > cfg.plunge_max_mm) | (raw < cfg.plunge_min_mm)).sum())
+    assert fitted.info["fit"]["clamped"] == n_out and fitted.info["fit"]["unreachable"] >= n_out
+    assert fitted.info["limits_mm"]["z"][0] == -cfg.plunge_max_mm
+    assert "cut at its nearest end" in summarize(fitted.info)
+
+
 @pytest.fixture(scope="module")
 def small():
     d = demo_design(24, seed=2)
