@@ -68,7 +68,9 @@ def carve(gcode_path, port: str, *, baud: int = 115200, resume: bool = False, co
     Before any motion: the G-code and map are read and checked (a bad program: `DesignFileError`,
     before any port is opened), the journal checked (none, or on
     `resume` matching the G-code's SHA-256), the port opened and GRBL 1.1 recognised (no reset
-    when it reports `Idle`); an Alarm state stops the run unless `home` (`$H`) or `unlock` (`$X`).
+    when it reports `Idle`); an Alarm state stops the run unless `home` (`$H`, run in any state)
+    or `unlock` (`$X`). A `resume` after a session that lost the position (a lost device, an alarm,
+    a reset of the controller, or an Alarm cleared now with `unlock`) needs `home` or `rezeroed`.
     The work zero is checked (`$#`): no `G92` or tool length offset (GRBL clears both at reset), and
     on `resume` the work system's offset equal to the one journalled (unless `rezeroed`). With
     `check`, the lines first run through GRBL's `$C` check mode. Only then is the journal written
@@ -129,6 +131,12 @@ def carve(gcode_path, port: str, *, baud: int = 115200, resume: bool = False, co
             grbl.connect(home=home, unlock=unlock)
         except GrblError as exc:
             raise CarveError(f"{exc} {untouched()}") from None
+        lost = state["position_lost"] or ("an Alarm cleared with $X" if grbl.unlocked else None)
+        if resume and lost and not (grbl.homed or rezeroed):
+            raise CarveError(
+                f"the machine position may be lost ({lost} since the job last ran): re-home "
+                f"it (--home) or re-zero the board (G10 L20 P1 X0 Y0 Z0) and pass --rezeroed, "
+                f"then run again with --resume {untouched()}")
         coord = coord or next((w for w in grbl.modes if w in ("G54", "G55", "G56", "G57", "G58", "G59")), "G54")
         zero = _check_work_zero(grbl, coord, state["work_zero"] if resume else None, rezeroed, untouched)
         if check:

@@ -508,10 +508,12 @@ def _parser():
     s.add_argument("--resume", action="store_true", help="continue the job recorded in the G-code's journal")
     s.add_argument("--counting", action="store_true", help="character-counting streaming (default: send-and-wait)")
     s.add_argument("--check", action="store_true", help="run the G-code through GRBL's $C check mode first")
-    s.add_argument("--home", action="store_true", help="run the homing cycle ($H) if the controller is in Alarm")
+    s.add_argument("--home", action="store_true",
+                   help="run the homing cycle ($H) first, whatever the controller's state")
     s.add_argument("--unlock", action="store_true", help="clear an Alarm with $X (position may be wrong!)")
     s.add_argument("--rezeroed", action="store_true",
-                   help="with --resume: accept a G54 work zero different from the journalled one (board re-zeroed)")
+                   help="with --resume: the board was re-zeroed (G10 L20 P1): accept a G54 work "
+                   "zero other than the journalled one, and a position lost since the job last ran")
     s.add_argument("--banner-timeout", type=float, default=5.0, help="seconds to wait for the GRBL banner (default 5)")
     s.add_argument("--idle-timeout", type=float, default=10.0,
                    help="stop when a line stays unanswered this long while the controller reports Idle "

@@ -242,6 +242,7 @@ class Grbl:
         self.modes: list[str] = []  # from `$G`: the parser state, e.g. ["G0", "G54", "G17", ...]
         self.reset_sent = False  # connect sent a soft reset
         self.homed = False  # connect ran the homing cycle `$H` (the machine moved)
+        self.unlocked = False  # connect cleared an Alarm with `$X` (the position was not restored)
         self._acks: queue.Queue = queue.Queue()
         self._banner_event = threading.Event()
         self._status_event = threading.Event()
@@ -431,14 +432,18 @@ class Grbl:
         self._drain()  # oks to the wake newlines, the banner itself
 
     def connect(self, *, home: bool = False, unlock: bool = False):
-        """Recognise GRBL 1.1, handle Alarm, read the work offsets (`$#`) and parser state (`$G`).
+        """Recognise GRBL 1.1, home or handle Alarm, read the work offsets (`$#`) and parser state
+        (`$G`).
 
         A controller whose status report says `Idle` is not reset (a reset would clear its `G92`
         offset, which the caller must see to refuse); any other state, or no report, gets a soft
-        reset and must answer with the GRBL 1.1 banner. `$I` must report version 1.1.
+        reset and must answer with the GRBL 1.1 banner. `$I` must report version 1.1. With `home`
+        the homing cycle `$H` runs whatever the state; otherwise an Alarm is cleared with `$X`
+        when `unlock` is set.
 
         **Raises:** `NotGrblError` (nothing but `?`, wake bytes and a reset was sent),
-        `AlarmLocked` when in Alarm and neither `home` nor `unlock` is set.
+        `AlarmLocked` when in Alarm and neither `home` nor `unlock` is set, `GrblError` when `$H`
+        or `$X` is refused.
         """
         time.sleep(0.05)
         self._drain()  # stale replies to an earlier session
@@ -464,17 +469,22 @@ class Grbl:
             raise NotGrblError(f"device on {self.port} is GRBL {clip(self.version, 30)}; this streamer speaks GRBL 1.1")
         self._polling.set()
         st = self.query_status()
-        if st["state"].startswith("Alarm"):
-            if home:
-                self.homed = True
-                r = self.command("$H", timeout=120.0)
-            elif unlock:
-                r = self.command("$X")
-            else:
+        if home:  # in any state: the caller asks for a known machine position
+            self.homed = True
+            r = self.command("$H", timeout=120.0)
+            if r.kind != "ok":
+                hint = " (homing is not enabled: $22=0)" if r.text == "error:5" else ""
+                raise GrblError(f"the homing cycle $H was answered {clip(r.text, 40)}{hint}; "
+                                "re-zero the board (G10 L20 P1 X0 Y0 Z0) and pass --rezeroed "
+                                "instead of --home")
+        elif st["state"].startswith("Alarm"):
+            if not unlock:
                 raise AlarmLocked(
                     f"controller on {self.port} is in Alarm state (position may be lost); pass --home to "
                     "run the homing cycle ($H) or --unlock to clear the lock ($X), then run again"
                 )
+            self.unlocked = True
+            r = self.command("$X")
             if r.kind != "ok":
                 raise GrblError(f"could not leave Alarm: {clip(r.text, 40)}")
         self.read_offsets()

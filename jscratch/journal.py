@@ -58,15 +58,16 @@ class Journal:
     def check(cls, path, gcode_sha256: str, *, resume: bool) -> dict:
         """Whether a session may start (before anything is sent); raises `JournalError` if not.
 
-        **Returns:** dict with `done` (scratches journalled), `n_scratches` and `work_zero` (that of the
-        latest session, or None).
+        **Returns:** dict with `done` (scratches journalled), `n_scratches`, `work_zero` (that of
+        the latest session, or None) and, on `resume`, `position_lost` (how the latest session lost
+        the machine's position, or None).
         """
         path = os.fspath(path)
         exists = os.path.exists(path) and os.path.getsize(path) > 0
         if not exists:
             if resume:
                 raise JournalError(f"--resume: journal {path!r} does not exist; nothing to resume")
-            return {"done": 0, "n_scratches": None, "work_zero": None}
+            return {"done": 0, "n_scratches": None, "work_zero": None, "position_lost": None}
         recs = cls.records(path)
         header, done = recs[0], cls._count(path, recs)
         starts = [r for r in recs if r.get("type") == "event" and r.get("event") == "start"]
@@ -81,7 +82,23 @@ class Journal:
                 "pass --resume to continue that job, or move the journal away to start again"
             )
         zero = next((r["work_zero"] for r in reversed(starts) if r.get("work_zero")), header.get("work_zero"))
-        return {"done": done if resume else 0, "n_scratches": header.get("n_scratches"), "work_zero": zero}
+        return {"done": done if resume else 0, "n_scratches": header.get("n_scratches"),
+                "work_zero": zero, "position_lost": cls._position_lost(recs) if resume else None}
+
+    @staticmethod
+    def _position_lost(recs) -> str | None:
+        """How the latest session lost the machine's position (a lost device, an alarm, a reset of
+        the controller), or None: the events after its `start`."""
+        last = max((i for i, r in enumerate(recs) if r.get("event") == "start"), default=0)
+        for r in recs[last + 1:]:
+            reply = str(r.get("reply", ""))
+            if r.get("event") == "lost":
+                return "a lost device"
+            if r.get("event") == "fault" and reply.startswith("ALARM"):
+                return reply
+            if r.get("event") == "fault" and reply.startswith("Grbl"):
+                return "a reset of the controller"
+        return None
 
     @staticmethod
     def records(path) -> list:

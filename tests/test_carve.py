@@ -171,7 +171,21 @@ def test_device_vanishes_then_resume_after_power_cycle(job):
     assert "\n" not in str(e.value)
     assert Journal.read(path + ".journal")[1] == 5
     sim.close()
-    sim2 = GrblSim(wp, start_alarm=True)  # powered up again: homing required
+    # Powered up again without a homing lock: Idle, its position unknown. A resume that neither
+    # homes nor says the board was re-zeroed is refused before anything is sent.
+    sim2 = GrblSim(wp)
+    n_recv = len(wp.received)
+    lost = r"position may be lost \(a lost device since the job last ran\): re-home it \(--home\)"
+    with pytest.raises(CarveError, match=lost + ".*--rezeroed.*no motion") as e:
+        _resume(path, sim2)
+    assert "\n" not in str(e.value) and len(wp.received) == n_recv
+    sim2.close()
+    sim2 = GrblSim(wp, start_alarm=True)  # powered up again with a homing lock
+    with pytest.raises(CarveError, match=r"position may be lost \(a lost device"):
+        _resume(path, sim2, unlock=True)  # $X does not restore the position
+    assert len(wp.received) == n_recv
+    sim2.close()
+    sim2 = GrblSim(wp, start_alarm=True)
     r = _resume(path, sim2, home=True)
     sim2.close()
     assert r["done"] == 24
@@ -419,16 +433,18 @@ def test_emergency_retract_goes_to_the_programs_safe_z(tmp_path, small):
 
 def test_failure_after_homing_does_not_say_no_motion_was_sent(job):
     path, _ = job
-    for alarm in (True, False):
+    # `--home` homes whatever the controller's state (an Idle one too: after a power cycle of a
+    # controller without homing lock, Idle says nothing about its position).
+    for alarm, home in ((True, True), (False, True), (False, False)):
         sim = GrblSim(start_alarm=alarm, error_at=(2 + 5 * 2 + 3, 20))  # found by check mode
         try:
             with pytest.raises(CarveError, match=r"check mode \(\$C\): error:20") as e:
-                carve(path, sim.port, home=True, check=True, **FAST)
+                carve(path, sim.port, home=home, check=True, **FAST)
         finally:
             sim.close()
         msg = str(e.value)
-        assert ("no motion was sent" in msg) != alarm, msg
-        assert ("homing cycle $H ran" in msg) == alarm, msg
+        assert ("no motion was sent" in msg) != home, msg
+        assert ("homing cycle $H ran" in msg) == home, msg
         assert sim.wp.moves == []
 
 

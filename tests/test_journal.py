@@ -38,7 +38,27 @@ def test_write_read_resume_and_work_zero(tmp_path):
     j.confirm(3, 1)
     j.close()
     info = Journal.check(path, "a" * 64, resume=True)
-    assert info == {"done": 4, "n_scratches": 5, "work_zero": [5.0, 6.0, 0.0]}
+    assert info == {"done": 4, "n_scratches": 5, "work_zero": [5.0, 6.0, 0.0],
+                    "position_lost": None}
+
+
+@pytest.mark.parametrize("events, lost", [
+    ([("fault", "error:33")], None),  # held and retracted: the position is kept
+    ([("interrupt", None)], None),
+    ([("fault", "ALARM:1")], "ALARM:1"),
+    ([("fault", "Grbl 1.1h ['$' for help]")], "a reset of the controller"),
+    ([("lost", None)], "a lost device"),
+    ([("lost", None), ("start", None), ("fault", "error:33")], None),  # a later session ran
+])
+def test_a_session_that_lost_the_position_is_reported_on_resume(tmp_path, events, lost):
+    path = tmp_path / "job.journal"
+    j = Journal(path, "a" * 64, 5, resume=False)
+    j.event("start")
+    j.confirm(0, 3)
+    for kind, reply in events:
+        j.event(kind, **({"reply": reply} if reply else {}))
+    j.close()
+    assert Journal.check(path, "a" * 64, resume=True)["position_lost"] == lost
 
 
 def test_start_and_resume_rules(tmp_path):
