@@ -60,7 +60,7 @@ from jscratch.options import check_out_prefix
 from jscratch.errors import EXIT_STATUS_HELP, InputError, JscratchError, report
 from jscratch.grbl import clip, gword
 from jscratch.carve import CarveError, carve
-from jscratch.gcode import Program, check_program_lines, read_program, write_program
+from jscratch.gcode import Program, check_program_lines, limits_comment, read_program, write_program
 from jscratch.machine import CUT_KEYS, MachineConfig, MachineProfile, carving_seconds
 from jscratch.toolpath import order_scratches
 
@@ -314,6 +314,10 @@ def make_program(design: Design, cfg: MachineConfig, *, improve: bool = True, ti
     g = gword
     emit(f"(jscratch: {n} scratches, board {board_mm[0]:.3f} x {board_mm[1]:.3f} mm, work zero G54)", role="comment")
     emit(f"(ball R {cfg.cutter_radius_mm:.3f} mm, feed {cfg.feed_mm_min:.1f} mm/min)", role="comment")
+    # The bounds checked below, in the file: reading the program back (`--gcode`) checks them again.
+    lo = (ox - cfg.margin_mm, oy - cfg.margin_mm, -cfg.plunge_max_mm)
+    hi = (ox + board_mm[0] + cfg.margin_mm, oy + board_mm[1] + cfg.margin_mm, safe)
+    emit(limits_comment(lo, hi), role="comment")
     emit("G21 G90 G94 G17 G54")
     if cfg.spindle_rpm > 0:
         emit(f"M3 {g('S', cfg.spindle_rpm)}")
@@ -334,8 +338,6 @@ def make_program(design: Design, cfg: MachineConfig, *, improve: bool = True, ti
     emit("M2", role="post")
 
     # Every word, re-read from the text, must be strictly formatted and every coordinate in bounds.
-    lo = (ox - cfg.margin_mm, oy - cfg.margin_mm, -cfg.plunge_max_mm)
-    hi = (ox + board_mm[0] + cfg.margin_mm, oy + board_mm[1] + cfg.margin_mm, safe)
     ext = check_program_lines(lines, lo, hi)
     cut_len = float(np.hypot(*(p1 - p0).T).sum())
     est = carving_seconds(cfg, n=n, cut_mm=cut_len, travel_mm=ordering.travel, plunge_mm_total=float(plunge.sum()))

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import os
+import re
 from typing import NamedTuple
 
 import numpy as np
@@ -15,7 +16,8 @@ import numpy as np
 from jscratch.errors import DesignFileError, InputError
 from jscratch.grbl import check_words, clip
 
-__all__ = ["MAX_LINE", "Program", "check_program_lines", "read_program", "write_program"]
+__all__ = ["MAX_LINE", "Program", "check_program_lines", "limits_comment", "read_program",
+           "write_program"]
 
 MAX_LINE = 79  # characters, without the newline (GRBL's line buffer is 80 bytes)
 
@@ -70,6 +72,30 @@ def check_program_lines(lines, lo=None, hi=None) -> dict:
     return ext
 
 
+_NUM = r"(-?\d+\.\d{3})"
+_LIMITS_RE = re.compile(rf"\(limits X{_NUM}:{_NUM} Y{_NUM}:{_NUM} Z{_NUM}:{_NUM} mm\)")
+
+
+def limits_comment(lo, hi) -> str:
+    """The comment line that records a program's allowed `(x, y, z)` ranges in mm, e.g.
+    ``(limits X0.000:100.000 Y0.000:100.000 Z-0.100:1.000 mm)``; `read_program` checks every
+    coordinate of the program against it."""
+    ranges = (f"{a}{lo[i]:.3f}:{hi[i]:.3f}" for i, a in enumerate("XYZ"))
+    return "(limits " + " ".join(ranges) + " mm)"
+
+
+def _limits(lines, path):
+    """The `(lo, hi)` of the program's limits comment; `DesignFileError` without one."""
+    for text in lines:
+        m = _LIMITS_RE.fullmatch(text)
+        if m:
+            v = [float(x) for x in m.groups()]
+            return tuple(v[0::2]), tuple(v[1::2])
+    raise DesignFileError(f"G-code file {path!r} has no '(limits X..:.. Y..:.. Z..:.. mm)' line, "
+                          "so its depths and bounds cannot be checked: write it with "
+                          "python -m jscratch.fabricate")
+
+
 def write_program(prog: Program, gcode_path) -> str:
     """Write `gcode_path` and its line map `gcode_path + '.map.csv'` (line, k, scratch, role).
 
@@ -89,8 +115,9 @@ def write_program(prog: Program, gcode_path) -> str:
 
 def read_program(gcode_path) -> Program:
     """Read a G-code file and its line map (as written by `write_program`); checks that every line
-    is one `write_program` could write (length, words: `jscratch.grbl.check_words`) and that the
-    map agrees with the lines.
+    is one `write_program` could write (length, words: `jscratch.grbl.check_words`), that every
+    coordinate lies within the program's limits comment (`limits_comment`: no plunge deeper, no
+    move off the board), and that the map agrees with the lines.
 
     **Raises:** `DesignFileError`, one line naming the file and the line or row, for a missing,
     unreadable or inconsistent program.
@@ -114,7 +141,10 @@ def read_program(gcode_path) -> Program:
     if lines and lines[-1] == "":
         lines.pop()
     try:
-        check_program_lines(lines)
+        check_program_lines(lines)  # the words, then every coordinate against the limits comment
+        check_program_lines(lines, *_limits(lines, gcode_path))
+    except DesignFileError:
+        raise
     except InputError as exc:
         raise DesignFileError(f"G-code file {gcode_path!r}: {exc}") from None
     if len(rows) != len(lines):

@@ -98,6 +98,34 @@ def test_check_program_lines_extents_and_refusals(small):
         gcode.check_program_lines(["G0 X1e2 Y0.000"], lo, hi)
 
 
+@pytest.mark.parametrize("edit, words", [
+    (("G1 Z-0.100 F300.0", "G1 Z-9.000 F300.0"), "Z = -9.0 outside [-0.100, 1.000]"),
+    (("G0 Z1.000", "G0 Z25.000"), "Z = 25.0 outside [-0.100, 1.000]"),
+    ("travel", "Y = 99999.0 outside [0.000, 300.000]"),
+    (("(limits ", "(bounds "), "has no '(limits X..:.. Y..:.. Z..:.. mm)' line"),
+])
+def test_read_program_refuses_coordinates_outside_its_limits(tmp_path, small, edit, words):
+    """A program read back (what `--gcode` streams) is checked against the limits comment that
+    `make_program` wrote: a hand-edited plunge, height or move off the board is refused in one
+    line naming the line; a program without the comment cannot be checked and is refused."""
+    _, prog = small
+    path = tmp_path / "p.gcode"
+    gcode.write_program(prog, path)
+    assert gcode.limits_comment((0, 0, -0.1), (300, 300, 1)) in prog.lines
+    text = path.read_text()
+    if edit == "travel":
+        i = prog.role.index("travel") + 5 * 3
+        old = prog.lines[i]
+        text = text.replace(old + "\n", old.split(" Y")[0] + " Y99999.000\n", 1)
+    else:
+        assert edit[0] in text
+        text = text.replace(edit[0], edit[1], 1)
+    path.write_text(text)
+    with pytest.raises(DesignFileError) as e:
+        gcode.read_program(path)
+    assert words in str(e.value) and "\n" not in str(e.value)
+
+
 def test_read_program_refuses_a_missing_or_mismatched_map(tmp_path, small):
     _, prog = small
     path = tmp_path / "p.gcode"
