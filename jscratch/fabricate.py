@@ -15,8 +15,9 @@ progress survives crashes.
 - `carve`: stream a G-code file to GRBL over a serial port with a journal and resume.
 - ``python -m jscratch.fabricate --help``: the command line.
 
-G-code layout (preamble ``G21 G90 G94 G17 G54``, then, with a spindle, ``M3 S..`` and a
-spin-up dwell ``G4 P..``; one block per scratch, at most 79 characters a line)::
+G-code layout (three comment lines, the last the limits the program was checked against,
+``(limits X..:.. Y..:.. Z..:.. mm)``; preamble ``G21 G90 G94 G17 G54``, then, with a spindle,
+``M3 S..`` and a spin-up dwell ``G4 P..``; one block per scratch, at most 79 characters a line)::
 
     G0 X.. Y..        travel, at safe Z          (role "travel")
     G1 Z-p F..        plunge                     (role "plunge")
