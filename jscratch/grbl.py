@@ -248,6 +248,7 @@ class Grbl:
         self._status_event = threading.Event()
         self._last_reply = time.monotonic()
         self._idle_since: float | None = None  # first of the unbroken run of `Idle` reports
+        self._status_at = 0.0  # when the latest status report came
         self._lost: BaseException | None = None
         self._stop = threading.Event()
         self._wlock = threading.Lock()
@@ -322,6 +323,7 @@ class Grbl:
             self._acks.put(r)
         elif r.kind == "status":
             self.status = parse_status(line)
+            self._status_at = now
             if self.status["state"] != "Idle":
                 self._idle_since = None
             elif self._idle_since is None:
@@ -355,7 +357,9 @@ class Grbl:
         """Next ok/error/alarm/banner reply; raises DeviceLost when the device is gone or silent.
 
         With `idle_limit`: a `Reply("stall", ...)` once every status report for `idle_limit` s (and
-        since `since`, a `time.monotonic()`) said `Idle` and nothing was answered.
+        since `since`, a `time.monotonic()`) said `Idle` and nothing was answered, and an
+        `alarm` reply without a code once a status report since `since` says `Alarm` (its
+        `ALARM:N` line lost).
         """
         t_end = None if timeout is None else time.monotonic() + timeout
         while True:
@@ -369,6 +373,9 @@ class Grbl:
                 idle = self._idle_since
                 if idle_limit is not None and idle is not None and now - max(idle, since) > idle_limit:
                     return Reply("stall", None, "stall")
+                alarm = self.status.get("state", "").startswith("Alarm") and self._status_at > since
+                if idle_limit is not None and alarm:
+                    return Reply("alarm", None, "ALARM (a status report; no ALARM:N line came)")
                 continue
             if r.kind == "lost":
                 raise DeviceLost(f"device on {self.port} lost: {clip(r.text, 80)}")
@@ -519,7 +526,8 @@ class Grbl:
         `error` can never let a later scratch run).
 
         Watchdog: when lines are owed an answer and every status report for `idle_timeout` s (plus
-        the `P` seconds of owed `G4` dwells) has said `Idle`, the answer was lost: `Stalled`.
+        the `P` seconds of owed `G4` dwells) has said `Idle`, the answer was lost: `Stalled`; a
+        status report that says `Alarm` is an alarm whose `ALARM:N` line was lost: `JobFault`.
 
         **Arguments:** `items` G-code lines (no comments, no line endings); `barrier` per item;
         `counting` character counting; `on_ok(i)` called for each `ok`, in order.
@@ -559,6 +567,8 @@ class Grbl:
                     on_ok(idx)
             elif r.kind == "error":
                 raise JobFault(f"error:{r.code} ({ERROR_TEXT.get(r.code, 'see GRBL error codes')})", idx, r.text)
+            elif r.kind == "alarm" and r.code is None:
+                raise JobFault("the controller reports Alarm (its ALARM:N line was lost)", idx, r.text)
             elif r.kind == "alarm":
                 raise JobFault(f"ALARM:{r.code} ({ALARM_TEXT.get(r.code, 'see GRBL alarm codes')})", idx, r.text)
             elif r.kind == "stall":

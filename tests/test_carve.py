@@ -9,6 +9,7 @@ import os
 import re
 import sys
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -160,6 +161,36 @@ def test_alarm_mid_job_needs_home_then_resume(job):
     assert r["done"] == 24
     _verify(prog, wp, in_progress={12})
 
+
+
+class _GarbledAlarm(GrblSim):
+    """A simulator whose `ALARM:N` lines arrive garbled by noise on the wire."""
+
+    def _send(self, data):
+        if data.startswith(b"ALARM:"):
+            data = b"AL\xffRM:1\r\n" + data.split(b"\r\n", 1)[1]
+        super()._send(data)
+
+
+def test_an_alarm_whose_line_was_lost_stops_the_job(job):
+    """The controller stops in Alarm but its `ALARM:N` line never arrives whole: the status
+    reports' `Alarm` stops the stream (it does not wait forever), and the resume needs --home."""
+    path, prog = job
+    wp = Workpiece()
+    sim = _GarbledAlarm(wp, alarm_at=(1 + 4 * 6 + 3, 1))  # during the cut of position 6
+    t = time.monotonic()
+    with pytest.raises(CarveError, match=r"reports Alarm \(its ALARM:N line was lost\).*position "
+                                         r"likely lost.*--home") as e:
+        carve(path, sim.port, **FAST)
+    assert time.monotonic() - t < 10 and "\n" not in str(e.value)
+    assert Journal.read(path + ".journal")[1] == 6
+    sim.alarm_at = None
+    with pytest.raises(CarveError, match="Alarm state .* --home"):
+        _resume(path, sim)
+    r = _resume(path, sim, home=True)
+    sim.close()
+    assert r["done"] == 24
+    _verify(prog, wp, in_progress={6})
 
 
 def test_device_vanishes_then_resume_after_power_cycle(job):
