@@ -568,7 +568,8 @@ class Grbl:
             elif r.kind == "error":
                 raise JobFault(f"error:{r.code} ({ERROR_TEXT.get(r.code, 'see GRBL error codes')})", idx, r.text)
             elif r.kind == "alarm" and r.code is None:
-                raise JobFault("the controller reports Alarm (its ALARM:N line was lost)", idx, r.text)
+                raise JobFault("the controller reports Alarm (its ALARM:N line was lost)", idx,
+                               r.text)
             elif r.kind == "alarm":
                 raise JobFault(f"ALARM:{r.code} ({ALARM_TEXT.get(r.code, 'see GRBL alarm codes')})", idx, r.text)
             elif r.kind == "stall":
