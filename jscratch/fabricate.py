@@ -567,7 +567,7 @@ def _check_options(args) -> None:
         raise InputError("--out names the files written from a design; --gcode streams an existing program")
     if args.resume and not args.port:
         raise InputError("--resume continues carving a job: give --port")
-    if args.port and args.port.startswith("/") and not os.path.exists(args.port):
+    if args.port and "://" not in args.port and not os.path.exists(args.port):
         raise InputError(f"--port {args.port!r} does not exist (is the controller plugged in?)")
     if args.rezeroed and not args.resume:
         raise InputError("--rezeroed accepts a changed work zero when resuming: it needs --resume")
@@ -582,6 +582,29 @@ def _check_options(args) -> None:
             raise InputError(f"{opt} must be a finite number of seconds > 0, got {v}")
     if args.out is not None:
         check_out_prefix("--out", args.out, "DIR/job")
+
+
+#: Machine options whose value a program writes, with the role of the line and the letter.
+_WRITTEN = {"feed_mm_min": ("cut", "F"), "plunge_mm_min": ("plunge", "F"),
+            "safe_z_mm": ("retract", "Z"), "plunge_mm": ("plunge", "Z")}
+
+
+def _warn_unused_options(gcode: str, over: dict, quiet: bool) -> None:
+    """Warn about the machine options given now whose values differ from the words of the
+    existing program that `--resume` or `--gcode` streams as written."""
+    prog = read_program(gcode)
+    out = []
+    for key, (role, letter) in _WRITTEN.items():
+        if over.get(key) is None or role not in prog.role:
+            continue
+        line = prog.lines[prog.role.index(role)]
+        word = next((w for w in line.split() if w[0] == letter), None)
+        want = gword(letter, -over[key] if key == "plunge_mm" else over[key])
+        if word != want:
+            out.append(f"{key} = {over[key]:g} (the program has {word})")
+    if out and not quiet:
+        print(f"warning: the program {gcode!r} is streamed as written; not applied: "
+              f"{', '.join(out)}", file=sys.stderr)
 
 
 def main(argv=None) -> int:
@@ -600,6 +623,7 @@ def main(argv=None) -> int:
         prog = None
         if args.gcode:
             gcode = args.gcode
+            _warn_unused_options(gcode, over, args.quiet)
             if not args.port:
                 n = read_program(gcode).info["scratches"]  # check it, as the carver would
                 if not args.quiet:
@@ -617,6 +641,7 @@ def main(argv=None) -> int:
             if args.resume:
                 if not os.path.exists(gcode):
                     raise InputError(f"--resume: G-code {gcode!r} does not exist (no job to resume there)")
+                _warn_unused_options(gcode, over, args.quiet)
             else:
                 _refuse_overwrite(gcode)
                 prog = make_program(design, cfg, improve=not args.no_improve, time_limit=args.order_time)

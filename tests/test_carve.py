@@ -380,7 +380,11 @@ def test_plain_rerun_keeps_the_program_of_an_unfinished_job(tmp_path, capsys):
         assert re.fullmatch(r"error: .*unfinished job .*4 of 24 scratches carved.*--resume.*\n", err), err
         assert gcode.read_bytes() == before
     sim.error_at = None
-    assert main(base + ["--port", sim.port, "--resume"]) == 0
+    # The resume streams the program as written, and says which options given now it ignores.
+    loud = [a for a in base if a != "--quiet"] + ["--port", sim.port, "--resume", "--feed", "600"]
+    assert main(loud) == 0
+    err = capsys.readouterr().err
+    assert "not applied: feed_mm_min = 600 (the program has F900.0)" in err
     sim.close()
     _verify(read_program(gcode), wp, in_progress={4})
     assert main(base + ["--dry-run"]) == 2

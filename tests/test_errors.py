@@ -339,11 +339,17 @@ def test_fabricate_refuses_bad_options_before_any_work(tmp_path, monkeypatch, ca
     assert sorted(os.listdir(tmp_path)) == ["d.npz"]
 
 
-def test_fabricate_with_a_nonsense_port_exits_4(program, tmp_path, capsys):
+def test_fabricate_with_a_nonsense_port_exits_4(program, tmp_path, capsys, monkeypatch):
     # A port that is not there is refused before the program is written.
     assert fabricate.main(["--demo-n", "5", "--port", str(tmp_path / "ttyNONE"), "--out", str(tmp_path / "new" / "j"),
                            "--quiet"]) == 2
     _one_error_line(capsys.readouterr().err, "--port", "does not exist")
+    assert os.listdir(tmp_path) == []
+    # ... and so is a relative name that is not there (a port typed without its /dev/).
+    with monkeypatch.context() as m:
+        m.chdir(tmp_path)
+        assert fabricate.main(["--demo-n", "5", "--port", "ttyUSB9", "--quiet"]) == 2
+    _one_error_line(capsys.readouterr().err, "--port 'ttyUSB9' does not exist")
     assert os.listdir(tmp_path) == []
     sim = GrblSim(not_grbl=True)
     try:
