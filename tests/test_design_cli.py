@@ -173,6 +173,22 @@ def test_resume_refuses_other_settings(cli_run, capsys):
     assert code == 2 and "only --iterations" in capsys.readouterr().err
 
 
+def test_a_new_run_removes_an_earlier_runs_checkpoint(tmp_path, monkeypatch, capsys):
+    """A run interrupted before its first checkpoint leaves no checkpoint of an earlier run in
+    its folder (which its config.json would no longer describe)."""
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "checkpoint.npz").write_bytes(b"an earlier run's")
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "design", interrupted)
+    assert cli.main([*TINY, "--out", str(out), "--quiet"]) == 130
+    assert not (out / "checkpoint.npz").exists() and (out / "config.json").exists()
+    assert "interrupted" in capsys.readouterr().err
+
+
 def test_text_file_is_not_a_result(tmp_path):
     (tmp_path / "x").mkdir()
     with pytest.raises(DesignFileError, match="lacks design.npz"):

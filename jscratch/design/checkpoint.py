@@ -54,7 +54,23 @@ class State:
     rebins: int
 
 
-def save_checkpoint(path: str, state: State, config: DesignConfig, thash: str) -> None:
+#: Config fields a resumed run may change: the total of iterations to reach and what happens
+#: after the loop or beside it; every other field must equal the checkpoint's.
+RESUMABLE = ("iterations", "checkpoint_every", "discard", "discard_tol", "target_ssim")
+
+
+def _first_difference(saved, given, path=""):
+    """The first key path where two config dicts differ, with both values, or None."""
+    if isinstance(saved, dict) and isinstance(given, dict):
+        for k in sorted(set(saved) | set(given)):
+            d = _first_difference(saved.get(k), given.get(k), f"{path}.{k}" if path else k)
+            if d is not None:
+                return d
+        return None
+    return None if saved == given else (path, saved, given)
+
+
+def save_checkpoint(path: str, state: State, config: DesignConfig, inputs: dict) -> None:
     arrays: dict[str, np.ndarray] = {}
     for i, leaf in enumerate(jax.tree_util.tree_leaves(state.params)):
         arrays[f"params/{i}"] = np.asarray(leaf)
@@ -70,36 +86,45 @@ def save_checkpoint(path: str, state: State, config: DesignConfig, thash: str) -
         "history": state.history,
         "rebins": state.rebins,
         "config": config.to_dict(),
-        "targets_hash": thash,
+        **inputs,
     }
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
     save_npz(path, arrays)
 
 
-def load_checkpoint(path: str, like: State, config: DesignConfig, thash: str,
+def load_checkpoint(path: str, like: State, config: DesignConfig, inputs: dict,
                     raw: bytes | None = None) -> State:
     """The `State` saved at `path` (its contents `raw` when given: the bytes process 0 read, on
-    a mesh of several processes), checked against this design (`like`, `config`, `thash`)."""
+    a mesh of several processes), checked against this design (`like`, `config`, `inputs` from
+    `jscratch.design.io.inputs_hash`): the same targets, scene and config but for `RESUMABLE`,
+    and no more iterations done than `config.iterations`."""
     if raw is None and not os.path.isfile(path):
         raise DesignFileError(f"--resume: no checkpoint at {path!r}")
     try:
         with np.load(path if raw is None else io.BytesIO(raw), allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
         meta = json.loads(bytes(data["meta"]).decode())
-        absent = [k for k in ("targets_hash", "config", "spec", "caps") if k not in meta]
+        absent = [k for k in ("config", "spec", "caps", "iteration", *inputs) if k not in meta]
         if absent:
             raise KeyError(f"meta lacks {absent}")
+        saved = DesignConfig.from_dict(meta["config"]).to_dict()
     except Exception as exc:  # not an .npz, no or a broken "meta" record
         raise DesignFileError(f"checkpoint {path!r} is not a readable jscratch checkpoint ({error_line(exc)})") from None
-    if meta["targets_hash"] != thash:
+    if meta["targets_hash"] != inputs["targets_hash"]:
         raise DesignError(f"checkpoint {path!r} was made for different target images")
-    saved = DesignConfig.from_dict(meta["config"])
-    keys = ("n_scratches", "seed", "parameterisation", "freeze", "dtype", "cull_eps",
-            "coverage_eps", "skip_eps", "skin")
-    for k in keys:
-        if getattr(saved, k) != getattr(config, k):
-            raise DesignError(f"checkpoint {path!r} was made with {k} = {getattr(saved, k)!r}, "
-                              f"not {getattr(config, k)!r}")
+    if meta["scene_hash"] != inputs["scene_hash"]:
+        raise DesignError(f"checkpoint {path!r} was made for another scene (board, cameras, "
+                          "lights or intensities)")
+    given = config.to_dict()
+    for k in RESUMABLE:
+        saved.pop(k, None), given.pop(k, None)
+    diff = _first_difference(saved, given)
+    if diff is not None:
+        raise DesignError(f"checkpoint {path!r} was made with {diff[0]} = {diff[1]!r}, not "
+                          f"{diff[2]!r}: resume with the run's own options (OUT/config.json)")
+    if meta["iteration"] > config.iterations:
+        raise DesignError(f"checkpoint {path!r} is at iteration {meta['iteration']}, past the "
+                          f"{config.iterations} iterations asked for: ask for at least that many")
 
     def restore(tree, prefix):
         leaves, treedef = jax.tree_util.tree_flatten(tree)

@@ -190,6 +190,8 @@ def _run(argv) -> int:
         with open(os.path.join(run.out, "config.json"), "w") as f:
             json.dump({"design": config.to_dict(), "scene": scene.to_dict(), "targets": names},
                       f, indent=2)
+        if os.path.exists(checkpoint):  # an earlier run's, which these settings do not describe
+            os.remove(checkpoint)
     result = design(targets, views, board, config, checkpoint=checkpoint, resume=run.resume,
                     progress=not run.quiet, mesh=mesh)
     save_result(result, run.out, scene=scene, names=names,

@@ -1,6 +1,7 @@
 """Targets and results on disk: checks of the targets and views, loading target images (one-line
 errors naming the file), the default `skimage.data` targets, `load_scene` (the inputs a
-`SceneConfig` describes), and the round trip of a result: `save_result` / `load_result`."""
+`SceneConfig` describes), the digests a checkpoint is keyed to (`inputs_hash`), and the round
+trip of a result: `save_result` / `load_result`."""
 
 from __future__ import annotations
 
@@ -61,6 +62,17 @@ def check_design_views(views: Views, board: Board) -> None:
 
 def targets_hash(t: np.ndarray) -> str:
     return hashlib.sha256(np.ascontiguousarray(t, np.float64).tobytes()).hexdigest()[:16]
+
+
+def inputs_hash(targets: np.ndarray, views, board) -> dict[str, str]:
+    """What a checkpoint is keyed to besides its config: short SHA-256 digests of the target
+    images (float64 values) and of the scene (the views' cameras, lights and intensities, and
+    the board's fields)."""
+    h = hashlib.sha256()
+    for name in ("camera", "light", "intensity"):
+        h.update(np.ascontiguousarray(np.asarray(getattr(views, name)), np.float64).tobytes())
+    h.update(repr([board.shape, board.Sx, board.Sy, board.F0, board.a_G, board.a_S]).encode())
+    return {"targets_hash": targets_hash(targets), "scene_hash": h.hexdigest()[:16]}
 
 
 def _to_gray01(img: np.ndarray, name: str) -> np.ndarray:

@@ -26,7 +26,7 @@ from jscratch.design.config import DesignConfig, NonFiniteError, SceneConfig
 from jscratch.design.discard import compile_scores, discard, fewest_for_ssim
 from jscratch.design import mesh as mesh_mod
 from jscratch.design import prune as prune_mod
-from jscratch.design.io import check_design_views, check_targets, targets_hash
+from jscratch.design.io import check_design_views, check_targets, inputs_hash
 from jscratch.design.params import DesignParams, group_tree
 from jscratch.design.result import DesignResult
 from jscratch.design.solver import (
@@ -91,10 +91,10 @@ def design(
     native.keep_freed_memory()  # the steps reuse their large buffers (`native.keep_freed_memory`)
     tnp, views, board = check_inputs(targets, views, board, config, checkpoint, resume)
     checkpoint = None if checkpoint is None else os.fspath(checkpoint)
-    thash = targets_hash(tnp)
+    inputs = inputs_hash(tnp, views, board)  # what a checkpoint is keyed to
     # --- mesh: the devices the design runs on, and every process running the same design
     mesh = mesh_mod.resolve(mesh, board, config)
-    mesh_mod.agree({"target images": thash, "design config": config.to_dict(),
+    mesh_mod.agree({"target images": inputs["targets_hash"], "design config": config.to_dict(),
                     "views": [np.asarray(views.camera).tolist(), np.asarray(views.light).tolist(),
                               np.asarray(views.intensity).tolist()],
                     "board": [board.Sx, board.Sy, list(board.shape)],
@@ -111,7 +111,7 @@ def design(
         warm = None
         if resume:
             like = State(0, params, optimizer.init(params), None, {}, 0)
-            state = load_checkpoint(checkpoint, like, config, thash, raw)
+            state = load_checkpoint(checkpoint, like, config, inputs, raw)
         else:
             phase.show("compiling the step; the initial render")
             state, warm = initial_state(params, optimizer, ctx, tnp, config)
@@ -124,7 +124,7 @@ def design(
         phase.close()
     parts["initial_state"] = time.perf_counter() - t
     n_iter = config.iterations if stop_after is None else min(config.iterations, stop_after)
-    state, step_times, loop = _iterate(state, optimizer, ctx, config, n_iter, checkpoint, thash,
+    state, step_times, loop = _iterate(state, optimizer, ctx, config, n_iter, checkpoint, inputs,
                                        progress)
     parts.update(loop)
     t = time.perf_counter()
@@ -335,18 +335,18 @@ def _compile_meanwhile(name: str, compile_fn) -> threading.Thread:
     return thread
 
 
-def _save(checkpoint, state, config, thash):
+def _save(checkpoint, state, config, inputs):
     """`save_checkpoint`, on process 0 only (every process holds the same replicated state)."""
     if mesh_mod.is_writer():
-        save_checkpoint(checkpoint, state, config, thash)
+        save_checkpoint(checkpoint, state, config, inputs)
 
 
-def _check_health(health, state, config, checkpoint, thash):
+def _check_health(health, state, config, checkpoint, inputs):
     """Raise `NonFiniteError` (after saving ``state``, the last good one) when a check failed."""
     for what, (ok, idx) in health.items():
         if not bool(ok):
             if checkpoint is not None:
-                _save(checkpoint, state, config, thash)
+                _save(checkpoint, state, config, inputs)
             unit = "view" if what.endswith("intensity") else "scratch"
             where = "" if what == "loss" else f" (first bad {unit}: {int(idx)})"
             saved = f"; the last good state is in {checkpoint!r}" if checkpoint else ""
@@ -382,7 +382,7 @@ class _Phase:
             self.bar = None
 
 
-def _iterate(state, optimizer, ctx, config, n_iter, checkpoint, thash, progress):
+def _iterate(state, optimizer, ctx, config, n_iter, checkpoint, inputs, progress):
     """Run `step` until ``n_iter``: capacity retries, health checks, history, rebinning,
     progress bar and checkpoints. Returns the final state, the per-step wall times and the loop's
     parts: wall time (s) in the steps (``steps``), the prune rounds (``prune``), host rebuilds
@@ -414,7 +414,7 @@ def _iterate(state, optimizer, ctx, config, n_iter, checkpoint, thash, progress)
             if state.lists.culled and np.any(counts > np.asarray(state.lists.caps)):
                 state = dataclasses.replace(state, lists=bvh.grow_lists(state.lists, counts))
                 continue  # retry the same iteration with larger per-view lists
-            _check_health(health, state, config, checkpoint, thash)
+            _check_health(health, state, config, checkpoint, inputs)
             hist = state.history
             hist["total"].append(float(terms["total"]))
             for k, v in terms.items():
@@ -437,7 +437,7 @@ def _iterate(state, optimizer, ctx, config, n_iter, checkpoint, thash, progress)
             if checkpoint is not None and (state.iteration % config.checkpoint_every == 0
                                            or state.iteration == n_iter):
                 t1 = time.perf_counter()
-                _save(checkpoint, state, config, thash)
+                _save(checkpoint, state, config, inputs)
                 parts["checkpoint"] += time.perf_counter() - t1
     finally:
         if bar is not None:
