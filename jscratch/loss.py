@@ -383,9 +383,14 @@ class LossConfig:
             v = getattr(self, name)
             if v is None and name == "lambda_g":
                 continue
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+            ok = isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
+            if not (ok and math.isfinite(v) and v >= 0):
                 raise InputError(f"LossConfig.{name} must be a finite number >= 0, got {v!r}")
+            object.__setattr__(self, name, float(v))
         if self.vgg_weights is not None:
+            if not isinstance(self.vgg_weights, (str, os.PathLike)):
+                raise InputError(f"LossConfig.vgg_weights must be None or a file path, got "
+                                 f"{self.vgg_weights!r}")
             object.__setattr__(self, "vgg_weights", os.fspath(self.vgg_weights))
             if self.kind == "perceptual+gram" and self.lambda_g is None:
                 raise InputError(

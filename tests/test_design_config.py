@@ -7,6 +7,7 @@ import math
 import json
 import typing
 
+import numpy as np
 import pytest
 
 import jscratch
@@ -165,6 +166,13 @@ def test_config_json_round_trip():
     ({"coverage_eps": 2.0}, "coverage_eps"),
     ({"cull_eps": -1e-3}, "cull_eps"),
     ({"machine": {"cutter_radius_mm": -1}}, "cutter_radius_mm"),
+    ({"seed": 2**63}, r"seed must be an int in \[0, 2\*\*63\)"),  # beyond jax's PRNG seed
+    ({"freeze": None}, "freeze"),
+    ({"freeze": 5}, "freeze"),
+    ({"adam_eps": 0.0}, "adam_eps must be finite and > 0"),  # 0/0 in a frozen group
+    ({"machine": "foo"}, "machine must be None or a machine profile"),
+    ({"loss": {"vgg_weights": 5, "lambda_g": 1.0}}, "vgg_weights must be None or a file path"),
+    ({"init_length": 5}, "init_length"),
 ])
 def test_bad_design_config_is_one_line_input_error(kw, field):
     with pytest.raises(InputError, match=field) as e:
@@ -176,6 +184,9 @@ def test_bad_design_config_is_one_line_input_error(kw, field):
     ({"n_scratchez": 5}, "unknown fields"),
     ({"loss": {"lambda_q": 1}}, "unknown fields"),
     ([], "JSON object"),
+    ({"init_length": 5}, "init_length must be"),
+    ({"freeze": 5}, "freeze must be"),
+    ({"machine": "foo"}, "machine must be"),
 ])
 def test_bad_config_dict(d, what):
     with pytest.raises(InputError, match=what):
@@ -187,10 +198,20 @@ def test_bad_config_dict(d, what):
     ({"theta_deg": 95.0}, "theta_deg"),
     ({"targets": ("a.png",), "views": 2}, "target images for 2 views"),
     ({"board": -0.3}, "board"),
+    ({"targets": None}, "targets must be a list"),
+    ({"targets": 5}, "targets must be a list"),
+    ({"theta_deg": True}, "theta_deg must be a finite number"),
 ])
 def test_bad_scene_config(kw, field):
     with pytest.raises(InputError, match=field):
         SceneConfig(**kw)
+
+
+def test_numpy_numbers_in_a_scene_are_plain_json():
+    """numpy scalars are taken as the numbers they hold, so a saved config is plain JSON."""
+    sc = SceneConfig(size=np.int64(32), views=np.int64(2), theta_deg=np.float32(40.0))
+    assert json.loads(json.dumps(sc.to_dict())) == sc.to_dict()
+    assert (sc.size, sc.views, sc.theta_deg) == (32, 2, 40.0)
 
 
 def test_scene_views_match_views_on_circle():

@@ -30,6 +30,7 @@ from jscratch.scene import Board, Scratches, Views
          r"target 1 has values outside \[0, 1\]"),
         (np.zeros((2, 8, 16)), 2, "at least 16x16 px"),
         (np.array([[["a"]]], object), None, "must be a numeric"),
+        (np.zeros((0, 32, 32)), None, r"must have shape \(M, H, W\).*got \(0, 32, 32\)"),
     ],
 )
 def test_check_targets_refusals(targets, m, match):
@@ -123,3 +124,44 @@ def test_save_and_load_a_hand_built_result(tmp_path):
     np.testing.assert_array_equal(back.display, disp)
     np.testing.assert_array_equal(np.asarray(back.params.geom), np.asarray(params.geom))
     assert back.history == res.history and back.config == res.config
+
+
+def test_images_read_as_a_viewer_shows_them(tmp_path):
+    """A JPEG with an EXIF orientation is read turned as viewers show it (PIL's
+    `ImageOps.exif_transpose`, the reference); CMYK is read as its RGB (not as RGBA); gray with
+    alpha drops the alpha like RGBA."""
+    from PIL import Image, ImageOps
+
+    a = np.zeros((40, 60), np.uint8)
+    a[:10] = 255  # a bright band along the top rows, as stored
+    for orientation in (3, 6, 8):
+        im = Image.fromarray(a)
+        exif = im.getexif()
+        exif[0x0112] = orientation
+        im.save(tmp_path / "r.jpg", exif=exif.tobytes(), quality=95)
+        shown = np.asarray(ImageOps.exif_transpose(Image.open(tmp_path / "r.jpg"))) / 255.0
+        got = io.load_target(tmp_path / "r.jpg", shown.shape)
+        assert got.shape == shown.shape and np.abs(got - shown).max() < 0.02, orientation
+    rgb = np.random.default_rng(0).integers(0, 256, (32, 32, 3)).astype(np.uint8)
+    Image.fromarray(rgb).convert("CMYK").save(tmp_path / "c.jpg", quality=95)
+    ref = np.asarray(Image.open(tmp_path / "c.jpg").convert("L")) / 255.0
+    got = io.load_target(tmp_path / "c.jpg", (32, 32))
+    assert np.corrcoef(got.ravel(), ref.ravel())[0, 1] > 0.95  # (not inverted: -0.98 as RGBA)
+    Image.fromarray(a).convert("LA").save(tmp_path / "la.png")
+    Image.fromarray(a).save(tmp_path / "l.png")
+    np.testing.assert_array_equal(io.load_target(tmp_path / "la.png", (40, 60)),
+                                  io.load_target(tmp_path / "l.png", (40, 60)))
+
+
+@pytest.mark.parametrize("call, match", [
+    (lambda: io.default_targets(0, (32, 32)), "number of views must be an int >= 1"),
+    (lambda: io.default_targets(2, (0, 32)), r"image shape must be \(H, W\)"),
+    (lambda: io.default_targets(2, 32), r"image shape must be \(H, W\)"),
+    (lambda: io.default_targets(2, (32, 32, 3)), r"image shape must be \(H, W\)"),
+    (lambda: io.load_target(None, (32, 32)), "must be a file path"),
+    (lambda: io.prepare_target(np.zeros((0, 0)), (32, 32), "x"), "an empty image"),
+])
+def test_target_helpers_refuse_bad_arguments_in_one_line(call, match):
+    with pytest.raises(DesignError, match=match) as e:
+        call()
+    assert "\n" not in str(e.value)

@@ -160,6 +160,8 @@ class DesignConfig:
         for name in ("n_scratches", "iterations", "chunk", "checkpoint_every"):
             integer(name, 1)
         integer("seed", 0)
+        if self.seed >= 2**63:  # jax.random.PRNGKey takes a signed 64-bit seed
+            bad("seed", "an int in [0, 2**63)")
         integer("prune_every", 0)
         for name, choices in (("parameterisation", PARAMETERISATIONS), ("groove", GROOVE_MODES),
                               ("init_intensity", ("match_mean", "given")),
@@ -175,18 +177,23 @@ class DesignConfig:
             bad("init_alpha", "in (0, 1)")
         try:
             lo, hi = (float(x) for x in self.init_length)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             bad("init_length", "(min, max) metres with 0 < min <= max")
         if not (0 < lo <= hi and math.isfinite(hi)):
             bad("init_length", "(min, max) metres with 0 < min <= max")
         object.__setattr__(self, "init_length", (lo, hi))
         for g in GROUPS:
             number(f"lr_{g}", 0.0, what="a finite learning rate >= 0")
-        freeze = (self.freeze,) if isinstance(self.freeze, str) else tuple(self.freeze)
+        try:
+            freeze = (self.freeze,) if isinstance(self.freeze, str) else tuple(self.freeze)
+        except TypeError:
+            bad("freeze", f"a subset of {GROUPS}")
         if any(g not in GROUPS for g in freeze):
             bad("freeze", f"a subset of {GROUPS}")
         object.__setattr__(self, "freeze", tuple(g for g in GROUPS if g in freeze))
         if isinstance(self.loss, dict):
+            if not all(isinstance(k, str) for k in self.loss):
+                bad("loss", "a jscratch.loss.LossConfig or its fields (a dict)")
             try:
                 object.__setattr__(self, "loss", loss_mod.LossConfig(**self.loss))
             except TypeError:
@@ -205,9 +212,13 @@ class DesignConfig:
             number(name, 0.0, 1.0, "in [0, 1)")
             if getattr(self, name) >= 1:
                 bad(name, "in [0, 1)")
-        number("adam_eps", 0.0, what="finite and >= 0")
+        number("adam_eps", 0.0, what="finite and > 0")
+        if self.adam_eps <= 0:  # 0 divides 0 by 0 in a frozen or flat group
+            bad("adam_eps", "finite and > 0")
         from jscratch.machine import MachineProfile
 
+        if not (self.machine is None or isinstance(self.machine, dict)):
+            bad("machine", "None or a machine profile's fields (a dict)")
         try:  # None is the shipped default, recorded explicitly so that a run's config says it
             prof = MachineProfile.from_dict(dict(self.machine or {}),
                                             source="DesignConfig.machine")
@@ -263,10 +274,9 @@ class DesignConfig:
         unknown = sorted(set(d) - {f.name for f in dataclasses.fields(cls)})
         if unknown:
             raise DesignError(f"DesignConfig: unknown fields {unknown}")
-        if "init_length" in d:
-            d["init_length"] = tuple(d["init_length"])
-        if "freeze" in d:
-            d["freeze"] = tuple(d["freeze"])
+        for name in ("init_length", "freeze"):  # JSON lists; anything else is refused by the class
+            if isinstance(d.get(name), list):
+                d[name] = tuple(d[name])
         return cls(**d)
 
 
@@ -300,24 +310,33 @@ class SceneConfig:
         def bad(name, what):
             raise DesignError(f"scene {name} must be {what}, got {getattr(self, name)!r}")
 
-        targets = (self.targets,) if isinstance(self.targets, str) else tuple(self.targets)
+        try:
+            targets = (self.targets,) if isinstance(self.targets, str) else tuple(self.targets)
+        except TypeError:
+            bad("targets", "a list of image file paths")
         if not all(isinstance(t, str) and t for t in targets):
             bad("targets", "a list of image file paths")
         object.__setattr__(self, "targets", targets)
         if self.views is not None:
-            if not (isinstance(self.views, (int, np.integer)) and self.views >= 1):
+            if not (isinstance(self.views, (int, np.integer)) and not isinstance(self.views, bool)
+                    and self.views >= 1):
                 bad("views", "an int >= 1")
+            object.__setattr__(self, "views", int(self.views))
             if targets and self.views != len(targets):
                 raise DesignError(f"got {len(targets)} target images for {self.views} views: "
                                   "give one target per view")
-        if not (isinstance(self.size, (int, np.integer)) and self.size >= 16):
+        if not (isinstance(self.size, (int, np.integer)) and not isinstance(self.size, bool)
+                and self.size >= 16):
             bad("size", "an int >= 16 (pixels)")
+        object.__setattr__(self, "size", int(self.size))
         for name in ("theta_deg", "camera_theta_deg", "offset_deg", "distance", "board"):
             v = getattr(self, name)
             if v is None and name in ("camera_theta_deg", "offset_deg"):
                 continue
-            if not (isinstance(v, (int, float)) and math.isfinite(v)):
+            if not (isinstance(v, (int, float, np.integer, np.floating))
+                    and not isinstance(v, bool) and math.isfinite(v)):
                 bad(name, "a finite number")
+            object.__setattr__(self, name, float(v))
         for name in ("theta_deg", "camera_theta_deg"):
             v = getattr(self, name)
             if v is not None and not 0 <= v < 90:
@@ -366,4 +385,5 @@ class SceneConfig:
         unknown = sorted(set(d) - {f.name for f in dataclasses.fields(cls)})
         if unknown:
             raise DesignError(f"SceneConfig: unknown fields {unknown}")
-        return cls(**{k: tuple(v) if k == "targets" else v for k, v in d.items()})
+        return cls(**{k: tuple(v) if k == "targets" and isinstance(v, list) else v
+                      for k, v in d.items()})

@@ -28,7 +28,7 @@ def check_targets(targets, m: int | None) -> np.ndarray:
                           "given have different shapes") from None
     if t.dtype == object or not (np.issubdtype(t.dtype, np.floating) or np.issubdtype(t.dtype, np.integer)):
         raise DesignError(f"targets must be a numeric (M, H, W) array of display values, got dtype {t.dtype}")
-    if t.ndim != 3:
+    if t.ndim != 3 or t.size == 0:
         raise DesignError(f"targets must have shape (M, H, W) (one grayscale image per view), got {t.shape}")
     if m is not None and t.shape[0] != m:
         raise DesignError(f"got {t.shape[0]} target images for {m} views: give one target per view")
@@ -79,8 +79,12 @@ def _to_gray01(img: np.ndarray, name: str) -> np.ndarray:
     from skimage.color import rgb2gray
 
     img = np.asarray(img)
-    if img.ndim == 3 and img.shape[-1] == 4:
-        img = img[..., :3]
+    if img.size == 0:
+        raise DesignError(f"target {name}: an empty image, shape {img.shape}")
+    if img.ndim == 3 and img.shape[-1] in (2, 4):  # grayscale or RGB with alpha: alpha dropped
+        img = img[..., :-1]
+    if img.ndim == 3 and img.shape[-1] == 1:
+        img = img[..., 0]
     if img.ndim == 3 and img.shape[-1] == 3:
         if np.issubdtype(img.dtype, np.integer):
             img = img / float(np.iinfo(img.dtype).max)
@@ -125,27 +129,63 @@ def prepare_target(img: np.ndarray, shape: tuple[int, int], name: str, *, crop: 
 def load_target(path: str | os.PathLike, shape: tuple[int, int]) -> np.ndarray:
     """Read an image file as display values ``(H, W)`` in ``[0, 1]`` (grayscale, resized).
 
-    RGB is converted with `skimage.color.rgb2gray`; an alpha channel is dropped; integer images
-    are scaled by their dtype's maximum. The aspect ratio must match ``shape`` within 2 %.
+    The image is taken as a viewer shows it: turned by its EXIF orientation, CMYK as RGB. RGB is
+    converted with `skimage.color.rgb2gray`; an alpha channel is dropped; integer images are
+    scaled by their dtype's maximum. The aspect ratio must match ``shape`` within 2 %.
 
     **Raises:** `DesignError` naming the file when it is missing, unreadable or mismatched.
     """
     from skimage import io
 
+    if not isinstance(path, (str, os.PathLike)):
+        raise DesignError(f"a target image must be a file path, got {path!r}")
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise DesignError(f"target image {path!r} does not exist")
     try:
-        img = io.imread(path)
+        img = _as_shown(path)
+        img = io.imread(path) if img is None else img
     except Exception as e:  # noqa: BLE001 - any reader failure is an unreadable image
         raise DesignError(f"target image {path!r} is not a readable image ({error_line(e)})") from None
-    return prepare_target(img, shape, repr(path), crop=False)
+    return prepare_target(img, _image_shape(shape), repr(path), crop=False)
+
+
+def _as_shown(path: str) -> np.ndarray | None:
+    """The pixels of an image that a viewer shows otherwise than they are stored: rotated or
+    mirrored by its EXIF orientation, or CMYK (as RGB); None for every other image (read as
+    stored)."""
+    from PIL import Image, ImageOps  # (scikit-image's own image library)
+
+    try:
+        with Image.open(path) as im:
+            if im.mode != "CMYK" and im.getexif().get(0x0112, 1) == 1:
+                return None
+            im = ImageOps.exif_transpose(im)
+            return np.asarray(im.convert("RGB") if im.mode == "CMYK" else im)
+    except Exception:  # noqa: BLE001 - not an image PIL reads: scikit-image reads it, or says why
+        return None
+
+
+def _image_shape(shape) -> tuple[int, int]:
+    """``shape`` as ``(H, W)`` positive ints; `DesignError` otherwise."""
+    try:
+        h, w = shape
+        ok = all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= 1
+                 for v in (h, w))
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise DesignError(f"an image shape must be (H, W) in pixels (positive ints), got {shape!r}")
+    return int(h), int(w)
 
 
 def default_targets(m: int, shape: tuple[int, int]) -> tuple[np.ndarray, list[str]]:
     """``m`` targets from `DEFAULT_IMAGES` (cycled), centre-cropped and resized to ``shape``."""
     from skimage import data
 
+    if not (isinstance(m, (int, np.integer)) and not isinstance(m, bool) and m >= 1):
+        raise DesignError(f"default_targets: the number of views must be an int >= 1, got {m!r}")
+    shape = _image_shape(shape)
     names = [DEFAULT_IMAGES[j % len(DEFAULT_IMAGES)] for j in range(m)]
     imgs = [prepare_target(getattr(data, n)(), shape, n) for n in names]
     return np.stack(imgs), [f"skimage.data.{n}" for n in names]
