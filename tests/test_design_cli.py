@@ -189,6 +189,17 @@ def test_a_new_run_removes_an_earlier_runs_checkpoint(tmp_path, monkeypatch, cap
     assert "interrupted" in capsys.readouterr().err
 
 
+def test_out_of_memory_is_one_line(tmp_path, monkeypatch, capsys):
+    def too_big(*args, **kwargs):
+        raise MemoryError("Unable to allocate 298. GiB for an array")
+
+    monkeypatch.setattr(cli, "design", too_big)
+    assert cli.main([*TINY, "--out", str(tmp_path / "o"), "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("error: out of memory (MemoryError: Unable to allocate 298. GiB")
+    assert err.count("\n") == 1
+
+
 def test_text_file_is_not_a_result(tmp_path):
     (tmp_path / "x").mkdir()
     with pytest.raises(DesignFileError, match="lacks design.npz"):

@@ -26,7 +26,8 @@ from collections.abc import Sequence
 import jax
 
 from jscratch import native
-from jscratch.errors import EXIT_STATUS_HELP, DesignFileError, InputError, JscratchError, report
+from jscratch.errors import (EXIT_STATUS_HELP, DesignFileError, InputError, JscratchError,
+                             error_line, report)
 from jscratch.options import add_arguments, given, option, overlay
 from jscratch.designfile import DesignError
 from jscratch.design.config import DEFAULT_IMAGES, DesignConfig, SceneConfig
@@ -227,6 +228,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         return e.code if isinstance(e.code, int) else 2
     except (JscratchError, OSError) as e:
         return report(e)
+    except (MemoryError, jax.errors.JaxRuntimeError) as e:
+        if isinstance(e, jax.errors.JaxRuntimeError) and "RESOURCE_EXHAUSTED" not in str(e):
+            raise
+        print(f"error: out of memory ({error_line(e, 100)}): ask for fewer scratches, a smaller "
+              "--size or a smaller --chunk", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("error: interrupted (the checkpoint holds the last saved state: --resume)",
               file=sys.stderr)
