@@ -148,6 +148,11 @@ def test_carvable_result_fabricates_as_carved(cli_run, tmp_path):
     (["--freeze", "legs"], "freeze"),
     (["notanimage.png"], "notanimage.png"),
     (["--scratches", "ten"], "scratches"),
+    (["--seed", str(2**64)], "seed must be an int in [0, 2**63)"),
+    (["--adam-eps", "0"], "adam_eps must be finite and > 0"),
+    (["--join-timeout", "0"], "--join-timeout must be an int >= 1"),
+    (["--coordinator", "localhost:99999", "--num-processes", "2", "--process-id", "1"],
+     "a port in 1-65535"),
 ])
 def test_bad_options_one_line_nothing_written(tmp_path, capsys, argv, words):
     out = tmp_path / "out"

@@ -75,10 +75,10 @@ class RunOptions:
         n = self.as_carved_samples
         if not (isinstance(n, int) and not isinstance(n, bool) and n >= 0):
             raise DesignError(f"--as-carved-samples must be an int >= 0, got {n!r}")
-        for name in ("devices", "join_timeout"):
+        for name, lo in (("devices", 0), ("join_timeout", 1)):
             v = getattr(self, name)
-            if not (isinstance(v, int) and not isinstance(v, bool) and v >= 0):
-                raise DesignError(f"--{name.replace('_', '-')} must be an int >= 0, got {v!r}")
+            if not (isinstance(v, int) and not isinstance(v, bool) and v >= lo):
+                raise DesignError(f"--{name.replace('_', '-')} must be an int >= {lo}, got {v!r}")
         if self.resume and self.config is not None:
             raise DesignError("--resume reads OUT/config.json: do not give --config with it")
 

@@ -64,13 +64,17 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
             raise InputError(f"--process-id must be an int in [0, {num_processes}), "
                              f"got {process_id!r}")
         host, _, port = coordinator.rpartition(":")
-        if not host or not port.isdigit():
-            raise InputError(f"--coordinator must be HOST:PORT, got {coordinator!r}")
+        if not host or not port.isdigit() or not 1 <= int(port) <= 65535:
+            raise InputError(f"--coordinator must be HOST:PORT (a port in 1-65535), got "
+                             f"{coordinator!r}")
+    if not (isinstance(timeout, int) and not isinstance(timeout, bool) and timeout >= 1):
+        raise InputError(f"--join-timeout must be an int >= 1 (seconds), got {timeout!r}")
     try:
         with _join_errors_raise():
             jax.distributed.initialize(coordinator, num_processes, process_id,
                                        initialization_timeout=int(timeout))
     except Exception as exc:  # XLA's errors are long; the one line names what happened
+        _forget_failed_client()
         where = coordinator or os.environ.get("JAX_COORDINATOR_ADDRESS")
         first = (str(exc).strip().splitlines() or [""])[0][:200]
         first = "" if "bad_cast" in first else f": {first}"  # (the callback's own failure)
@@ -90,6 +94,22 @@ def default_mesh() -> Mesh | None:
     if jax.process_count() > 1 or devs[0].platform != "cpu":
         return Mesh(np.asarray(devs), (AXIS,))
     return None
+
+
+_FAILED: list = []
+
+
+def _forget_failed_client():
+    """Drop the client of a join that failed: it cannot shut down, and JAX's exit hook would
+    try and print a traceback and a C++ log after the one-line error. Where this JAX keeps its
+    state elsewhere, nothing is changed."""
+    try:
+        from jax._src import distributed
+        state = distributed.global_state
+        _FAILED.append(state.client)  # (its destructor logs the failure again: kept to the end)
+        state.preemption_sync_manager = state.client = state.service = None
+    except (ImportError, AttributeError):
+        pass
 
 
 @contextlib.contextmanager
