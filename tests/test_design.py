@@ -163,6 +163,19 @@ def test_config_and_input_errors(tmp_path):
         DesignConfig(lr_width=-1.0)
     with pytest.raises(DesignError, match="resume=True needs a checkpoint"):
         design(targets, views, board, resume=True)
+    # A checkpoint path that no file can be written at is refused before any work.
+    (tmp_path / "afile").write_text("x")
+    for path, words in ((tmp_path, "is a folder"), (tmp_path / "afile" / "ck.npz", "is a file"),
+                        ("", "must be a file path")):
+        with pytest.raises(DesignError, match=words):
+            design(targets, views, board, checkpoint=path)
+    from jscratch.design import save_result
+
+    with pytest.raises(DesignError, match="needs a DesignResult"):
+        save_result("x", tmp_path / "new")
+    with pytest.raises(DesignError, match="is a file, not a folder"):
+        save_result("x", tmp_path / "afile")
+    assert not (tmp_path / "new").exists()
 
 
 def test_cli_input_errors(tmp_path, capsys):

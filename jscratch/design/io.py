@@ -244,6 +244,11 @@ def save_result(result: DesignResult, out: str | os.PathLike, *, scene: SceneCon
     if not isinstance(as_carved_samples, (int, np.integer)) or as_carved_samples < 0:
         raise DesignError(f"as_carved_samples must be an int >= 0, got {as_carved_samples!r}")
     out = os.fspath(out)
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise DesignError(f"save_result: {out!r} is a file, not a folder")
+    if not isinstance(result, DesignResult):
+        raise DesignError(f"save_result needs a DesignResult (what design() returns), got "
+                          f"{type(result).__name__}")
     os.makedirs(out, exist_ok=True)
     s, v, b = result.scratches, result.views, result.board
     profile = result.config.machine_profile()

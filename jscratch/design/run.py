@@ -170,8 +170,26 @@ def check_inputs(targets, views, board, config, checkpoint=None, resume=False):
         raise DesignError("dtype float64 needs jax_enable_x64 (jax.config.update('jax_enable_x64', True))")
     if resume and checkpoint is None:
         raise DesignError("resume=True needs a checkpoint path")
+    if checkpoint is not None:
+        _check_file_path("checkpoint", checkpoint)
     loss_mod.make_loss(config.loss)  # refuses a missing or bad VGG weights file now
     return tnp, views, board
+
+
+def _check_file_path(what: str, path) -> None:
+    """Refuse (`DesignError`) a path that no file can be written at: not a path, a folder, or
+    under a file."""
+    if not isinstance(path, (str, os.PathLike)) or not os.fspath(path):
+        raise DesignError(f"{what} must be a file path, got {path!r}")
+    path = os.path.abspath(os.fspath(path))
+    if os.path.isdir(path):
+        raise DesignError(f"{what} {path!r} is a folder; give a file path in it, such as "
+                          f"{os.path.join(path, 'checkpoint.npz')!r}")
+    above = os.path.dirname(path)
+    while not os.path.exists(above):
+        above = os.path.dirname(above)
+    if not os.path.isdir(above):
+        raise DesignError(f"{what} {path!r} cannot be written: {above!r} is a file, not a folder")
 
 
 def setup(tnp, views, board, config, mesh=None):
