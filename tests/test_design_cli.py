@@ -205,6 +205,40 @@ def test_out_of_memory_is_one_line(tmp_path, monkeypatch, capsys):
     assert err.count("\n") == 1
 
 
+def _edit_config(key, value):
+    def edit(folder):
+        c = json.loads((folder / "config.json").read_text())
+        c["design"][key] = value
+        (folder / "config.json").write_text(json.dumps(c))
+    return edit
+
+
+def _edit_result(key, fn):
+    def edit(folder):
+        z = _arrays(folder / "result.npz")
+        z[key] = fn(z[key])
+        np.savez(folder / "result.npz", **z)
+    return edit
+
+
+@pytest.mark.parametrize("edit, words", [
+    (_edit_config("init_length", 3), "config.json': DesignConfig.init_length must be"),
+    (_edit_config("groove", "free"), "does not match the config's 'free' grooves"),
+    (_edit_result("geom", lambda a: a[:10]), "and the config's 150 scratches"),
+    (_edit_result("history", lambda a: np.frombuffer(b"\xff\xfe", np.uint8)), "do not agree"),
+    (lambda f: (f / "metrics.json").write_text("[1]"), "metrics.json': not a JSON object"),
+])
+def test_a_result_folder_edited_out_of_step_is_refused(cli_run, tmp_path, edit, words):
+    import shutil
+
+    folder = tmp_path / "r"
+    shutil.copytree(cli_run, folder)
+    edit(folder)
+    with pytest.raises(DesignFileError) as e:
+        load_result(folder)
+    assert words in str(e.value) and "\n" not in str(e.value)
+
+
 def test_text_file_is_not_a_result(tmp_path):
     (tmp_path / "x").mkdir()
     with pytest.raises(DesignFileError, match="lacks design.npz"):

@@ -14,7 +14,7 @@ import numpy as np
 
 from jscratch import designfile
 from jscratch.designfile import DesignError
-from jscratch.errors import error_line
+from jscratch.errors import InputError, error_line
 from jscratch.scene import Board, Views, check_views, flat_highlight
 from jscratch.design.config import DEFAULT_IMAGES, SceneConfig
 from jscratch.design.result import DesignResult
@@ -298,12 +298,8 @@ def load_result(out: str | os.PathLike) -> DesignResult:
 
     **Raises:** `jscratch.DesignFileError` naming the file when one is missing or unreadable.
     """
-    import jax.numpy as jnp
-
     from jscratch.design.config import DesignConfig
-    from jscratch.design.params import DesignParams
     from jscratch.errors import DesignFileError
-    from jscratch.scene import Scratches
 
     out = os.fspath(out)
     if not os.path.isdir(out):
@@ -323,8 +319,30 @@ def load_result(out: str | os.PathLike) -> DesignResult:
     cfg, metrics = read_json("config.json"), read_json("metrics.json")
     if not isinstance(cfg, dict) or "design" not in cfg:
         raise DesignFileError(f"{os.path.join(out, 'config.json')!r}: no 'design' config")
-    config = DesignConfig.from_dict(cfg["design"])
+    if not isinstance(metrics, dict):
+        raise DesignFileError(f"{os.path.join(out, 'metrics.json')!r}: not a JSON object")
+    try:
+        config = DesignConfig.from_dict(cfg["design"])
+    except InputError as e:
+        raise DesignFileError(f"{os.path.join(out, 'config.json')!r}: {e}") from None
     d = designfile.load_design(os.path.join(out, "design.npz"))
+    try:
+        return _result_from(out, cfg, metrics, config, d)
+    except DesignFileError:
+        raise
+    except (InputError, ValueError, TypeError, KeyError) as e:  # a file edited out of step
+        raise DesignFileError(f"{out!r}: the result's files do not agree "
+                              f"({error_line(e)})") from None
+
+
+def _result_from(out, cfg, metrics, config, d) -> DesignResult:
+    """`load_result`'s assembly of the read files (any inconsistency raises)."""
+    import jax.numpy as jnp
+
+    from jscratch.design.params import DesignParams
+    from jscratch.errors import DesignFileError
+    from jscratch.scene import Scratches
+
     rpath = os.path.join(out, "result.npz")
     try:
         with np.load(rpath, allow_pickle=False) as z:
@@ -349,8 +367,14 @@ def load_result(out: str | os.PathLike) -> DesignResult:
                           parameterisation=config.parameterisation,
                           board_size=(board.Sx, board.Sy), groove=groove)
     keep = np.asarray(arrays["keep"], bool)
-    if keep.shape != (config.n_scratches,) or int(keep.sum()) != d.n:
-        raise DesignFileError(f"{rpath!r} does not match {os.path.join(out, 'design.npz')!r}")
+    n = config.n_scratches
+    if (keep.shape != (n,) or int(keep.sum()) != d.n
+            or any(np.shape(arrays[k])[:1] != (n,) for k in need[:4])):
+        raise DesignFileError(f"{rpath!r} does not match {os.path.join(out, 'design.npz')!r} "
+                              f"and the config's {n} scratches")
+    if (config.groove == "carvable") != (d.plunge is not None):
+        raise DesignFileError(f"{os.path.join(out, 'design.npz')!r} does not match the config's "
+                              f"{config.groove!r} grooves")
     scratches = Scratches(*(np.asarray(a, dt) for a in (d.p0, d.p1, d.width, d.depth, d.alpha)),
                           profile=d.profile)
     views = Views(np.asarray(d.camera, dt), np.asarray(d.light, dt), np.asarray(d.intensity, dt))
