@@ -108,7 +108,13 @@ def test_save_and_load_a_hand_built_result(tmp_path):
                        {"total": [2.0, 1.0], "terms": {"E_p": [2.0, 1.0]}},
                        {"ssim": [0.5, 0.6], "ghosting": [0.1, 0.2], "loss": float("nan")},
                        DesignConfig(n_scratches=2, groove="free"))
+    (tmp_path / "out").mkdir()
+    stale = ("view2_render.png", "view2_target.png", "view0_carved.png")  # an earlier 3-view run's
+    for f in (*stale, "notes.txt"):
+        (tmp_path / "out" / f).write_text("x")
     io.save_result(res, tmp_path / "out")
+    assert not any((tmp_path / "out" / f).exists() for f in stale)
+    assert (tmp_path / "out" / "notes.txt").exists()  # (what is not a result's is left alone)
     d = designfile.load_design(tmp_path / "out" / "design.npz")
     np.testing.assert_allclose(d.p0, np.asarray(s.p0), rtol=1e-7)
     np.testing.assert_allclose(d.intensity, [1.0, 2.0])

@@ -9,6 +9,7 @@ import hashlib
 import json
 import math
 import os
+import re
 
 import numpy as np
 
@@ -250,6 +251,11 @@ def save_result(result: DesignResult, out: str | os.PathLike, *, scene: SceneCon
         raise DesignError(f"save_result needs a DesignResult (what design() returns), got "
                           f"{type(result).__name__}")
     os.makedirs(out, exist_ok=True)
+    m = int(np.shape(result.targets)[0])
+    for name in os.listdir(out):  # an earlier result's pictures that this one does not replace
+        old = re.fullmatch(r"view(\d+)_(render|target|carved)\.png", name)
+        if old and (int(old.group(1)) >= m or (old.group(2) == "carved" and not as_carved_samples)):
+            os.remove(os.path.join(out, name))
     s, v, b = result.scratches, result.views, result.board
     profile = result.config.machine_profile()
     plunge = result.params.plunge()
