@@ -150,8 +150,12 @@ def load_checkpoint(path: str, like: State, config: DesignConfig, inputs: dict,
                               " another version of jscratch")
     pairs = bvh.Pairs(**{f: jnp.asarray(data[f"pairs/{f}"]) for f in _fields(bvh.Pairs)})
     # (JSON turns tuples into lists; the spec is static and hashed by jit, so tuples again)
-    spec = bvh.GridSpec(**{f: tuple(v) if isinstance(v, list) else v
-                           for f, v in meta["spec"].items()})
+    try:
+        spec = bvh.GridSpec(**{f: tuple(v) if isinstance(v, list) else v
+                               for f, v in meta["spec"].items()})
+    except (TypeError, ValueError) as exc:
+        raise DesignFileError(f"checkpoint {path!r}: its pair lists' spec is damaged "
+                              f"({error_line(exc)})") from None
     caps = tuple(meta["caps"])  # (the counts are the next step's: `bvh.update_lists`)
     # (as many counts as the saved lists had, so that the resumed step has the shapes the
     # uninterrupted one was compiled for)

@@ -237,6 +237,7 @@ def save_result(result: DesignResult, out: str | os.PathLike, *, scene: SceneCon
       "board", "camera", "light"}``, which ``python -m jscratch.design --config`` reads back;
     - ``view<j>_render.png``, ``view<j>_target.png``, ``comparison.png``, ``loss.png``.
 
+    An earlier result's ``view<j>_*.png`` in `out` that this one does not write are removed.
     `python -m jscratch.design` writes its outputs with this call. Returns the metrics added.
     """
     from jscratch.design import maker

@@ -90,6 +90,9 @@ def design(
     native.prepare(getattr(config, "dtype", "float32"))
     native.keep_freed_memory()  # the steps reuse their large buffers (`native.keep_freed_memory`)
     tnp, views, board = check_inputs(targets, views, board, config, checkpoint, resume)
+    if stop_after is not None and not (isinstance(stop_after, (int, np.integer))
+                                       and not isinstance(stop_after, bool) and stop_after >= 1):
+        raise DesignError(f"stop_after must be None or an int >= 1, got {stop_after!r}")
     checkpoint = None if checkpoint is None else os.fspath(checkpoint)
     inputs = inputs_hash(tnp, views, board)  # what a checkpoint is keyed to
     # --- mesh: the devices the design runs on, and every process running the same design
