@@ -199,6 +199,10 @@ ALARM_TEXT = {
 _DWELL_RE = re.compile(r"\bG4\b.*\bP(\d+\.?\d*)")
 
 
+#: How many unexpected lines from a controller are logged (a noisy line could send thousands).
+_UNKNOWN_LOGGED = 10
+
+
 class Grbl:
     """A GRBL 1.1 controller on a serial port.
 
@@ -236,7 +240,8 @@ class Grbl:
         self.banner = None
         self.status: dict = {}
         self.messages: list[str] = []
-        self.unknown: list[str] = []
+        self.unknown: list[str] = []  # the latest unexpected lines (`n_unknown` in all)
+        self.n_unknown = 0
         self.lines_sent: list[str] = []
         self.offsets: dict = {}  # from `$#`: "G54".."G59", "G28", "G30", "G92" -> (x, y, z); "TLO" -> (z,)
         self.modes: list[str] = []  # from `$G`: the parser state, e.g. ["G0", "G54", "G17", ...]
@@ -336,8 +341,12 @@ class Grbl:
         elif r.kind == "msg":
             self.messages.append(line)
         else:
-            self.unknown.append(line)
-            self.log(f"ignored unexpected line from controller: {clip(line)!r}")
+            self.unknown = self.unknown[-(_UNKNOWN_LOGGED - 1):] + [line]  # the latest few
+            self.n_unknown += 1
+            if self.n_unknown <= _UNKNOWN_LOGGED:
+                last = self.n_unknown == _UNKNOWN_LOGGED
+                self.log(f"ignored unexpected line from controller: {clip(line)!r}"
+                         + (" (no more such lines are shown)" if last else ""))
 
     def _poll_loop(self):
         while not self._stop.wait(self.poll_interval):

@@ -135,6 +135,21 @@ def test_carvable_result_fabricates_as_carved(cli_run, tmp_path):
     assert summary["scratches"] == json.loads((cli_run / "metrics.json").read_text())["kept"]
 
 
+def test_paths_of_the_wrong_kind_are_named(tmp_path, capsys):
+    """An --out that is a file, and a folder given as a target or config file, are refused in
+    one line that says so."""
+    (tmp_path / "afile").write_text("x")
+    (tmp_path / "adir").mkdir()
+    for argv, words in ((["--out", str(tmp_path / "afile")], "--out"),
+                        ([str(tmp_path / "adir"), "--views", "1"], "is a folder, not an image"),
+                        (["--config", str(tmp_path / "adir")], "is a folder, not a file")):
+        out = [] if "--out" in argv else ["--out", str(tmp_path / "o")]
+        assert cli.main([*argv, *out, "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert words in err and err.count("\n") == 1, err
+    assert (tmp_path / "afile").read_text() == "x" and not (tmp_path / "o").exists()
+
+
 @pytest.mark.parametrize("argv, words", [
     (["--as-carved-samples", "-3"], "as-carved-samples"),
     (["--iterations", "0"], "iterations"),

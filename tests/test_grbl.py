@@ -76,6 +76,23 @@ def test_connect_keeps_an_idle_controllers_g92_and_reads_offsets():
         sim.close()
 
 
+def test_a_noisy_port_logs_a_few_unexpected_lines_and_keeps_the_latest():
+    """A controller that sends garbage line after line: the first ten are logged (the tenth
+    saying no more follow), every one is counted, and only the latest ten are kept."""
+    sim = GrblSim()
+    logs = []
+    try:
+        with Grbl(sim.port, **dict(OPEN, log=logs.append)) as g:
+            g.connect()
+            for i in range(500):
+                g._handle(f"noise {i}")
+            assert g.n_unknown == 500 and g.unknown == [f"noise {i}" for i in range(490, 500)]
+    finally:
+        sim.close()
+    noise = [m for m in logs if "unexpected line" in m]
+    assert len(noise) == 10 and noise[-1].endswith("(no more such lines are shown)")
+
+
 def test_watchdog_allows_dwells_and_stops_a_lost_ok():
     sim = GrblSim()
     try:

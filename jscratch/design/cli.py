@@ -72,6 +72,8 @@ class RunOptions:
     def __post_init__(self):
         if not (isinstance(self.out, str) and self.out):
             raise DesignError(f"--out must be a folder path, got {self.out!r}")
+        if os.path.exists(self.out) and not os.path.isdir(self.out):
+            raise DesignError(f"--out {self.out!r} is a file, not a folder")
         n = self.as_carved_samples
         if not (isinstance(n, int) and not isinstance(n, bool) and n >= 0):
             raise DesignError(f"--as-carved-samples must be an int >= 0, got {n!r}")
@@ -108,7 +110,8 @@ def parser() -> argparse.ArgumentParser:
 def _read_config(path: str) -> dict:
     """A run's ``config.json`` as a dict with ``design`` (and ``scene``) objects."""
     if not os.path.isfile(path):
-        raise DesignFileError(f"config file {path!r} does not exist")
+        what = "is a folder, not a file" if os.path.isdir(path) else "does not exist"
+        raise DesignFileError(f"config file {path!r} {what}")
     try:
         with open(path) as f:
             saved = json.load(f)

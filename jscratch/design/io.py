@@ -142,7 +142,8 @@ def load_target(path: str | os.PathLike, shape: tuple[int, int]) -> np.ndarray:
         raise DesignError(f"a target image must be a file path, got {path!r}")
     path = os.fspath(path)
     if not os.path.isfile(path):
-        raise DesignError(f"target image {path!r} does not exist")
+        what = "is a folder, not an image" if os.path.isdir(path) else "does not exist"
+        raise DesignError(f"target image {path!r} {what}")
     try:
         img = _as_shown(path)
         img = io.imread(path) if img is None else img
