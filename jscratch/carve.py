@@ -225,6 +225,18 @@ def _check_work_zero(grbl, coord: str, journalled: dict | None, rezeroed: bool, 
     if coord not in grbl.offsets:
         raise CarveError(f"the controller did not report the {coord} offset ($#) {untouched()}")
     zero = [float(v) for v in grbl.offsets[coord]]
+    if grbl.banner is not None and not grbl.homed and any(abs(v) > 5e-4 for v in zero):
+        # Started (or restarted) in this session without homing: GRBL then counts machine
+        # positions from wherever the tool stood, so a machine position of exactly 0, 0, 0 says
+        # it has just started, and the zero stored in EEPROM no longer points at the board.
+        mpos = _machine_position(grbl.query_status(), grbl.offsets, coord)
+        if mpos is not None and all(abs(v) < 5e-4 for v in mpos):
+            raise CarveError(
+                f"the controller on {grbl.port} has just started without homing (machine position "
+                f"0, 0, 0), so its {coord} zero ({_xyz(zero)}) no longer points at the board; many "
+                f"Arduino-based boards restart when the port opens: home it (--home, with homing "
+                f"enabled: $22=1), or stop the restart on open (stty -F {grbl.port} -hupcl), zero "
+                f"the board again (G10 L20 P1 X0 Y0 Z0) and run again {untouched()}")
     old = (journalled or {}).get(coord)
     if old is not None and not rezeroed and max(abs(a - b) for a, b in zip(zero, old)) > 2e-3:
         raise CarveError(
@@ -234,3 +246,13 @@ def _check_work_zero(grbl, coord: str, journalled: dict | None, rezeroed: bool, 
     return zero
 
 
+def _machine_position(status: dict, offsets: dict, coord: str) -> list | None:
+    """The machine position (mm) of a status report: its `MPos`, or its `WPos` plus the work
+    offsets (`coord`'s, `G92`, the tool length offset on Z); None when it has neither."""
+    if "MPos" in status:
+        return [float(v) for v in status["MPos"].split(",")]
+    if "WPos" in status:
+        wco = [a + b for a, b in zip(offsets[coord], offsets["G92"])]
+        wco[2] += offsets.get("TLO", (0.0,))[0]
+        return [float(v) + o for v, o in zip(status["WPos"].split(","), wco)]
+    return None

@@ -18,6 +18,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 
 from grbl_sim import GrblSim, Workpiece  # noqa: E402
 
+from jscratch import carve as carve_mod  # noqa: E402
 from jscratch.designfile import demo_design, save_design  # noqa: E402
 from jscratch.fabricate import (  # noqa: E402
     CarveError, MachineConfig, carve, main, make_program, read_program, write_program,
@@ -191,6 +192,49 @@ def test_an_alarm_whose_line_was_lost_stops_the_job(job):
     sim.close()
     assert r["done"] == 24
     _verify(prog, wp, in_progress={6})
+
+
+def test_a_controller_that_just_started_without_homing_is_refused(job):
+    """An Arduino-style board restarts when its port opens: without homing it then counts machine
+    positions from wherever the tool stands (0, 0, 0), and the G54 zero kept in EEPROM from the
+    session that zeroed the board no longer points at it (here the first Z move would drive the
+    tool 19 mm down). Refused before any motion; with --home the job runs."""
+    path, prog = job
+    started = r"has just started without homing \(machine position 0, 0, 0\).*--home.*-hupcl"
+    wp = Workpiece()
+    wp.wcs[54] = [50.0, 40.0, -20.0]  # zeroed at the board's corner in an earlier session
+    sim = GrblSim(wp, start_alarm=True)  # started up locked: reset, banner, then $X
+    sim.pos = [0.0, 0.0, 0.0]
+    try:
+        with pytest.raises(CarveError, match=started + ".*no motion was sent") as e:
+            carve(path, sim.port, unlock=True, **FAST)
+        assert wp.moves == [] and "\n" not in str(e.value)
+        assert not os.path.exists(path + ".journal")
+        assert carve(path, sim.port, home=True, **FAST)["done"] == 24
+    finally:
+        sim.close()
+
+    class Restarted:  # what `Grbl.connect` leaves after a restart on opening: status by $10
+        port, banner, homed = "/dev/ttyUSB0", "Grbl 1.1h ['$' for help]", False
+        offsets = {"G54": (50.0, 40.0, -20.0), "G92": (0.0, 0.0, 0.0), "TLO": (0.0,)}
+        status = {"state": "Idle", "MPos": "0.000,0.000,0.000"}
+
+        def query_status(self):
+            return self.status
+
+    untouched = lambda: "(no motion was sent)"  # noqa: E731
+    for field, value in (("MPos", "0.000,0.000,0.000"), ("WPos", "-50.000,-40.000,20.000")):
+        g = Restarted()
+        g.status = {"state": "Idle", field: value}
+        with pytest.raises(CarveError, match=started):
+            carve_mod._check_work_zero(g, "G54", None, False, untouched)
+    # Not refused: homed now; no banner this session; the tool elsewhere; the zero at the origin.
+    for change in (dict(homed=True), dict(banner=None),
+                   dict(status={"state": "Idle", "MPos": "50.000,40.000,-19.000"}),
+                   dict(offsets=dict(Restarted.offsets, G54=(0.0, 0.0, 0.0)))):
+        g = Restarted()
+        g.__dict__.update(change)
+        carve_mod._check_work_zero(g, "G54", None, False, untouched)
 
 
 def test_device_vanishes_then_resume_after_power_cycle(job):
