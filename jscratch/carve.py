@@ -71,8 +71,10 @@ def carve(gcode_path, port: str, *, baud: int = 115200, resume: bool = False, co
     when it reports `Idle`); an Alarm state stops the run unless `home` (`$H`, run in any state)
     or `unlock` (`$X`). A `resume` after a session that lost the position (a lost device, an alarm,
     a reset of the controller, or an Alarm cleared now with `unlock`) needs `home` or `rezeroed`.
-    The work zero is checked (`$#`): no `G92` or tool length offset (GRBL clears both at reset), and
-    on `resume` the work system's offset equal to the one journalled (unless `rezeroed`). With
+    The work zero is checked (`$#`): no `G92` or tool length offset (GRBL clears both at reset),
+    no controller that has just started without homing (a banner this session, machine position
+    0, 0, 0, the work zero elsewhere: it no longer points at the board), and on `resume` the work
+    system's offset equal to the one journalled (unless `rezeroed`). With
     `check`, the lines first run through GRBL's `$C` check mode. Only then is the journal written
     and the preamble and the scratches from the first unconfirmed one sent; each scratch is
     journalled when its `G4 P0.000` is answered `ok`.
