@@ -191,6 +191,10 @@ def carve(gcode_path, port: str, *, baud: int = 115200, resume: bool = False, co
             else:
                 action = "; the controller reset itself, position may be lost"
                 advice = "re-home (--home) or re-zero the board (G10 L20 P1, then --rezeroed), then run again with --resume"
+            if "in Alarm" in action:  # the retract found the controller in Alarm: position lost
+                journal.event("alarm", done=journal.done)
+                advice = ("re-home (--home) or re-zero the board (G10 L20 P1, then --rezeroed), "
+                          "then run again with --resume")
             raise CarveError(f"{exc} at {loc}{action}. {journal.done} of {n} scratches are journalled; {advice}") from None
         except DeviceLost as exc:
             journal.event("lost", error=clip(exc, 200), done=journal.done)

@@ -94,6 +94,8 @@ class Journal:
             reply = str(r.get("reply", ""))
             if r.get("event") == "lost":
                 return "a lost device"
+            if r.get("event") == "alarm":
+                return "an alarm"
             if r.get("event") == "fault" and reply.startswith("ALARM"):
                 return reply
             if r.get("event") == "fault" and reply.startswith("Grbl"):

@@ -173,6 +173,43 @@ class _GarbledAlarm(GrblSim):
         super()._send(data)
 
 
+class _LocksOnError(GrblSim):
+    """A simulator whose status reports say Alarm from its first error on (as after a limit
+    switch or a lockout) until `$X` or `$H`."""
+
+    locked = False
+
+    def _answer(self, text):
+        self.locked |= text.startswith("error")
+        super()._answer(text)
+
+    def _execute_line(self, line):
+        self.locked &= line not in ("$X", "$H")
+        return super()._execute_line(line)
+
+    def _status(self):
+        report = super()._status()
+        return "<Alarm|" + report.split("|", 1)[1] if self.locked else report
+
+
+def test_an_error_that_leaves_the_controller_in_alarm_needs_home_to_resume(job):
+    path, prog = job
+    wp = Workpiece()
+    sim = _LocksOnError(wp, error_at=(2 + 5 * 7 + 3, 9))  # the cut of position 7
+    try:
+        with pytest.raises(CarveError, match=r"error:9 .*in Alarm: no retract sent.*re-home "
+                                             r"\(--home\) or re-zero") as e:
+            carve(path, sim.port, **FAST)
+        assert "\n" not in str(e.value) and Journal.read(path + ".journal")[1] == 7
+        sim.error_at = None
+        with pytest.raises(CarveError, match=r"position may be lost \(an alarm since the job"):
+            _resume(path, sim, unlock=True)
+        assert _resume(path, sim, home=True)["done"] == 24
+    finally:
+        sim.close()
+    _verify(prog, wp, in_progress={7})
+
+
 def test_an_alarm_whose_line_was_lost_stops_the_job(job):
     """The controller stops in Alarm but its `ALARM:N` line never arrives whole: the status
     reports' `Alarm` stops the stream (it does not wait forever), and the resume needs --home."""

@@ -48,6 +48,7 @@ def test_write_read_resume_and_work_zero(tmp_path):
     ([("fault", "ALARM:1")], "ALARM:1"),
     ([("fault", "Grbl 1.1h ['$' for help]")], "a reset of the controller"),
     ([("lost", None)], "a lost device"),
+    ([("fault", "error:9"), ("alarm", None)], "an alarm"),  # the retract found it in Alarm
     ([("lost", None), ("start", None), ("fault", "error:33")], None),  # a later session ran
 ])
 def test_a_session_that_lost_the_position_is_reported_on_resume(tmp_path, events, lost):
