@@ -17,7 +17,8 @@ progress survives crashes.
 
 G-code layout (three comment lines, the last the limits the program was checked against,
 ``(limits X..:.. Y..:.. Z..:.. mm)``; preamble ``G21 G90 G94 G17 G54``, then, with a spindle,
-``M3 S..`` and a spin-up dwell ``G4 P..``; one block per scratch, at most 79 characters a line)::
+``M3 S..`` and a spin-up dwell ``G4 P..``; one block per scratch, at most 79 characters a line;
+last, after ``M2``, a comment with the SHA-256 of every other line, ``(sha256 ..)``)::
 
     G0 X.. Y..        travel, at safe Z          (role "travel")
     G1 Z-p F..        plunge                     (role "plunge")
@@ -61,7 +62,8 @@ from jscratch.options import check_out_prefix
 from jscratch.errors import EXIT_STATUS_HELP, InputError, JscratchError, report
 from jscratch.grbl import clip, gword
 from jscratch.carve import CarveError, carve
-from jscratch.gcode import Program, check_program_lines, limits_comment, read_program, write_program
+from jscratch.gcode import (Program, check_program_lines, digest_comment, limits_comment,
+                            read_program, write_program)
 from jscratch.machine import CUT_KEYS, MachineConfig, MachineProfile, carving_seconds
 from jscratch.toolpath import order_scratches
 
@@ -337,6 +339,7 @@ def make_program(design: Design, cfg: MachineConfig, *, improve: bool = True, ti
     if cfg.spindle_rpm > 0:
         emit("M5", role="post")
     emit("M2", role="post")
+    emit(digest_comment(lines), role="comment")  # reading the program back checks it is unchanged
 
     # Every word, re-read from the text, must be strictly formatted and every coordinate in bounds.
     ext = check_program_lines(lines, lo, hi)

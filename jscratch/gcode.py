@@ -7,6 +7,7 @@ Imports: `jscratch.grbl`, `jscratch.errors`.
 from __future__ import annotations
 
 import csv
+import hashlib
 import os
 import re
 from typing import NamedTuple
@@ -16,8 +17,8 @@ import numpy as np
 from jscratch.errors import DesignFileError, InputError
 from jscratch.grbl import check_words, clip
 
-__all__ = ["MAX_LINE", "Program", "check_program_lines", "limits_comment", "read_program",
-           "write_program"]
+__all__ = ["MAX_LINE", "Program", "check_program_lines", "digest_comment", "limits_comment",
+           "read_program", "write_program"]
 
 MAX_LINE = 79  # characters, without the newline (GRBL's line buffer is 80 bytes)
 
@@ -84,6 +85,29 @@ def limits_comment(lo, hi) -> str:
     return "(limits " + " ".join(ranges) + " mm)"
 
 
+_DIGEST_RE = re.compile(r"\(sha256 ([0-9a-f]{16})\)")
+
+
+def digest_comment(lines) -> str:
+    """The comment line that records the first 16 hex digits of the SHA-256 of a program's other
+    `lines` (joined with newlines); `read_program` refuses a program whose lines no longer match
+    it (edited after jscratch checked and wrote it)."""
+    return f"(sha256 {hashlib.sha256(chr(10).join(lines).encode('ascii')).hexdigest()[:16]})"
+
+
+def _check_digest(lines, path):
+    """`DesignFileError` unless exactly one line is the digest comment of the others."""
+    at = [i for i, text in enumerate(lines) if _DIGEST_RE.fullmatch(text)]
+    rest = [text for i, text in enumerate(lines) if i not in at]
+    if len(at) != 1:
+        raise DesignFileError(f"G-code file {path!r} has {len(at)} '(sha256 ..)' lines, not one: "
+                              "write it with python -m jscratch.fabricate")
+    if lines[at[0]] != digest_comment(rest):
+        raise DesignFileError(f"G-code file {path!r} was changed after jscratch wrote and checked "
+                              "it (its lines no longer match its sha256 line): write it again "
+                              "with python -m jscratch.fabricate")
+
+
 def _limits(lines, path):
     """The `(lo, hi)` of the program's limits comment; `DesignFileError` without one."""
     for text in lines:
@@ -117,7 +141,8 @@ def read_program(gcode_path) -> Program:
     """Read a G-code file and its line map (as written by `write_program`); checks that every line
     is one `write_program` could write (length, words: `jscratch.grbl.check_words`), that every
     coordinate lies within the program's limits comment (`limits_comment`: no plunge deeper, no
-    move off the board), and that the map agrees with the lines.
+    move off the board), that no line was changed since (`digest_comment`), and that the map
+    agrees with the lines.
 
     **Raises:** `DesignFileError`, one line naming the file and the line or row, for a missing,
     unreadable or inconsistent program.
@@ -147,6 +172,7 @@ def read_program(gcode_path) -> Program:
         raise
     except InputError as exc:
         raise DesignFileError(f"G-code file {gcode_path!r}: {exc}") from None
+    _check_digest(lines, gcode_path)
     if len(rows) != len(lines):
         raise DesignFileError(f"line map {map_path!r} has {len(rows)} rows for {len(lines)} G-code lines")
     ks, ss, roles = [], [], []

@@ -103,11 +103,16 @@ def test_check_program_lines_extents_and_refusals(small):
     (("G0 Z1.000", "G0 Z25.000"), "Z = 25.0 outside [-0.100, 1.000]"),
     ("travel", "Y = 99999.0 outside [0.000, 300.000]"),
     (("(limits ", "(bounds "), "has no '(limits X..:.. Y..:.. Z..:.. mm)' line"),
+    # Edits within the limits, and limits widened to let an edit through, break the digest.
+    (("F900.0", "F100.0"), "was changed after jscratch wrote and checked it"),
+    ((("Z-0.100:", "Z-9.000:"), ("G1 Z-0.100 F300.0", "G1 Z-9.000 F300.0")), "was changed"),
+    (("(sha256 ", "(sha-256 "), "has 0 '(sha256 ..)' lines, not one"),
 ])
 def test_read_program_refuses_coordinates_outside_its_limits(tmp_path, small, edit, words):
     """A program read back (what `--gcode` streams) is checked against the limits comment that
     `make_program` wrote: a hand-edited plunge, height or move off the board is refused in one
-    line naming the line; a program without the comment cannot be checked and is refused."""
+    line naming the line; a program without the comment cannot be checked and is refused; and
+    a program edited in any other way no longer matches its digest line and is refused."""
     _, prog = small
     path = tmp_path / "p.gcode"
     gcode.write_program(prog, path)
@@ -118,8 +123,9 @@ def test_read_program_refuses_coordinates_outside_its_limits(tmp_path, small, ed
         old = prog.lines[i]
         text = text.replace(old + "\n", old.split(" Y")[0] + " Y99999.000\n", 1)
     else:
-        assert edit[0] in text
-        text = text.replace(edit[0], edit[1], 1)
+        for a, b in edit if isinstance(edit[0], tuple) else (edit,):
+            assert a in text
+            text = text.replace(a, b, 1)
     path.write_text(text)
     with pytest.raises(DesignFileError) as e:
         gcode.read_program(path)
