@@ -206,7 +206,7 @@ def test_a_new_run_removes_an_earlier_runs_checkpoint(tmp_path, monkeypatch, cap
     monkeypatch.setattr(cli, "design", interrupted)
     assert cli.main([*TINY, "--out", str(out), "--quiet"]) == 130
     assert not (out / "checkpoint.npz").exists() and (out / "config.json").exists()
-    assert "interrupted" in capsys.readouterr().err
+    assert "interrupted before the first checkpoint: run again" in capsys.readouterr().err
 
 
 def test_out_of_memory_is_one_line(tmp_path, monkeypatch, capsys):

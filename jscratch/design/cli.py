@@ -196,8 +196,14 @@ def _run(argv) -> int:
                       f, indent=2)
         if os.path.exists(checkpoint):  # an earlier run's, which these settings do not describe
             os.remove(checkpoint)
-    result = design(targets, views, board, config, checkpoint=checkpoint, resume=run.resume,
-                    progress=not run.quiet, mesh=mesh)
+    try:
+        result = design(targets, views, board, config, checkpoint=checkpoint, resume=run.resume,
+                        progress=not run.quiet, mesh=mesh)
+    except KeyboardInterrupt:
+        print("error: interrupted " + (
+            "(the checkpoint holds the last saved state: --resume)" if os.path.exists(checkpoint)
+            else "before the first checkpoint: run again to start over"), file=sys.stderr)
+        return 130
     save_result(result, run.out, scene=scene, names=names,
                 as_carved_samples=run.as_carved_samples)
     if not run.quiet:
@@ -238,6 +244,5 @@ def main(argv: Sequence[str] | None = None) -> int:
               "--size or a smaller --chunk", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
-        print("error: interrupted (the checkpoint holds the last saved state: --resume)",
-              file=sys.stderr)
+        print("error: interrupted", file=sys.stderr)
         return 130
