@@ -587,25 +587,27 @@ def _check_options(args) -> None:
         check_out_prefix("--out", args.out, "DIR/job")
 
 
-#: Machine options whose value a program writes, with the role of the line and the letter.
+#: Machine options whose value a program writes: the role of the line and the word's letter.
 _WRITTEN = {"feed_mm_min": ("cut", "F"), "plunge_mm_min": ("plunge", "F"),
-            "safe_z_mm": ("retract", "Z"), "plunge_mm": ("plunge", "Z")}
+            "safe_z_mm": ("retract", "Z"), "plunge_mm": ("plunge", "Z"),
+            "spindle_rpm": ("pre", "S")}
 
 
-def _warn_unused_options(gcode: str, over: dict, quiet: bool) -> None:
-    """Warn about the machine options given now whose values differ from the words of the
-    existing program that `--resume` or `--gcode` streams as written."""
+def _warn_unused_options(gcode: str, over: dict, args) -> None:
+    """Warn about the options given now that shape a program, not its streaming, when `--resume`
+    or `--gcode` streams an existing program as written: those whose value differs from the
+    program's own word, and the others (a `--machine` file, the offset, the fit, ...) given."""
     prog = read_program(gcode)
     out = []
-    for key, (role, letter) in _WRITTEN.items():
-        if over.get(key) is None or role not in prog.role:
-            continue
-        line = prog.lines[prog.role.index(role)]
-        word = next((w for w in line.split() if w[0] == letter), None)
-        want = gword(letter, -over[key] if key == "plunge_mm" else over[key])
-        if word != want:
-            out.append(f"{key} = {over[key]:g} (the program has {word})")
-    if out and not quiet:
+    for key, value in over.items():
+        role, letter = _WRITTEN.get(key, (None, None))
+        lines = [t for t, r in zip(prog.lines, prog.role) if r == role and f" {letter}" in t]
+        word = next((w for w in lines[0].split() if w[0] == letter), None) if lines else None
+        if word is not None and word == gword(letter, -value if key == "plunge_mm" else value):
+            continue  # the program already has this value
+        out.append(f"{key} = {value!r}" + (f" (the program has {word})" if word else ""))
+    out += [f"--machine {args.machine}"] * bool(args.machine) + ["--no-improve"] * args.no_improve
+    if out and not args.quiet:
         print(f"warning: the program {gcode!r} is streamed as written; not applied: "
               f"{', '.join(out)}", file=sys.stderr)
 
@@ -626,7 +628,7 @@ def main(argv=None) -> int:
         prog = None
         if args.gcode:
             gcode = args.gcode
-            _warn_unused_options(gcode, over, args.quiet)
+            _warn_unused_options(gcode, over, args)
             if not args.port:
                 n = read_program(gcode).info["scratches"]  # check it, as the carver would
                 if not args.quiet:
@@ -635,7 +637,8 @@ def main(argv=None) -> int:
             if args.design:
                 design = load_design(args.design)
                 prefix = args.out or os.path.splitext(args.design)[0]
-                warn = None if args.quiet else (lambda m: print(m, file=sys.stderr))
+                # (a resumed job streams its program as written: `_warn_unused_options` says so)
+                warn = None if args.quiet or args.resume else (lambda m: print(m, file=sys.stderr))
                 cfg = machine_for_design(design, file_prof, over, override=args.override_machine, warn=warn)
             else:
                 design = demo_design(args.demo_n)
@@ -644,7 +647,7 @@ def main(argv=None) -> int:
             if args.resume:
                 if not os.path.exists(gcode):
                     raise InputError(f"--resume: G-code {gcode!r} does not exist (no job to resume there)")
-                _warn_unused_options(gcode, over, args.quiet)
+                _warn_unused_options(gcode, over, args)
             else:
                 _refuse_overwrite(gcode)
                 prog = make_program(design, cfg, improve=not args.no_improve, time_limit=args.order_time)

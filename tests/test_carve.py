@@ -462,10 +462,13 @@ def test_plain_rerun_keeps_the_program_of_an_unfinished_job(tmp_path, capsys):
         assert gcode.read_bytes() == before
     sim.error_at = None
     # The resume streams the program as written, and says which options given now it ignores.
-    loud = [a for a in base if a != "--quiet"] + ["--port", sim.port, "--resume", "--feed", "600"]
+    loud = [a for a in base if a != "--quiet"] + ["--port", sim.port, "--resume", "--feed", "600",
+                                                  "--spindle", "1000", "--offset", "1", "2"]
     assert main(loud) == 0
     err = capsys.readouterr().err
-    assert "not applied: feed_mm_min = 600 (the program has F900.0)" in err
+    assert ("not applied: feed_mm_min = 600.0 (the program has F900.0), board_offset_mm = "
+            "[1.0, 2.0], spindle_rpm = 1000.0") in err
+    assert "using the given values" not in err and "plunge_mm" not in err  # (the program's own)
     sim.close()
     _verify(read_program(gcode), wp, in_progress={4})
     assert main(base + ["--dry-run"]) == 2
