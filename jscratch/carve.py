@@ -72,8 +72,8 @@ def carve(gcode_path, port: str, *, baud: int = 115200, resume: bool = False, co
     or `unlock` (`$X`). A `resume` after a session that lost the position (a lost device, an alarm,
     a reset of the controller, or an Alarm cleared now with `unlock`) needs `home` or `rezeroed`.
     The work zero is checked (`$#`): no `G92` or tool length offset (GRBL clears both at reset),
-    no controller that has just started without homing (a banner this session, machine position
-    0, 0, 0, the work zero elsewhere: it no longer points at the board), and on `resume` the work
+    no controller that has just started without homing (machine position 0, 0, 0 and the work
+    zero elsewhere: it no longer points at the board), and on `resume` the work
     system's offset equal to the one journalled (unless `rezeroed`). With
     `check`, the lines first run through GRBL's `$C` check mode. Only then is the journal written
     and the preamble and the scratches from the first unconfirmed one sent; each scratch is
@@ -231,8 +231,8 @@ def _check_work_zero(grbl, coord: str, journalled: dict | None, rezeroed: bool, 
     if coord not in grbl.offsets:
         raise CarveError(f"the controller did not report the {coord} offset ($#) {untouched()}")
     zero = [float(v) for v in grbl.offsets[coord]]
-    if grbl.banner is not None and not grbl.homed and any(abs(v) > 5e-4 for v in zero):
-        # Started (or restarted) in this session without homing: GRBL then counts machine
+    if not grbl.homed and any(abs(v) > 5e-4 for v in zero):
+        # Started without homing (on opening the port, or before it): GRBL then counts machine
         # positions from wherever the tool stood, so a machine position of exactly 0, 0, 0 says
         # it has just started, and the zero stored in EEPROM no longer points at the board.
         mpos = _machine_position(grbl.query_status(), grbl.offsets, coord)

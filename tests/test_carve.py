@@ -265,8 +265,13 @@ def test_a_controller_that_just_started_without_homing_is_refused(job):
         g.status = {"state": "Idle", field: value}
         with pytest.raises(CarveError, match=started):
             carve_mod._check_work_zero(g, "G54", None, False, untouched)
-    # Not refused: homed now; no banner this session; the tool elsewhere; the zero at the origin.
-    for change in (dict(homed=True), dict(banner=None),
+    # Refused too when it started before the port opened (no banner this session); not refused:
+    # homed now, the tool elsewhere, the zero at the origin.
+    g = Restarted()
+    g.banner = None
+    with pytest.raises(CarveError, match=started):
+        carve_mod._check_work_zero(g, "G54", None, False, untouched)
+    for change in (dict(homed=True),
                    dict(status={"state": "Idle", "MPos": "50.000,40.000,-19.000"}),
                    dict(offsets=dict(Restarted.offsets, G54=(0.0, 0.0, 0.0)))):
         g = Restarted()

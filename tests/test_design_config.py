@@ -169,6 +169,8 @@ def test_config_json_round_trip():
     ({"seed": 2**63}, r"seed must be an int in \[0, 2\*\*63\)"),  # beyond jax's PRNG seed
     ({"freeze": None}, "freeze"),
     ({"freeze": 5}, "freeze"),
+    ({"freeze": {"alpha": 1}}, "freeze"),
+    ({"discard": "no"}, "discard must be true or false"),
     ({"adam_eps": 0.0}, "adam_eps must be finite and > 0"),  # 0/0 in a frozen group
     ({"machine": "foo"}, "machine must be None or a machine profile"),
     ({"loss": {"vgg_weights": 5, "lambda_g": 1.0}}, "vgg_weights must be None or a file path"),

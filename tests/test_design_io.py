@@ -153,6 +153,18 @@ def test_images_read_as_a_viewer_shows_them(tmp_path):
     ref = np.asarray(Image.open(tmp_path / "c.jpg").convert("L")) / 255.0
     got = io.load_target(tmp_path / "c.jpg", (32, 32))
     assert np.corrcoef(got.ravel(), ref.ravel())[0, 1] > 0.95  # (not inverted: -0.98 as RGBA)
+    # A palette image with an orientation: its colours, not its palette indices.
+    red = np.stack([a, 0 * a, 0 * a], -1)
+    im = Image.fromarray(red).convert("P", palette=Image.Palette.ADAPTIVE)
+    exif = im.getexif()
+    exif[0x0112] = 3
+    im.save(tmp_path / "p.png", exif=exif.tobytes())
+    np.testing.assert_allclose(io.load_target(tmp_path / "p.png", (40, 60)),
+                               np.rot90(0.2125 * (a / 255.0), 2), atol=2e-3)  # Rec. 709 red
+    Image.fromarray(rgb).save(tmp_path / "one.gif")  # one frame: read as an image, not a movie
+    ref = np.asarray(Image.open(tmp_path / "one.gif").convert("L")) / 255.0
+    got = io.load_target(tmp_path / "one.gif", (32, 32))
+    assert got.shape == (32, 32) and np.corrcoef(got.ravel(), ref.ravel())[0, 1] > 0.95
     Image.fromarray(a).convert("LA").save(tmp_path / "la.png")
     Image.fromarray(a).save(tmp_path / "l.png")
     np.testing.assert_array_equal(io.load_target(tmp_path / "la.png", (40, 60)),
@@ -166,6 +178,8 @@ def test_images_read_as_a_viewer_shows_them(tmp_path):
     (lambda: io.default_targets(2, (32, 32, 3)), r"image shape must be \(H, W\)"),
     (lambda: io.load_target(None, (32, 32)), "must be a file path"),
     (lambda: io.prepare_target(np.zeros((0, 0)), (32, 32), "x"), "an empty image"),
+    (lambda: io.prepare_target(np.zeros((24, 24)), (0, 24), "x"), r"image shape must be \(H, W\)"),
+    (lambda: io.default_targets(2, (2, 3000)), "nothing is left of it when cropped"),
 ])
 def test_target_helpers_refuse_bad_arguments_in_one_line(call, match):
     with pytest.raises(DesignError, match=match) as e:

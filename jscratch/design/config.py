@@ -163,6 +163,9 @@ class DesignConfig:
         if self.seed >= 2**63:  # jax.random.PRNGKey takes a signed 64-bit seed
             bad("seed", "an int in [0, 2**63)")
         integer("prune_every", 0)
+        if not isinstance(self.discard, (bool, np.bool_)):
+            bad("discard", "true or false")
+        object.__setattr__(self, "discard", bool(self.discard))
         for name, choices in (("parameterisation", PARAMETERISATIONS), ("groove", GROOVE_MODES),
                               ("init_intensity", ("match_mean", "given")),
                               ("dtype", ("float32", "float64")), ("lr_schedule", LR_SCHEDULES)):
@@ -184,10 +187,9 @@ class DesignConfig:
         object.__setattr__(self, "init_length", (lo, hi))
         for g in GROUPS:
             number(f"lr_{g}", 0.0, what="a finite learning rate >= 0")
-        try:
-            freeze = (self.freeze,) if isinstance(self.freeze, str) else tuple(self.freeze)
-        except TypeError:
+        if not isinstance(self.freeze, (str, list, tuple)):
             bad("freeze", f"a subset of {GROUPS}")
+        freeze = (self.freeze,) if isinstance(self.freeze, str) else tuple(self.freeze)
         if any(g not in GROUPS for g in freeze):
             bad("freeze", f"a subset of {GROUPS}")
         object.__setattr__(self, "freeze", tuple(g for g in GROUPS if g in freeze))

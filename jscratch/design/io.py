@@ -82,6 +82,8 @@ def _to_gray01(img: np.ndarray, name: str) -> np.ndarray:
     img = np.asarray(img)
     if img.size == 0:
         raise DesignError(f"target {name}: an empty image, shape {img.shape}")
+    if img.ndim == 4 and img.shape[0] == 1:  # a one-frame animation (GIF)
+        img = img[0]
     if img.ndim == 3 and img.shape[-1] in (2, 4):  # grayscale or RGB with alpha: alpha dropped
         img = img[..., :-1]
     if img.ndim == 3 and img.shape[-1] == 1:
@@ -114,6 +116,9 @@ def _fit(img: np.ndarray, shape: tuple[int, int], name: str, crop: bool) -> np.n
         else:
             ch = int(round(w / want))
             img = img[(h - ch) // 2:(h - ch) // 2 + ch]
+        if img.size == 0:
+            raise DesignError(f"target {name} is {w}x{h} px: nothing is left of it when cropped to "
+                              f"the board image's aspect {want:.3g}")
     elif abs((w / h) / want - 1) > 0.02:
         raise DesignError(f"target {name} is {w}x{h} px (aspect {w / h:.3f}) but the board image is "
                           f"{shape[1]}x{shape[0]} (aspect {want:.3f}): crop it first")
@@ -124,7 +129,7 @@ def prepare_target(img: np.ndarray, shape: tuple[int, int], name: str, *, crop: 
     """An image array (grayscale or RGB(A), any dtype) as display values ``(H, W)`` in ``[0, 1]``:
     grayscale, centre-cropped to the board's aspect (``crop``; else the aspect must match within
     2 %) and resized to ``shape``. `name` names it in `DesignError` messages."""
-    return _fit(_to_gray01(img, name), shape, name, crop=crop)
+    return _fit(_to_gray01(img, name), _image_shape(shape), name, crop=crop)
 
 
 def load_target(path: str | os.PathLike, shape: tuple[int, int]) -> np.ndarray:
@@ -163,7 +168,9 @@ def _as_shown(path: str) -> np.ndarray | None:
             if im.mode != "CMYK" and im.getexif().get(0x0112, 1) == 1:
                 return None
             im = ImageOps.exif_transpose(im)
-            return np.asarray(im.convert("RGB") if im.mode == "CMYK" else im)
+            if im.mode not in ("1", "L", "LA", "RGB", "RGBA", "I;16", "I", "F"):
+                im = im.convert("RGBA" if im.mode in ("P", "PA") else "RGB")  # palette, CMYK, ..
+            return np.asarray(im)
     except Exception:  # noqa: BLE001 - not an image PIL reads: scikit-image reads it, or says why
         return None
 
