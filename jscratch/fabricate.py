@@ -52,6 +52,7 @@ import dataclasses
 import json
 import math
 import os
+import stat
 import sys
 from typing import NamedTuple
 
@@ -570,8 +571,12 @@ def _check_options(args) -> None:
         raise InputError("--out names the files written from a design; --gcode streams an existing program")
     if args.resume and not args.port:
         raise InputError("--resume continues carving a job: give --port")
-    if args.port and "://" not in args.port and not os.path.exists(args.port):
-        raise InputError(f"--port {args.port!r} does not exist (is the controller plugged in?)")
+    if args.port is not None and "://" not in args.port:
+        if not os.path.exists(args.port):
+            raise InputError(f"--port {args.port!r} does not exist (is the controller plugged in?)")
+        if not stat.S_ISCHR(os.stat(args.port).st_mode):
+            raise InputError(f"--port {args.port!r} is not a serial device (a character device "
+                             "such as /dev/ttyUSB0)")
     if args.rezeroed and not args.resume:
         raise InputError("--rezeroed accepts a changed work zero when resuming: it needs --resume")
     if args.demo_n < 1:

@@ -232,7 +232,7 @@ class Grbl:
         if not os.path.exists(port) and "://" not in port:
             raise PortError(f"serial port {clip(port)!r} does not exist")
         try:
-            self.ser = serial.Serial(port, baud, timeout=0.02, write_timeout=2.0)
+            self.ser = serial.serial_for_url(port, baud, timeout=0.02, write_timeout=2.0)
         except (serial.SerialException, OSError, ValueError) as exc:
             raise PortError(f"cannot open serial port {clip(port)!r}: {clip(exc)}") from None
         self.rx_size = 128

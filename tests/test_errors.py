@@ -345,12 +345,15 @@ def test_fabricate_with_a_nonsense_port_exits_4(program, tmp_path, capsys, monke
                            "--quiet"]) == 2
     _one_error_line(capsys.readouterr().err, "--port", "does not exist")
     assert os.listdir(tmp_path) == []
-    # ... and so is a relative name that is not there (a port typed without its /dev/).
-    with monkeypatch.context() as m:
-        m.chdir(tmp_path)
-        assert fabricate.main(["--demo-n", "5", "--port", "ttyUSB9", "--quiet"]) == 2
-    _one_error_line(capsys.readouterr().err, "--port 'ttyUSB9' does not exist")
-    assert os.listdir(tmp_path) == []
+    # So are a relative name that is not there (typed without its /dev/), an empty name and a
+    # path that is not a serial device.
+    for port, words in (("ttyUSB9", "--port 'ttyUSB9' does not exist"),
+                        ("", "--port '' does not exist"), (".", "is not a serial device")):
+        with monkeypatch.context() as m:
+            m.chdir(tmp_path)
+            assert fabricate.main(["--demo-n", "5", "--port", port, "--quiet"]) == 2
+        _one_error_line(capsys.readouterr().err, words)
+        assert os.listdir(tmp_path) == []
     sim = GrblSim(not_grbl=True)
     try:
         code = fabricate.main(["--gcode", str(program), "--port", sim.port, "--quiet", "--banner-timeout", "1"])
