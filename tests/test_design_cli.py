@@ -242,6 +242,9 @@ def _edit_result(key, fn):
     (_edit_result("geom", lambda a: a[:10]), "and the config's 150 scratches"),
     (_edit_result("history", lambda a: np.frombuffer(b"\xff\xfe", np.uint8)), "do not agree"),
     (lambda f: (f / "metrics.json").write_text("[1]"), "metrics.json': not a JSON object"),
+    (_edit_result("log_intensity", lambda a: a[:1]), "do not fit 2 views"),
+    (_edit_result("geom", lambda a: np.full_like(a, np.nan)), "hold non-finite values"),
+    (_edit_result("geom", lambda a: a[::-1]), "holds other scratches than"),  # another run's
 ])
 def test_a_result_folder_edited_out_of_step_is_refused(cli_run, tmp_path, edit, words):
     import shutil

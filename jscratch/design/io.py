@@ -390,6 +390,19 @@ def _result_from(out, cfg, metrics, config, d) -> DesignResult:
     if (config.groove == "carvable") != (d.plunge is not None):
         raise DesignFileError(f"{os.path.join(out, 'design.npz')!r} does not match the config's "
                               f"{config.groove!r} grooves")
+    m, hw = len(d.camera), np.shape(arrays["targets"])[1:]
+    bad = [k for k in need[:9] if not np.all(np.isfinite(arrays[k]))]
+    bad += [k for k in ("targets", "radiance", "display") if np.shape(arrays[k]) != (m, *hw)]
+    bad += ["log_intensity"] * (np.shape(arrays["log_intensity"]) != (m,))
+    if bad:
+        raise DesignFileError(f"{rpath!r}: {', '.join(bad)} hold non-finite values or do not fit "
+                              f"{m} views")
+    ends = [np.asarray(e, np.float64)[keep] for e in params.endpoints()]
+    tol = 1e-4 * max(board.Sx, board.Sy)  # (design.npz holds the kept ones, clamped to the board)
+    if not all(np.allclose(e, np.asarray(f, np.float64), atol=tol)
+               for e, f in zip(ends, (d.p0, d.p1))):
+        raise DesignFileError(f"{os.path.join(out, 'design.npz')!r} holds other scratches than "
+                              f"{rpath!r}: the files come from different runs")
     scratches = Scratches(*(np.asarray(a, dt) for a in (d.p0, d.p1, d.width, d.depth, d.alpha)),
                           profile=d.profile)
     views = Views(np.asarray(d.camera, dt), np.asarray(d.light, dt), np.asarray(d.intensity, dt))
