@@ -152,11 +152,13 @@ class MachineProfile:
         # surface or runs the job with the spindle still.
         written = [("plunge_min_mm", "Z"), ("safe_z_mm", "Z"), ("plunge_mm", "Z")]
         written += [("spindle_rpm", "S")] if self.spindle_rpm > 0 else []
+        written += [("spinup_s", "P")] if self.spindle_rpm > 0 and self.spinup_s > 0 else []
         for name, letter in written:
             v = getattr(self, name)
             if v is not None and float(gword(letter, v)[1:]) == 0.0:
                 bad(name, f"written as at least {letter}{gword(letter, 0)[1:-1]}1 in G-code"
-                    + (" (or 0 for no spindle commands)" if letter == "S" else ""))
+                    + {"S": " (or 0 for no spindle commands)", "P": " (or 0 for no dwell)"}.get(
+                        letter, ""))
 
     # ------------------------------------------------------------------------------------------
     # Files and records.

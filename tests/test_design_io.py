@@ -114,6 +114,12 @@ def test_save_and_load_a_hand_built_result(tmp_path):
         (tmp_path / "out" / f).write_text("x")
     io.save_result(res, tmp_path / "out")
     assert not any((tmp_path / "out" / f).exists() for f in stale)
+    for kw, words in ((dict(names=np.array(["a", "b"])), "names must be None or 2 strings"),
+                      (dict(names=["a"]), "names must be None or 2 strings"),
+                      (dict(scene={"size": 24}), "scene must be None or a SceneConfig")):
+        with pytest.raises(DesignError, match=words):
+            io.save_result(res, tmp_path / "out2", **kw)
+    assert not (tmp_path / "out2").exists()
     assert (tmp_path / "out" / "notes.txt").exists()  # (what is not a result's is left alone)
     d = designfile.load_design(tmp_path / "out" / "design.npz")
     np.testing.assert_allclose(d.p0, np.asarray(s.p0), rtol=1e-7)

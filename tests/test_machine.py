@@ -69,3 +69,11 @@ def test_carving_seconds_by_hand():
     assert t == pytest.approx(3.0 + 0.6 + 0.3 + 3 * (0.2 + 2.0) + 3 * 3.0)
     spun = dataclasses.replace(prof, spindle_rpm=1e4, spinup_s=4.0)
     assert carving_seconds(spun, n=3, cut_mm=30.0, travel_mm=12.0, plunge_mm_total=0.3) == pytest.approx(t + 4.0)
+
+
+def test_a_spin_up_dwell_written_as_zero_is_refused():
+    with pytest.raises(ValueError, match=r"machine.spinup_s must be written as at least P0.001 .*"
+                                         r"or 0 for no dwell"):
+        MachineProfile(spindle_rpm=1000, spinup_s=0.0001)
+    assert MachineProfile(spindle_rpm=1000, spinup_s=0).spinup_s == 0.0  # (no dwell, asked for)
+    assert MachineProfile(spindle_rpm=0, spinup_s=0.0001).spinup_s == 0.0001  # (no spindle)

@@ -259,8 +259,14 @@ def save_result(result: DesignResult, out: str | os.PathLike, *, scene: SceneCon
     if not isinstance(result, DesignResult):
         raise DesignError(f"save_result needs a DesignResult (what design() returns), got "
                           f"{type(result).__name__}")
-    os.makedirs(out, exist_ok=True)
+    if not (scene is None or isinstance(scene, SceneConfig)):
+        raise DesignError(f"save_result: scene must be None or a SceneConfig, got {scene!r}")
     m = int(np.shape(result.targets)[0])
+    if names is not None and not (isinstance(names, (list, tuple)) and len(names) == m
+                                  and all(isinstance(x, str) for x in names)):
+        raise DesignError(f"save_result: names must be None or {m} strings (one per view), got "
+                          f"{names!r}")
+    os.makedirs(out, exist_ok=True)
     for name in os.listdir(out):  # an earlier result's pictures that this one does not replace
         old = re.fullmatch(r"view(\d+)_(render|target|carved)\.png", name)
         if old and (int(old.group(1)) >= m or (old.group(2) == "carved" and not as_carved_samples)):
