@@ -14,7 +14,7 @@ import sys
 
 from jscratch.errors import CarveError, DesignFileError
 from jscratch.grbl import clip
-from jscratch.gcode import Program, read_program
+from jscratch.gcode import Program, check_program_lines, read_program
 
 __all__ = ["CarveError", "carve"]
 
@@ -74,7 +74,10 @@ def carve(gcode_path, port: str, *, baud: int = 115200, resume: bool = False, co
     The work zero is checked (`$#`): no `G92` or tool length offset (GRBL clears both at reset),
     no controller that has just started without homing (machine position 0, 0, 0 and the work
     zero elsewhere: it no longer points at the board), and on `resume` the work
-    system's offset equal to the one journalled (unless `rezeroed`). With
+    system's offset equal to the one journalled (unless `rezeroed`). On a controller with homing
+    on (`$22=1`), the program's extent plus the work zero is checked against the travel
+    (`$130`-`$132`): refused when soft limits are on (`$20=1`: GRBL would stop the job part-way
+    with ALARM:2), a warning on stderr otherwise. With
     `check`, the lines first run through GRBL's `$C` check mode. Only then is the journal written
     and the preamble and the scratches from the first unconfirmed one sent; each scratch is
     journalled when its `G4 P0.000` is answered `ok`.
@@ -141,6 +144,8 @@ def carve(gcode_path, port: str, *, baud: int = 115200, resume: bool = False, co
                 f"then run again with --resume {untouched()}")
         coord = coord or next((w for w in grbl.modes if w in ("G54", "G55", "G56", "G57", "G58", "G59")), "G54")
         zero = _check_work_zero(grbl, coord, state["work_zero"] if resume else None, rezeroed, untouched)
+        _check_travel(grbl, items, retract_z, zero, coord, untouched,
+                      lambda m: print(m, file=sys.stderr))  # a warning even when quiet
         if check:
             try:
                 grbl.check_mode(items, counting=counting)
@@ -250,6 +255,52 @@ def _check_work_zero(grbl, coord: str, journalled: dict | None, rezeroed: bool, 
             f"restore it with G10 L2 P{int(coord[1:]) - 53} {_xyz(old)}, or pass --rezeroed if you re-zeroed the same "
             f"board at its corner {untouched()}")
     return zero
+
+
+def _travel(settings: dict, options: str) -> list:
+    """Per axis, the `(lo, hi)` machine mm that GRBL 1.1's soft limits allow: `[-$13N, 0]`, or
+    `[0, $13N]` for an axis homed towards its minimum (`$23`) when the firmware was built with
+    HOMING_FORCE_SET_ORIGIN (`Z` among `$I`'s options); None where `$13N` is unknown or 0."""
+    out = []
+    for a in range(3):
+        t = settings.get(130 + a, 0.0)
+        if t <= 0:
+            out.append(None)
+        elif "Z" in options and int(settings.get(23, 0)) >> a & 1:
+            out.append((0.0, t))
+        else:
+            out.append((-t, 0.0))
+    return out
+
+
+def _check_travel(grbl, items, retract_z: float, zero, coord: str, untouched, warn) -> None:
+    """Refuse a program that leaves the machine's travel when GRBL's soft limits are on (`$20=1`:
+    GRBL would stop the job part-way with ALARM:2); warn when only homing is on (`$22=1`: the
+    travel settings `$130`-`$132` are then the machine's measure, but nothing enforces them)."""
+    soft, homing = grbl.settings.get(20, 0) == 1, grbl.settings.get(22, 0) == 1
+    if not (soft or homing):
+        return  # without homing, machine coordinates count from wherever the machine started
+    ext = check_program_lines(items)
+    z = ext["z"] or [retract_z, retract_z]
+    ext["z"] = [min(z[0], retract_z), max(z[1], retract_z)]
+    for a, (name, limits) in enumerate(zip("XYZ", _travel(grbl.settings, grbl.options))):
+        e = ext[name.lower()]
+        if limits is None or e is None:
+            continue
+        lo, hi = e[0] + zero[a], e[1] + zero[a]
+        if limits[0] - 1e-6 <= lo and hi <= limits[1] + 1e-6:
+            continue
+        what = (f"the program moves {name} from {lo:.3f} to {hi:.3f} mm in machine coordinates "
+                f"(work {e[0]:.3f} to {e[1]:.3f} plus the {coord} zero {zero[a]:.3f}), outside the "
+                f"machine's travel {limits[0]:.3f} to {limits[1]:.3f} "
+                f"(${130 + a}={limits[1] - limits[0]:g})")
+        if soft:
+            raise CarveError(
+                f"{what}: with soft limits on ($20=1) GRBL would stop the job part-way with "
+                f"ALARM:2; zero the board where the whole program fits (G10 L20 P1 X0 Y0 Z0), or "
+                f"write the program with a lower --safe-z, then run again {untouched()}")
+        warn(f"warning: {what}; soft limits are off ($20=0), so nothing stops the tool at the "
+             f"end of its travel: check ${130 + a} and the board's zero before the job reaches it")
 
 
 def _machine_position(status: dict, offsets: dict, coord: str) -> list | None:

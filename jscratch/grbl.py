@@ -42,6 +42,7 @@ __all__ = [
 BANNER_RE = re.compile(r"^Grbl (\d+)\.(\d+)(\w*) \['\$' for help\]$")
 FEEDBACK_RE = re.compile(r"\[[A-Z][A-Z0-9]*:[\x20-\x7e]*\]")  # [MSG:..], [GC:..], [G54:..], [G92:..], [TLO:..]
 OFFSET_RE = re.compile(r"\[(G5[4-9]|G28|G30|G92|TLO):(-?\d+\.?\d*(?:,-?\d+\.?\d*)*)\]")
+SETTING_RE = re.compile(r"\$(\d+)=(-?\d+\.?\d*)")  # one line of `$$`, e.g. `$130=300.000`
 
 
 def clip(text, limit: int = 120) -> str:
@@ -108,7 +109,8 @@ class Reply(NamedTuple):
     """One classified line from the controller.
 
     `kind` is one of `ok`, `error`, `alarm`, `status`, `msg` (any `[...]` feedback), `banner`,
-    `unknown`; `code` the number of `error:N`/`ALARM:N` (else None); `text` the line.
+    `setting` (a `$N=value` line of `$$`), `unknown`; `code` the number of `error:N`/`ALARM:N`
+    (else None); `text` the line.
     """
 
     kind: str
@@ -132,6 +134,8 @@ def classify(line: str) -> Reply:
         return Reply("msg", None, line)
     if BANNER_RE.match(line):
         return Reply("banner", None, line)
+    if SETTING_RE.fullmatch(line):
+        return Reply("setting", None, line)
     return Reply("unknown", None, line)
 
 
@@ -236,6 +240,8 @@ class Grbl:
         except (serial.SerialException, OSError, ValueError) as exc:
             raise PortError(f"cannot open serial port {clip(port)!r}: {clip(exc)}") from None
         self.rx_size = 128
+        self.options = ""  # the build option letters of `$I`'s `[OPT:...]` (e.g. "VNMZ")
+        self.settings: dict = {}  # from `$$`: setting number -> value, e.g. {130: 300.0}
         self.version = None
         self.banner = None
         self.status: dict = {}
@@ -340,6 +346,9 @@ class Grbl:
             self._acks.put(r)
         elif r.kind == "msg":
             self.messages.append(line)
+        elif r.kind == "setting":
+            m = SETTING_RE.fullmatch(line)
+            self.settings[int(m.group(1))] = float(m.group(2))
         else:
             self.unknown = self.unknown[-(_UNKNOWN_LOGGED - 1):] + [line]  # the latest few
             self.n_unknown += 1
@@ -448,8 +457,8 @@ class Grbl:
         self._drain()  # oks to the wake newlines, the banner itself
 
     def connect(self, *, home: bool = False, unlock: bool = False):
-        """Recognise GRBL 1.1, home or handle Alarm, read the work offsets (`$#`) and parser state
-        (`$G`).
+        """Recognise GRBL 1.1, home or handle Alarm, read the work offsets (`$#`), parser state
+        (`$G`) and settings (`$$`).
 
         A controller whose status report says `Idle` is not reset (a reset would clear its `G92`
         offset, which the caller must see to refuse); any other state, or no report, gets a soft
@@ -477,6 +486,7 @@ class Grbl:
                 self.version = msg[5:-1]
             if msg.startswith("[OPT:"):
                 parts = msg[5:-1].split(",")
+                self.options = parts[0]
                 if len(parts) >= 3 and parts[2].isdigit():
                     self.rx_size = int(parts[2])
         if self.version is None:
@@ -504,7 +514,17 @@ class Grbl:
             if r.kind != "ok":
                 raise GrblError(f"could not leave Alarm: {clip(r.text, 40)}")
         self.read_offsets()
+        self.read_settings()
         return self
+
+    def read_settings(self) -> dict:
+        """Send `$$`; fills `settings` (number -> value, e.g. `{20: 1.0, 130: 300.0}`) and returns
+        it. A controller that refuses `$$` leaves it empty: the settings only inform checks."""
+        self.settings.clear()
+        r = self.command("$$")
+        if r.kind != "ok":
+            self.settings.clear()
+        return self.settings
 
     def read_offsets(self) -> dict:
         """Send `$#` and `$G`; fills `offsets` and `modes` and returns the offsets."""

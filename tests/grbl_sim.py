@@ -16,6 +16,10 @@ simulator models what a host can get wrong:
   :class:`Workpiece` (EEPROM: kept across resets and power cycles), the ``G92`` offset (``G92``,
   ``G92.1``) is cleared by a soft reset; targets are work coordinates, positions machine ones;
 - real-time bytes ``?``, ``!``, ``~`` and ``0x18`` (reset in motion raises ALARM:3);
+- settings (``$$``) as given, and GRBL 1.1h's soft limits: with ``$20=1`` a motion target outside
+  the machine's travel (``[-$13N, 0]`` per axis; ``[0, $13N]`` for an axis homed towards its
+  minimum, ``$23``, when ``options`` holds ``Z``, HOMING_FORCE_SET_ORIGIN) raises ``ALARM:2`` and
+  stops motion, the position kept;
 - faults: ``error:N`` on the n-th G-code line, ``ALARM:N`` in the n-th block, the device vanishing
   in the n-th block, the n-th line's ``ok`` lost, garbage lines, a slow device, a non-GRBL device
   (optionally spewing given bytes), start in Alarm, cutting before the spindle is up to speed.
@@ -203,13 +207,16 @@ class GrblSim:
     `garbage_every` n: a garbage line before every n-th answer; `drop_ok_at` n: run the n-th G-code
     line but never send its `ok`; `start_alarm`; `not_grbl`: answer like some other firmware, or
     with these bytes; `spinup_s`: a cut below Z = 0 (work) sooner than this after `M3`, or with the
-    spindle off, is a fault; `banner_on_open`.
+    spindle off, is a fault; `banner_on_open`; `settings` the `$$` settings (number -> value;
+    `$20=1` turns soft limits on); `options` the build option letters of `$I`'s `[OPT:...]`.
     """
 
     def __init__(self, workpiece=None, *, block_time=0.0004, reply_delay=0.0, error_at=None, alarm_at=None,
                  vanish_at=None, garbage_every=None, drop_ok_at=None, start_alarm=False, not_grbl=False,
-                 spinup_s=None, banner_on_open=True):
+                 spinup_s=None, banner_on_open=True, settings=None, options="V"):
         self.wp = workpiece or Workpiece()
+        self.settings = dict(settings or {})
+        self.options = options
         self.drop_ok_at = drop_ok_at
         self.spinup_s = spinup_s
         self.g92 = [0.0, 0.0, 0.0]
@@ -435,6 +442,16 @@ class GrblSim:
                 if a in words:
                     target[j] = words[a] + off[j] if self.modal.get("distance", 90) == 90 else target[j] + words[a]
             kind = "G0" if self.modal.get("motion") == 0 else "G1"
+            if self.settings.get(20) and not self._within_travel(target):
+                # GRBL 1.1h (limits_soft_check): feed hold, reset, ALARM:2; position kept
+                with self.lock:
+                    if self.executing is not None:
+                        self.executing["abort"] = True
+                    self.planner.clear()
+                    self.state = "Alarm"
+                    self.critical = True
+                self._send(b"ALARM:2\r\n[MSG:Reset to continue]\r\n")
+                return True
             if not self.check:
                 with self.lock:
                     self.planner.append({"kind": kind, "target": target, "abort": False,
@@ -446,6 +463,18 @@ class GrblSim:
         if self.drop_ok_at and self.gcode_lines == self.drop_ok_at:
             return True  # the ok is lost on the wire
         self._answer("ok")
+        return True
+
+    def _within_travel(self, target):
+        """GRBL 1.1h's `system_check_travel_limits` for a machine target (mm)."""
+        for j in range(3):
+            t = self.settings.get(130 + j, 0.0)
+            if "Z" in self.options and int(self.settings.get(23, 0)) >> j & 1:
+                lo, hi = 0.0, t
+            else:
+                lo, hi = -t, 0.0
+            if not lo <= target[j] <= hi:
+                return False
         return True
 
     def work_offset(self):
@@ -486,7 +515,7 @@ class GrblSim:
 
     def _dollar(self, line):
         if line == "$I":
-            self._send(b"[VER:1.1h.20190825:]\r\n[OPT:V,15,128]\r\n")
+            self._send(f"[VER:1.1h.20190825:]\r\n[OPT:{self.options},15,128]\r\n".encode())
             self._answer("ok")
         elif line == "$C":
             if self.check:
@@ -527,6 +556,8 @@ class GrblSim:
             self._send(f"[GC:G0 G{self.modal.get('coord', 54)} G17 G{units} G{dist} G94 {spindle} M9 T0 F0 S0]\r\n".encode())
             self._answer("ok")
         elif line == "$$":
+            self._send("".join(f"${k}={v:.3f}\r\n" if k >= 100 else f"${k}={int(v)}\r\n"
+                               for k, v in sorted(self.settings.items())).encode())
             self._answer("ok")
         else:
             self._answer("error:3")

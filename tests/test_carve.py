@@ -442,6 +442,82 @@ def test_work_zero_g92_refused_g54_kept_across_reset_and_resume(job):
 
 
 
+#: A homed machine with soft limits on: travel 400 x 350 x 60 mm, machine space [-$13N, 0].
+TRAVEL = {20: 1, 22: 1, 23: 0, 130: 400.0, 131: 350.0, 132: 60.0}
+
+
+def _carve_at(path, zero, settings, options="V", **kw):
+    """Carve on a fresh simulated controller whose G54 zero is `zero` (the tool above it)."""
+    wp = Workpiece()
+    wp.wcs[54] = list(zero)
+    sim = GrblSim(wp, settings=settings, options=options)
+    sim.pos = [zero[0], zero[1], zero[2] + 5.0]
+    try:
+        return carve(path, sim.port, **FAST, **kw), wp
+    finally:
+        sim.close()
+
+
+def test_a_program_outside_the_machines_travel_is_refused_when_soft_limits_are_on(job, monkeypatch):
+    """With soft limits on ($20=1) GRBL stops a job part-way with ALARM:2 at the first move
+    outside the machine's travel. The program's extent plus the work zero (and the safe Z) is
+    checked against the travel ($130-$132, read with $$) before any motion. Reference: the
+    simulated firmware's own per-move check, with the pre-check switched off, stops exactly the
+    jobs the pre-check refuses."""
+    path, prog = job  # X 0..293.716, Y 0..278.608, Z -0.1..1 (work mm)
+    fits = (-380.0, -320.0, -40.0)
+    r, wp = _carve_at(path, fits, TRAVEL)
+    assert r["done"] == 24
+    _verify(prog, wp, origin=fits)
+    os.remove(path + ".journal")
+    cases = {"X": (-100.0, -320.0, -40.0),   # X reaches +193.716 > 0
+             "Y": (-380.0, -200.0, -40.0),   # Y reaches +78.608 > 0
+             "Z": (-380.0, -320.0, -0.5),    # the safe Z (work 1) is machine +0.5 > 0
+             "Y ": (-380.0, -360.0, -40.0)}  # Y starts at -360 < -350
+    for axis, zero in cases.items():
+        refused = (rf"program moves {axis[0]} from .* outside the machine's travel "
+                   r".*\$20=1.*ALARM:2.*no motion was sent")
+        with pytest.raises(CarveError, match=refused) as e:
+            _carve_at(path, zero, TRAVEL)
+        assert "\n" not in str(e.value) and not os.path.exists(path + ".journal")
+    with monkeypatch.context() as m:  # the firmware alone: each of these jobs stops part-way
+        m.setattr(carve_mod, "_check_travel", lambda *a: None)
+        for axis, zero in cases.items():
+            with pytest.raises(CarveError, match="ALARM:2"):
+                _carve_at(path, zero, TRAVEL)
+            _, done = Journal.read(path + ".journal")
+            assert done < 24
+            os.remove(path + ".journal")
+    # Without homing, machine coordinates count from wherever the machine started: not checked.
+    r, _ = _carve_at(path, cases["X"], {**TRAVEL, 20: 0, 22: 0})
+    assert r["done"] == 24
+
+
+def test_travel_follows_the_firmwares_homing_origin_and_warns_without_soft_limits(job, capsys):
+    """Built with HOMING_FORCE_SET_ORIGIN (`Z` among `$I`'s options), an axis homed towards its
+    minimum ($23 bit set) has the travel [0, $13N]; with homing on but soft limits off ($20=0) a
+    program outside the travel is streamed with a warning (nothing enforces the travel)."""
+    path, prog = job
+    assert carve_mod._travel(TRAVEL, "V") == [(-400.0, 0.0), (-350.0, 0.0), (-60.0, 0.0)]
+    assert carve_mod._travel({**TRAVEL, 23: 3}, "VZ") == [(0.0, 400.0), (0.0, 350.0), (-60.0, 0.0)]
+    assert carve_mod._travel({**TRAVEL, 23: 3}, "V")[0] == (-400.0, 0.0)
+    assert carve_mod._travel({130: 0.0}, "V") == [None, None, None]
+    origin = (10.0, 20.0, -40.0)
+    r, wp = _carve_at(path, origin, {**TRAVEL, 23: 3}, options="VZ")
+    assert r["done"] == 24
+    _verify(prog, wp, origin=origin)
+    os.remove(path + ".journal")
+    with pytest.raises(CarveError, match=r"program moves X from 10\.000 to 303\.716 mm"):
+        _carve_at(path, origin, TRAVEL)  # the same zero in the default machine space
+    capsys.readouterr()
+    r, _ = _carve_at(path, origin, {**TRAVEL, 20: 0})
+    assert r["done"] == 24
+    err = capsys.readouterr().err
+    assert re.search(r"warning: the program moves X from 10\.000 to 303\.716 mm .*\$20=0", err), err
+    assert "warning: the program moves Y from 20.000 to 298.608" in err
+    assert err.count("warning:") == 2  # X and Y; Z (-40.1 to -39) fits
+
+
 def _design_file(tmp_path, n=24, seed=2):
     d = demo_design(n, seed=seed)
     f = tmp_path / "d.npz"

@@ -67,11 +67,14 @@ def test_connect_keeps_an_idle_controllers_g92_and_reads_offsets():
         assert sim.g92 == [0.0, 0.0, 0.0] and sim.wp.wcs[55] == [1.5, -2.0, 0.25]
     finally:
         sim.close()
-    sim = GrblSim(start_alarm=True)  # not Idle: reset, banner, then homing
+    sim = GrblSim(start_alarm=True, settings={20: 1, 22: 1, 23: 3, 130: 400.5, 132: 60.0},
+                  options="VNMZ")  # not Idle: reset, banner, then homing
     try:
         with Grbl(sim.port, **OPEN) as g:
             g.connect(home=True)
             assert g.reset_sent and g.homed and g.banner == BANNER.decode().strip()
+            assert g.settings == {20: 1.0, 22: 1.0, 23: 3.0, 130: 400.5, 132: 60.0}
+            assert g.options == "VNMZ" and g.unknown == []
     finally:
         sim.close()
 
@@ -118,5 +121,6 @@ def test_reply_grammar():
     assert classify("<Hold:0|MPos:1.000,2.000,3.000|FS:0,0>").kind == "status"
     assert classify("[MSG:Reset to continue]").kind == "msg"
     assert classify("Grbl 1.1h ['$' for help]").kind == "banner"
-    for junk in ("okay", "error:", "\ufffd#garbage%", "<Idle", "Marlin 2.1"):
+    assert classify("$130=400.000").kind == classify("$20=1").kind == "setting"
+    for junk in ("okay", "error:", "\ufffd#garbage%", "<Idle", "Marlin 2.1", "$130=", "$N0=G54"):
         assert classify(junk).kind == "unknown"
