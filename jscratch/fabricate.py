@@ -59,7 +59,7 @@ from typing import NamedTuple
 import numpy as np
 
 from jscratch.designfile import Design, DesignError, demo_design, groove_half_width, load_design
-from jscratch.options import check_out_prefix
+from jscratch.options import OneLineParser, check_out_prefix
 from jscratch.errors import EXIT_STATUS_HELP, InputError, JscratchError, report
 from jscratch.grbl import clip, gword
 from jscratch.carve import CarveError, carve
@@ -469,7 +469,7 @@ def summarize(info: dict) -> str:
 
 
 def _parser():
-    p = argparse.ArgumentParser(
+    p = OneLineParser(
         prog="python -m jscratch.fabricate",
         description="Order a scratch design, write GRBL 1.1 G-code (mm, absolute) with a line map and a toolpath "
                     "preview, and optionally stream it to a GRBL controller with a crash-safe journal.",

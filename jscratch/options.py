@@ -7,6 +7,8 @@ command line is generated from the dataclass.
 - `given(args, cls)`: the fields the user gave on the command line, as keyword arguments (nested
   ones as dicts), to lay over defaults or a config file (`overlay`).
 - `flags(cls)`: field path -> flag, e.g. ``{"n_scratches": "--scratches", "loss.kind": "--loss"}``.
+- `OneLineParser`: the argparse parser of every jscratch command (a refusal is one line);
+  `check_out_prefix` refuses an output prefix no file can be written at.
 
 Types come from the annotations: ``int``, ``float``, ``str``, ``bool`` (``--x`` / ``--no-x``),
 ``X | None``, ``tuple[float, float]`` (two values) and ``tuple[str, ...]``; a field may instead name
@@ -21,6 +23,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
+import re
 import types
 import typing
 from collections.abc import Callable
@@ -28,7 +31,8 @@ from typing import Any
 
 from jscratch.errors import InputError
 
-__all__ = ["option", "add_arguments", "given", "flags", "overlay", "field_help", "check_out_prefix"]
+__all__ = ["option", "add_arguments", "given", "flags", "overlay", "field_help", "check_out_prefix",
+           "OneLineParser"]
 
 _NESTED = "nested"
 
@@ -190,11 +194,30 @@ def overlay(base: Any, changes: dict[str, Any]) -> Any:
 
 
 def check_out_prefix(flag: str, value: str, example: str) -> None:
-    """Refuse an output prefix (``DIR/name``, the start of several file names) that names no file
-    or whose folder part is an existing non-folder; `example` shows a good one. Raises
-    `InputError` with one line naming `flag`."""
+    """Refuse an output prefix (``DIR/name``, the start of several file names) that names no file,
+    lies under an existing file, or whose nearest existing folder cannot be written; `example`
+    shows a good one. Raises `InputError` with one line naming `flag`."""
     folder, name = os.path.split(value)
     if not name or name in (".", ".."):
         raise InputError(f"{flag} is a prefix of file names (e.g. {example}), got {value!r}")
-    if folder and os.path.exists(folder) and not os.path.isdir(folder):
-        raise InputError(f"{flag} {value!r}: {folder!r} exists and is not a folder")
+    above = os.path.abspath(folder or ".")
+    while not os.path.exists(above):
+        above = os.path.dirname(above)
+    if not os.path.isdir(above):
+        raise InputError(f"{flag} {value!r}: {above!r} exists and is not a folder")
+    if not os.access(above, os.W_OK | os.X_OK):
+        raise InputError(f"{flag} {value!r}: the folder {above!r} cannot be written")
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse whose refusals are one line (``error: ...`` on stderr, exit 2), like the rest of
+    jscratch's command-line refusals, instead of a usage block."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        # A value such as `-1e-4` is a number, not an option (argparse before 3.13 reads only
+        # plain `-1` and `-.5` as numbers).
+        self._negative_number_matcher = re.compile(r"-\.?\d")
+
+    def error(self, message):
+        self.exit(2, f"error: {message} (see --help)\n")

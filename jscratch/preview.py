@@ -26,8 +26,9 @@ import time
 
 import numpy as np
 
-from jscratch.options import check_out_prefix
-from jscratch.errors import EXIT_STATUS_HELP, DesignFileError, InputError, JscratchError, report
+from jscratch.options import OneLineParser, check_out_prefix
+from jscratch.errors import (EXIT_STATUS_HELP, DesignFileError, InputError, JscratchError,
+                             error_line, report)
 
 __all__ = ["orbit_views", "render_orbit", "write_gif", "write_sheet", "main"]
 
@@ -75,7 +76,7 @@ def render_orbit(design, *, frames: int = 36, size: int = 128, batch: int = 6,
 
     cams, light, az, marks = orbit_views(design, frames)
     board = Board(shape=(size, size), Sx=float(design.board[0]), Sy=float(design.board[1]))
-    inten = float(np.exp(np.mean(np.log(design.intensity)))) if intensity is None else float(intensity)
+    inten = _default_intensity(design) if intensity is None else float(intensity)
     f32 = np.float32
     sc = Scratches(design.p0.astype(f32), design.p1.astype(f32), design.width.astype(f32),
                    design.depth.astype(f32), design.alpha.astype(f32), profile=design.profile)
@@ -152,68 +153,137 @@ def write_sheet(path, frames, marks, az, title=""):
     plt.close(fig)
 
 
+class _Formatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Defaults in the help, except a None default (its help says what it means)."""
+
+    def _get_help_string(self, action):
+        return action.help if action.default is None else super()._get_help_string(action)
+
+
 def _parser():
-    p = argparse.ArgumentParser(
+    p = OneLineParser(
         prog="python -m jscratch.preview",
         description="Orbit preview of a design: an animated GIF and a contact sheet PNG of the board as the "
                     "camera circles it at the design views' polar angle, the light fixed, design views marked.",
         epilog="Every option and the design are checked before anything is rendered or written; a refusal "
                "is one line 'error: ...' on stderr. " + EXIT_STATUS_HELP,
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+        formatter_class=_Formatter)
     p.add_argument("design", help="design .npz, or a design run's output folder (holding design.npz)")
     p.add_argument("--out", default=None,
-                   help="output prefix (default: the design path without .npz); writes PREFIX.orbit.gif and "
-                        "PREFIX.orbit_sheet.png")
+                   help="output prefix; writes PREFIX.orbit.gif and PREFIX.orbit_sheet.png "
+                        "(default: the design path without .npz)")
     p.add_argument("--frames", type=int, default=36, help="camera azimuths around the full circle")
     p.add_argument("--size", type=int, default=128, help="frame size in pixels per side")
     p.add_argument("--fps", type=float, default=8.0, help="GIF frames per second")
     p.add_argument("--batch", type=int, default=6, help="frames rendered together (memory knob)")
     p.add_argument("--intensity", type=float, default=None,
-                   help="light intensity, W/sr (default: geometric mean of the design's per-view intensities)")
+                   help="light intensity, W/sr (default: geometric mean of the design's lit "
+                        "views' intensities)")
     p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     return p
 
 
+#: Option ranges: a GIF stores its frame delay in 1/100 s, and most viewers slow delays under
+#: 2/100 s down to 1/10 s, so frame rates above 50 do not play as asked.
+FPS_RANGE = (0.1, 50.0)
+MAX_SIZE, MAX_FRAMES = 4096, 3600
+
+
 def _check_options(args) -> None:
     """Refuse option values before any work (`InputError`, one line)."""
-    if args.frames < 2:
-        raise InputError(f"--frames must be an int >= 2, got {args.frames}")
-    if args.size < 8:
-        raise InputError(f"--size must be an int >= 8 (pixels per side), got {args.size}")
+    if not 2 <= args.frames <= MAX_FRAMES:
+        raise InputError(f"--frames must be an int in [2, {MAX_FRAMES}], got {args.frames}")
+    if not 8 <= args.size <= MAX_SIZE:
+        raise InputError(f"--size must be an int in [8, {MAX_SIZE}] (pixels per side), "
+                         f"got {args.size}")
     if args.batch < 1:
         raise InputError(f"--batch must be an int >= 1, got {args.batch}")
-    if not (math.isfinite(args.fps) and args.fps > 0):
-        raise InputError(f"--fps must be a finite number > 0, got {args.fps}")
+    if not (math.isfinite(args.fps) and FPS_RANGE[0] <= args.fps <= FPS_RANGE[1]):
+        raise InputError(f"--fps must be a number in [{FPS_RANGE[0]:g}, {FPS_RANGE[1]:g}] "
+                         f"(frames per second), got {args.fps}")
     if args.intensity is not None and not (math.isfinite(args.intensity) and args.intensity > 0):
         raise InputError(f"--intensity must be a finite number > 0 (W/sr), got {args.intensity}")
     if args.out is not None:
         check_out_prefix("--out", args.out, "DIR/orbit")
 
 
+def _default_intensity(design) -> float:
+    """The geometric mean of the design's lit views' intensities (W/sr); `InputError` when no
+    view is lit."""
+    lit = np.asarray(design.intensity, np.float64)
+    lit = lit[lit > 0]
+    if lit.size == 0:
+        raise InputError("every view of the design has intensity 0, so the orbit would be black: "
+                         "give the light's intensity with --intensity (W/sr)")
+    return float(np.exp(np.mean(np.log(lit))))
+
+
+def _write_both(prefix, frames, marks, az, fps, title) -> None:
+    """Write PREFIX.orbit.gif and PREFIX.orbit_sheet.png, both or neither: each is written to a
+    temporary name and renamed once both are complete."""
+    folder = os.path.dirname(prefix)
+    made = []
+    while folder and not os.path.isdir(folder):
+        made.append(folder)
+        folder = os.path.dirname(folder)
+    if made:
+        os.makedirs(made[0])
+    names = [prefix + ".orbit.gif", prefix + ".orbit_sheet.png"]
+    tmp = [os.path.join(os.path.dirname(n), f".{os.path.basename(n)}.{os.getpid()}.tmp"
+                        + os.path.splitext(n)[1]) for n in names]
+    try:
+        for n in names:
+            if os.path.isdir(n):
+                raise IsADirectoryError(f"{n!r} is a folder")
+        write_gif(tmp[0], frames, marks, az, fps=fps)
+        write_sheet(tmp[1], frames, marks, az, title=title)
+        for t, n in zip(tmp, names):
+            os.replace(t, n)
+    except BaseException:
+        for t in tmp:
+            if os.path.exists(t):
+                os.remove(t)
+        for f in made:  # the folders made here, deepest first, if still empty
+            try:
+                os.rmdir(f)
+            except OSError:
+                break
+        raise
+
+
 def main(argv=None) -> int:
     """Command line entry point; returns the exit status (`jscratch.errors.EXIT_STATUS_HELP`: 0 ok,
     1 a file could not be written, 2 refused input, 130 interrupted)."""
-    args = _parser().parse_args(argv)
+    args = _parser().parse_args(argv)  # SystemExit: --help (0) or a refused option (2, one line)
     try:
         _check_options(args)
         t0 = time.perf_counter()
         design, path = _load(args.design)
         prefix = args.out or os.path.splitext(path)[0]
-        frames, az, marks = render_orbit(design, frames=args.frames, size=args.size, batch=args.batch,
-                                         intensity=args.intensity, progress=not args.quiet)
-        folder = os.path.dirname(prefix)
-        if folder:
-            os.makedirs(folder, exist_ok=True)
-        write_gif(prefix + ".orbit.gif", frames, marks, az, fps=args.fps)
-        write_sheet(prefix + ".orbit_sheet.png", frames, marks, az,
-                    title=f"{os.path.basename(path)}: {design.n} scratches, light fixed, camera orbiting")
+        check_out_prefix("the output prefix", prefix, "DIR/orbit")
+        inten = _default_intensity(design) if args.intensity is None else args.intensity
+        if len(np.unique(np.asarray(design.light), axis=0)) > 1 and not args.quiet:
+            print("note: the design's views have different lights; the orbit keeps view 0's",
+                  file=sys.stderr)
+        frames, az, marks = render_orbit(design, frames=args.frames, size=args.size,
+                                         batch=min(args.batch, args.frames), intensity=inten,
+                                         progress=not args.quiet)
+        _write_both(prefix, frames, marks, az, args.fps,
+                    f"{os.path.basename(path)}: {design.n} scratches, light fixed, camera orbiting")
         if not args.quiet:
+            unmarked = sorted(set(range(len(design.camera))) - set(marks.tolist()))
             print(f"wrote {prefix}.orbit.gif and {prefix}.orbit_sheet.png ({args.frames} frames, "
-                  f"{args.size} px, {time.perf_counter() - t0:.1f} s)")
+                  f"{args.size} px, {time.perf_counter() - t0:.1f} s)"
+                  + (f"; views {unmarked} share a frame with another view and are not marked"
+                     if unmarked else ""))
     except KeyboardInterrupt:
         return 130
     except (JscratchError, OSError) as exc:
         return report(exc)
+    except MemoryError as exc:
+        print(f"error: out of memory ({error_line(exc, 100)}): ask for a smaller --size or "
+              "--batch", file=sys.stderr)
+        return 1
     return 0
 
 

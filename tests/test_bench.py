@@ -12,7 +12,10 @@ from jscratch import bench, native
 
 def test_quick_bench_writes_finite_results(tmp_path):
     bench.main(["--quick", "--out", str(tmp_path)])
-    res = json.loads((tmp_path / "bench.json").read_text())
+    def strict(constant):  # NaN or Infinity: not JSON (a strict reader refuses the file)
+        raise AssertionError(f"bench.json holds {constant}")
+
+    res = json.loads((tmp_path / "bench.json").read_text(), parse_constant=strict)
     assert res["quick"] is True and res["machine"]["jax"]
     command = shlex.join(["python", "-m", "jscratch.bench", "--quick", "--out", str(tmp_path)])
     assert res["command"] == command  # the command line as typed, not the module's path
@@ -23,6 +26,8 @@ def test_quick_bench_writes_finite_results(tmp_path):
     for r in rows:
         for k in ("ns_per_pair_fwd", "max_rel", "median_rel", "max_abs_scaled", "compile_s"):
             assert math.isfinite(r[k]) and r[k] >= 0, (r["method"], k)
+        bwd = r["ns_per_pair_fwd_bwd"]  # quick mode times only the closed form's backward
+        assert (bwd is None) == (r["method"] != "closed form") and (bwd is None or bwd > 0)
         assert r["nonfinite"] == 0
     closed = next(r for r in rows if r["method"] == "closed form")
     assert closed["max_rel"] < 1e-3  # float32 closed form against the independent reference

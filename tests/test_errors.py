@@ -374,15 +374,20 @@ def test_fabricate_gcode_without_port_only_checks_the_program(program, tmp_path,
 
 
 @pytest.mark.parametrize("args,words", [
-    (["--frames", "1"], ("--frames", ">= 2")),
-    (["--size", "4"], ("--size", ">= 8")),
+    (["--frames", "1"], ("--frames", "[2, 3600]")),
+    (["--frames", "4000"], ("--frames", "[2, 3600]")),
+    (["--size", "4"], ("--size", "[8, 4096]")),
+    (["--size", "30000"], ("--size", "[8, 4096]")),
     (["--batch", "0"], ("--batch", ">= 1")),
-    (["--fps", "inf"], ("--fps", "> 0")),
+    (["--fps", "inf"], ("--fps", "[0.1, 50]")),
+    (["--fps", "0.001"], ("--fps", "[0.1, 50]")),  # a GIF frame delay past 16 bits
     (["--intensity", "-1"], ("--intensity", "> 0")),
+    (["--out", "TMP/d.npz/sub/x"], ("--out", "d.npz' exists and is not a folder")),
 ])
 def test_preview_refuses_bad_options(tmp_path, capsys, args, words):
     d = demo_design(4)
     save_design(tmp_path / "d.npz", d.p0, d.p1, d.width, d.depth, d.alpha, d.board)
+    args = [a.replace("TMP", str(tmp_path)) for a in args]
     assert preview.main([str(tmp_path / "d.npz"), "--quiet", "--out", str(tmp_path / "o" / "p")] + args) == 2
     _one_error_line(capsys.readouterr().err, *words)
     assert sorted(os.listdir(tmp_path)) == ["d.npz"]
@@ -400,6 +405,7 @@ def test_machine_and_bench_usage_errors(tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         bench.main(["--sections", "everything", "--out", str(tmp_path / "b")])
     assert e.value.code == 2 and not (tmp_path / "b").exists()
+    _one_error_line(capsys.readouterr().err, "--sections", "invalid choice", "see --help")
     with pytest.raises(InputError, match=r"unknown bench sections \['everything'\]"):
         bench.run_bench(["everything"], out=tmp_path / "b")
     assert not (tmp_path / "b").exists()

@@ -2,6 +2,7 @@
 polar angle and distance, and the CLI writes the GIF and the contact sheet."""
 
 import math
+import os
 
 import numpy as np
 import pytest
@@ -34,3 +35,44 @@ def test_orbit_preview_on_a_tiny_design(tmp_path):
     assert gif.n_frames == 5 and gif.size == (16, 16)
     assert (tmp_path / "o" / "tiny.orbit_sheet.png").stat().st_size > 0
     assert main([str(tmp_path / "missing.npz"), "--quiet"]) == 2
+
+
+def test_preview_writes_both_files_or_neither_and_lights_a_design_with_an_unlit_view(tmp_path,
+                                                                                    capsys):
+    """A view of intensity 0 (a valid design) does not black out the orbit: the default light is
+    the geometric mean of the lit views' intensities, and the orbit's frame at a design view
+    equals the design's own render of that view at that intensity. When the sheet cannot be
+    written, no GIF is left either (nor an earlier run's files replaced)."""
+    from PIL import Image
+    from jscratch.preview import main, render_orbit
+    from jscratch.scene import Board, Scratches, Views
+    from jscratch.shading import display
+
+    d = designfile.demo_design(80, seed=1)
+    views = render.views_on_circle(2, math.radians(50))
+    path = tmp_path / "d.npz"
+    designfile.save_design(path, d.p0, d.p1, d.width, d.depth, d.alpha, d.board,
+                           np.asarray(views.camera), np.asarray(views.light), np.array([0.0, 9.0]))
+    d = designfile.load_design(path)
+    frames, az, marks = render_orbit(d, frames=4, size=16, batch=4, progress=False)
+    k = int(np.flatnonzero(marks == 1)[0])
+    f32 = np.float32
+    s = Scratches(d.p0.astype(f32), d.p1.astype(f32), d.width.astype(f32), d.depth.astype(f32),
+                  d.alpha.astype(f32), profile=d.profile)
+    own = display(render.render(s, Views(d.camera[1:2].astype(f32), d.light[1:2].astype(f32),
+                                         np.full(1, 9.0, f32)),
+                                Board(shape=(16, 16), Sx=d.board[0], Sy=d.board[1])))
+    np.testing.assert_allclose(frames[k], np.clip(np.asarray(own)[0], 0, 1), atol=1e-5)
+    assert frames[k].max() > 0.1
+
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "p.orbit_sheet.png").mkdir()  # the sheet cannot be written
+    args = [str(path), "--frames", "3", "--size", "8", "--quiet", "--out", str(out / "p")]
+    assert main(args) == 1
+    assert "error: " in capsys.readouterr().err
+    assert sorted(os.listdir(out)) == ["p.orbit_sheet.png"]
+    (out / "p.orbit_sheet.png").rmdir()
+    assert main(args) == 0
+    assert sorted(os.listdir(out)) == ["p.orbit.gif", "p.orbit_sheet.png"]
+    assert Image.open(out / "p.orbit.gif").n_frames == 3

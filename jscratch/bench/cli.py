@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import shlex
 import sys
 import time
@@ -14,10 +15,25 @@ import jax
 from jscratch.bench import kernel, rendering
 from jscratch.bench.timing import machine_info, machine_line
 from jscratch.errors import EXIT_STATUS_HELP, InputError, JscratchError, report
+from jscratch.options import OneLineParser
 
 DESCRIPTION = ("`python -m jscratch.bench`: run time against error, numerical stress, and the"
                " recorded results.")
 SECTIONS = ("kernel", "stability", "render", "brute", "design")
+
+
+def _json_safe(v):
+    """`v` with numpy numbers and arrays as Python ones and non-finite floats as None (strict
+    JSON)."""
+    if hasattr(v, "tolist"):  # numpy scalars and arrays
+        v = v.tolist()
+    if isinstance(v, dict):
+        return {k: _json_safe(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_json_safe(x) for x in v]
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    return v
 
 
 def run_bench(sections=SECTIONS, quick: bool = False, out: str | Path = "bench_out",
@@ -28,6 +44,9 @@ def run_bench(sections=SECTIONS, quick: bool = False, out: str | Path = "bench_o
     unknown = set(sections) - set(SECTIONS)
     if unknown:
         raise InputError(f"unknown bench sections {sorted(unknown)}; choose from {SECTIONS}")
+    sections = list(dict.fromkeys(sections))  # each section once, in the order given
+    if not str(out).strip():
+        raise InputError("--out is empty: give the output folder")
     out = Path(out)
     _check_out(out)
     # float64 rows and references need x64; float32 paths build float32 arrays explicitly.
@@ -53,7 +72,7 @@ def run_bench(sections=SECTIONS, quick: bool = False, out: str | Path = "bench_o
             md.append(f"\n{res[s]['note']}\n")
     text = "".join(md)
     (out / "bench.md").write_text(text)
-    (out / "bench.json").write_text(json.dumps(res, indent=1, default=float))
+    (out / "bench.json").write_text(json.dumps(_json_safe(res), indent=1, allow_nan=False))
     return res
 
 
@@ -69,9 +88,9 @@ def _check_out(out: Path) -> None:
 def main(argv=None) -> int:
     """Command line entry point; returns the exit status (`jscratch.errors.EXIT_STATUS_HELP`: 0 ok,
     1 a file could not be written, 2 refused input, 130 interrupted)."""
-    p = argparse.ArgumentParser(prog="python -m jscratch.bench", description=DESCRIPTION,
-                                epilog="The options are checked before any section runs; a refusal is one "
-                                       "line 'error: ...' on stderr. " + EXIT_STATUS_HELP)
+    p = OneLineParser(prog="python -m jscratch.bench", description=DESCRIPTION,
+                      epilog="The options are checked before any section runs; a refusal is one "
+                             "line 'error: ...' on stderr. " + EXIT_STATUS_HELP)
     p.add_argument("--quick", action="store_true", help="small sizes (about 30 s on 2 CPU cores)")
     p.add_argument("--out", default="bench_out", help="output folder (default: bench_out)")
     p.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=SECTIONS,

@@ -115,14 +115,14 @@ def bench_kernel(quick: bool, out: Path) -> dict:
             # Quick mode times the closed form's backward only (the stability section reuses
             # that compilation); each backward compile takes seconds.
             if quick and n is not None:
-                c_b, t_b = 0.0, float("nan")
+                c_b, t_b = 0.0, None  # not timed: `md_table` shows "-", bench.json null
             else:
                 c_b, t_b, _ = time_compiled(_per_pair_grads(one), *T,
                                             options=grad_compiler_options())
             rows.append({
                 "method": name, "dtype": np.dtype(dtype).name,
                 "ns_per_pair_fwd": t_f / n_pairs_time * 1e9,
-                "ns_per_pair_fwd_bwd": t_b / n_pairs_time * 1e9,
+                "ns_per_pair_fwd_bwd": None if t_b is None else t_b / n_pairs_time * 1e9,
                 "Mpairs_per_s_fwd": n_pairs_time / t_f / 1e6,
                 "compile_s": c_f + c_b,
                 **err,

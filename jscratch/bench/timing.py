@@ -102,9 +102,12 @@ def machine_line(info: dict | None = None) -> str:
 
 
 def md_table(rows: list[dict], cols: list[str]) -> str:
-    """A Markdown table of `rows` (dicts) with columns `cols`; floats to 4 significant digits."""
+    """A Markdown table of `rows` (dicts) with columns `cols`; floats to 4 significant digits,
+    None (not measured) as "-"."""
 
     def fmt(v):
+        if v is None:
+            return "-"
         if isinstance(v, float):
             if v == 0:
                 return "0"

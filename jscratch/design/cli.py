@@ -28,7 +28,7 @@ import jax
 from jscratch import native
 from jscratch.errors import (EXIT_STATUS_HELP, DesignFileError, InputError, JscratchError,
                              error_line, report)
-from jscratch.options import add_arguments, given, option, overlay
+from jscratch.options import OneLineParser, add_arguments, given, option, overlay
 from jscratch.designfile import DesignError
 from jscratch.design.config import DEFAULT_IMAGES, DesignConfig, SceneConfig
 from jscratch.design import mesh as mesh_mod
@@ -85,16 +85,9 @@ class RunOptions:
             raise DesignError("--resume reads OUT/config.json: do not give --config with it")
 
 
-class _Parser(argparse.ArgumentParser):
-    """argparse with its refusals as one line (``error: ...``, exit 2), like jscratch's own."""
-
-    def error(self, message):
-        self.exit(2, f"error: {message} (see --help)\n")
-
-
 def parser() -> argparse.ArgumentParser:
     """The generated parser (`RunOptions`, `SceneConfig`, `DesignConfig` and its loss)."""
-    p = _Parser(
+    p = OneLineParser(
         prog="python -m jscratch.design",
         description="Optimise a scratch design so that a board shows one target image per view "
                     "(Shen et al. 2023). With no TARGET it uses images bundled with scikit-image "

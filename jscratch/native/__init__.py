@@ -757,9 +757,10 @@ _COVERS = {"source": "native_lit.cc, native_arc.h, native_bin.cc and native_simd
 def main(argv=None) -> int:
     """``python -m jscratch.native [--json]``: build the kernel if needed and say what runs the
     per-view stage. Exit 0, or 1 (one line on stderr) where it was wanted and is unavailable."""
-    ap = argparse.ArgumentParser(prog="python -m jscratch.native",
-                                 description="Build (if needed) and describe jscratch's native "
-                                             "CPU kernel.")
+    from jscratch.options import OneLineParser  # only the command line needs it
+
+    ap = OneLineParser(prog="python -m jscratch.native",
+                       description="Build (if needed) and describe jscratch's native CPU kernel.")
     ap.add_argument("--json", action="store_true", help="print status() as JSON")
     a = ap.parse_args(argv)
     try:
