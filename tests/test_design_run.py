@@ -71,3 +71,46 @@ def test_setup_pair_lists_and_rebin():
     m = moved.scratches()
     again, _ = bvh.build_pairs(m.p0, m.p1, m.width, m.depth, board=(0.3, 0.3), shape=(16, 16))
     assert _kept(rebin(lists, moved, ctx).shared) == _kept(again) != _kept(full)
+
+
+def _display64(x, gamma=2.2, knee=1e-4):
+    """The display curve of docs/model.md §4 in float64, written out here as the reference."""
+    g = 1 / gamma
+    P = knee ** (g - 1)
+    return np.where(x < knee, (2 - g) * P * x + (g - 1) * (P / knee) * x * x,
+                    np.maximum(x, knee) ** g)
+
+
+def test_matching_intensities_meet_the_target_means_also_below_the_knee():
+    """The initial light of each view makes the mean display value equal the target's mean
+    (checked in float64 with the display curve written out), whether the render at intensity 1
+    lies above the display's knee or far below it (a distant light); a render 1e7x darker needs
+    exactly 1e7x the light; and moving a far light and cameras 10x further away needs 100x the
+    light (the render falls as 1/r^2), which the power law's closed form misses there."""
+    from jscratch.design.run import matching_log_intensity
+    from jscratch.render import render
+    from jscratch.shading import DISPLAY_GAMMA
+
+    rng = np.random.default_rng(5)
+    rad = rng.lognormal(-6.0, 2.5, (3, 24, 24))  # spans the knee (1e-4) by decades either way
+    rad[1] *= 1e-9  # a view far below it
+    rad[2, :, :12] = 0.0  # half of a view unlit
+    t = np.array([0.3, 0.05, 0.6])
+    u = matching_log_intensity(rad, t)
+    np.testing.assert_allclose(_display64(np.exp(u)[:, None, None] * rad).mean((1, 2)), t,
+                               rtol=2e-5)
+    np.testing.assert_allclose(matching_log_intensity(rad * 1e-7, t) - u, math.log(1e7), atol=1e-5)
+
+    # Far from the board the render at intensity 1 falls as 1/r^2 (its directions converge).
+    targets, views, board = _inputs()
+    s = Scratches.random(jax.random.PRNGKey(1), 200, board, length=(0.01, 0.04), width=2.5e-4,
+                         depth=1.28e-4, alpha=0.04)
+    tmean = targets.mean(axis=(1, 2))
+    u, closed = {}, {}
+    for d in (1e3, 1e4):
+        r = np.asarray(render(s, views_on_circle(2, math.radians(50), distance=d, board=board),
+                              board), np.float64)
+        u[d] = matching_log_intensity(r, tmean)
+        closed[d] = DISPLAY_GAMMA * (np.log(tmean) - np.log(_display64(r).mean((1, 2))))
+    np.testing.assert_allclose(u[1e4] - u[1e3], 2 * math.log(10.0), atol=1e-4)
+    assert np.all(np.abs(closed[1e4] - closed[1e3] - 2 * math.log(10.0)) > 1.0)

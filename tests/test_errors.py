@@ -423,3 +423,14 @@ def test_help_states_the_exit_statuses(main, capsys):
 def test_machine_help_states_the_exit_statuses(capsys):
     assert machine.main(["--help"]) == 0
     assert "2 refused input" in capsys.readouterr().out
+
+
+def test_negative_numbers_in_exponent_form_are_values_not_options(capsys):
+    """`--offset -1e-4 0` is two numbers (argparse before Python 3.13 read `-1e-4` as an option
+    and refused the line); a refused option is one line."""
+    args = fabricate._parser().parse_args(["d.npz", "--offset", "-1e-4", "-2.5E+1"])
+    assert args.board_offset_mm == [-1e-4, -25.0]
+    with pytest.raises(SystemExit) as e:
+        fabricate._parser().parse_args(["d.npz", "--offset", "-1e-4"])
+    assert e.value.code == 2
+    _one_error_line(capsys.readouterr().err, "--offset", "expected 2 arguments", "see --help")

@@ -111,8 +111,8 @@ class DesignConfig:
                          "binned cells)", unit="m")
     discard: bool = option(True, "discard the least useful scratches after the optimisation")
     discard_tol: float = option(0.01, "discard: allowed relative loss increase")
-    init_intensity: str = option("match_mean", "initial light intensities: closed form matching "
-                                 "the targets' means, or the views' given ones",
+    init_intensity: str = option("match_mean", "initial light intensities: matching the "
+                                 "targets' mean display values, or the views' given ones",
                                  choices=("match_mean", "given"))
     adam_b1: float = option(0.9, "Adam beta1")
     adam_b2: float = option(0.999, "Adam beta2")

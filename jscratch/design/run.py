@@ -296,15 +296,43 @@ def initial_state(params, optimizer, ctx, tnp, config):
         unit = eqx.tree_at(lambda p: p.log_intensity, params, jnp.zeros((m,), dt))
         all_keep = jnp.ones((config.n_scratches,), bool)
         rad = np.asarray(evaluate(unit, lists, all_keep, ctx)[0], np.float64)
-        mean_disp = np.asarray(display(rad)).mean(axis=(1, 2))
-        tmean = tnp.mean(axis=(1, 2))
-        if np.any(mean_disp <= 0):
-            j = int(np.argmax(mean_disp <= 0))
+        if np.any(np.max(rad, axis=(1, 2)) <= 0):
+            j = int(np.argmax(np.max(rad, axis=(1, 2)) <= 0))
             raise DesignError(f"view {j} renders black at intensity 1: cannot set its light")
-        log_i = DISPLAY_GAMMA * (np.log(np.maximum(tmean, 1e-6)) - np.log(mean_disp))
+        log_i = matching_log_intensity(rad, np.maximum(tnp.mean(axis=(1, 2)), 1e-6))
         params = eqx.tree_at(lambda p: p.log_intensity, params, jnp.asarray(log_i, dt))
     history = {"total": [], "terms": {}}
     return State(0, params, opt_state, lists, history, 0), warm
+
+
+def matching_log_intensity(radiance, target_mean) -> np.ndarray:
+    """Per view, the log intensity ``u`` (log W/sr) at which the mean display value of
+    ``exp(u) * radiance`` equals ``target_mean``: ``(M,)`` from the radiance at intensity 1
+    ``(M, H, W)`` (not all zero) and ``(M,)`` display means in ``(0, 1]``.
+
+    The display curve is a power law only above its knee (`jscratch.shading.display`), and a
+    distant light puts most pixels below it at intensity 1, so ``u`` is found by bisection (the
+    mean display value grows with ``u``), from the power law's ``u`` as the first guess."""
+    rad = np.asarray(radiance, np.float64)
+    t = np.asarray(target_mean, np.float64)
+    scale = np.max(rad, axis=(1, 2))  # the brightest pixel at intensity 1 / scale is 1
+    rad = rad / scale[:, None, None]
+
+    def mean_disp(u):
+        return np.asarray(display(np.exp(u)[:, None, None] * rad), np.float64).mean(axis=(1, 2))
+
+    guess = DISPLAY_GAMMA * (np.log(t) - np.log(np.maximum(mean_disp(np.zeros_like(t)), 1e-300)))
+    lo, hi = guess - 1.0, guess + 1.0
+    for _ in range(60):  # widen until the root is bracketed: e**(+-60) is far beyond any image
+        low, high = mean_disp(lo) > t, mean_disp(hi) < t
+        if not (low.any() or high.any()):
+            break
+        lo, hi = np.where(low, lo - 2.0, lo), np.where(high, hi + 2.0, hi)
+    for _ in range(50):  # the bracket's width / 2**50: far below float32's resolution of u
+        mid = 0.5 * (lo + hi)
+        below = mean_disp(mid) < t
+        lo, hi = np.where(below, mid, lo), np.where(below, hi, mid)
+    return 0.5 * (lo + hi) - np.log(scale)
 
 
 class Compiling:
