@@ -384,11 +384,8 @@ def make_program(design: Design, cfg: MachineConfig, *, improve: bool = True, ti
 
 def write_preview(prog: Program, path, board_mm, offset_mm=(0.0, 0.0)):
     """Toolpath preview PNG: cuts in dark blue, rapid travels in light red, board outline in grey."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     from matplotlib.collections import LineCollection
+    from matplotlib.figure import Figure  # not pyplot: a notebook's backend stays as it is
 
     cuts, travels = [], []
     pos = (0.0, 0.0)
@@ -398,7 +395,8 @@ def write_preview(prog: Program, path, board_mm, offset_mm=(0.0, 0.0)):
             new = (w["X"] - offset_mm[0], w["Y"] - offset_mm[1])
             (cuts if role == "cut" else travels).append([pos, new])
             pos = new
-    fig, ax = plt.subplots(figsize=(7, 7), dpi=120)
+    fig = Figure(figsize=(7, 7), dpi=120)
+    ax = fig.subplots()
     ax.add_collection(LineCollection(travels, colors="#e8a0a0", linewidths=0.4, label="travel"))
     ax.add_collection(LineCollection(cuts, colors="#1f3b73", linewidths=0.8, label="cut"))
     ax.plot([0, board_mm[0], board_mm[0], 0, 0], [0, 0, board_mm[1], board_mm[1], 0], color="0.6", lw=0.8)
@@ -411,7 +409,6 @@ def write_preview(prog: Program, path, board_mm, offset_mm=(0.0, 0.0)):
     ax.legend(loc="upper right", fontsize=8)
     fig.tight_layout()
     fig.savefig(os.fspath(path))
-    plt.close(fig)
 
 
 def summarize(info: dict) -> str:
@@ -437,7 +434,7 @@ def summarize(info: dict) -> str:
     f = info.get("fit")
     if f and f.get("mode") == "design":
         out.append(
-            f"cutter fit       carvable design ({info.get('machine', '?')}): recorded plunges, 0 fitted; "
+            f"cutter fit       carvable design (machine profile {info.get('machine', '?')!r}): recorded plunges, 0 fitted; "
             + ("designed with the ball's own arc; " if f.get("groove") == "arc" else
                f"wall-slope RMS error of the groove map <= {f['slope_rms_deg_max']:.2f} deg; ")
             + f"cut width {f['cut_width_mm'][0]:.4f}-{f['cut_width_mm'][1]:.4f} mm "
@@ -476,8 +473,8 @@ def _parser():
         epilog="Every option and input file is checked before anything is written or sent; a refusal is one "
                "line 'error: ...' on stderr. " + EXIT_STATUS_HELP,
     )
-    p.add_argument("design", nargs="?", help="design .npz (docs/model.md §9); default: a built-in demo"
-                   " design")
+    p.add_argument("design", nargs="?", help="design .npz (docs/model.md §9), or a design run's "
+                   "output folder (its design.npz); default: a built-in demo design")
     p.add_argument("--dry-run", action="store_true", help="write G-code, preview and summary; never open a port")
     p.add_argument("--out", help="output prefix (default: the design path without .npz, or ./jscratch_demo); "
                                  "writes PREFIX.gcode, PREFIX.gcode.map.csv, PREFIX.preview.png, PREFIX.summary.json")
@@ -562,7 +559,14 @@ def _attach_as_carved(info: dict, design_path: str):
 
 
 def _check_options(args) -> None:
-    """Refuse option values and combinations before any work (`InputError`, one line)."""
+    """Refuse option values and combinations before any work (`InputError`, one line). A design
+    run's folder given as the design stands for its ``design.npz``."""
+    if args.design and os.path.isdir(args.design):
+        inside = os.path.join(args.design, "design.npz")
+        if not os.path.isfile(inside):
+            raise InputError(f"design {args.design!r} is a folder without a design.npz (give a "
+                             "design .npz, or a design run's output folder)")
+        args.design = inside
     if args.dry_run and args.port:
         raise InputError("--dry-run never opens a port; drop --port or --dry-run")
     if args.gcode and args.design:

@@ -130,15 +130,13 @@ def write_gif(path, frames, marks, az, *, fps: float = 8.0):
 
 def write_sheet(path, frames, marks, az, title=""):
     """Contact sheet PNG of the frames (matplotlib), design views framed in orange."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure  # not pyplot: a notebook's backend stays as it is
 
     f = len(frames)
     cols = min(f, 9)
     rows = math.ceil(f / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(1.4 * cols, 1.55 * rows + 0.3), squeeze=False)
+    fig = Figure(figsize=(1.4 * cols, 1.55 * rows + 0.3))
+    axes = fig.subplots(rows, cols, squeeze=False)
     for k, ax in enumerate(axes.flat):
         ax.axis("off")
         if k >= f:
@@ -150,7 +148,6 @@ def write_sheet(path, frames, marks, az, title=""):
         fig.suptitle(title, fontsize=8)
     fig.tight_layout()
     fig.savefig(os.fspath(path), dpi=80)
-    plt.close(fig)
 
 
 class _Formatter(argparse.ArgumentDefaultsHelpFormatter):

@@ -138,6 +138,47 @@ def test_save_and_load_a_hand_built_result(tmp_path):
     assert back.history == res.history and back.config == res.config
 
 
+def test_a_loaded_one_view_result_saves_again_with_its_scene_and_without_stale_figures(tmp_path):
+    """A one-view run's ghosting is NaN (saved as null): it loads back as NaN and saves again.
+    The scene and target names a run was made from travel with the result, so a re-saved folder
+    can be repeated with --config; an as-carved block not recomputed is dropped, not re-saved
+    beside no pictures; saving leaves matplotlib's backend as it was (a notebook's inline one)."""
+    import math
+
+    import matplotlib
+
+    from jscratch.design.config import SceneConfig
+    from jscratch.design.params import DesignParams
+
+    board = Board(shape=(16, 16))
+    s = Scratches(np.float32([[0.01, 0.02]]), np.float32([[0.05, 0.02]]), np.float32([2.5e-4]),
+                  np.float32([1.28e-4]), np.float32([0.04]))
+    views = Views(np.float32([[0.0, 0.5, 0.8]]), np.float32([[0.3, 0.3, 0.9]]), np.float32([1.0]))
+    params = DesignParams.from_physical(s, np.asarray(views.intensity), board)
+    disp = np.random.default_rng(2).random((1, 16, 16))
+    scene = SceneConfig(views=1, size=16, distance=2.0)
+    res = DesignResult(s, views, board, params, np.ones(1, bool), disp, disp, disp,
+                       {"total": [1.0], "terms": {}},
+                       {"ssim": [0.5], "ghosting": [float("nan")],
+                        "as_carved": {"ssim": [0.4]}},
+                       DesignConfig(n_scratches=1, groove="free"), scene, ["mine.png"])
+    before = matplotlib.get_backend()
+    matplotlib.use("pdf")  # any backend but Agg
+    try:
+        io.save_result(res, tmp_path / "a")
+        assert matplotlib.get_backend() == "pdf"
+    finally:
+        matplotlib.use(before)
+    assert "as_carved" not in res.metrics  # no as-carved render this time: no stale figures
+    back = io.load_result(tmp_path / "a")
+    assert math.isnan(back.metrics["ghosting"][0]) and back.metrics["ssim"] == [0.5]
+    assert back.scene == scene and back.names == ["mine.png"]
+    io.save_result(back, tmp_path / "b")
+    cfg = json.loads((tmp_path / "b" / "config.json").read_text())
+    assert cfg["scene"] == scene.to_dict() and cfg["targets"] == ["mine.png"]
+    assert json.loads((tmp_path / "b" / "metrics.json").read_text())["ghosting"] == [None]
+
+
 def test_images_read_as_a_viewer_shows_them(tmp_path):
     """A JPEG with an EXIF orientation is read turned as viewers show it (PIL's
     `ImageOps.exif_transpose`, the reference); CMYK is read as its RGB (not as RGBA); gray with

@@ -129,6 +129,21 @@ def test_cli_dry_run_makes_the_output_folder(tmp_path):
         assert (tmp_path / "new" / "deeper" / ("job" + suffix)).stat().st_size > 0
 
 
+def test_cli_takes_a_design_runs_folder(tmp_path, capsys):
+    """A design run's output folder stands for its design.npz (as preview takes it), with the
+    same default output prefix; a folder without one is refused in one line."""
+    d = demo_design(12, seed=1)
+    (tmp_path / "run").mkdir()
+    save_design(tmp_path / "run" / "design.npz", d.p0, d.p1, d.width, d.depth, d.alpha, d.board)
+    assert main([str(tmp_path / "run"), "--dry-run", "--quiet", "--order-time", "1"]) == 0
+    assert (tmp_path / "run" / "design.gcode").stat().st_size > 0
+    (tmp_path / "empty").mkdir()
+    assert main([str(tmp_path / "empty"), "--dry-run", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "is a folder without a design.npz" in err
+    assert os.listdir(tmp_path / "empty") == []
+
+
 def test_cli_dry_run_demo(tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     assert main(["--dry-run", "--demo-n", "60", "--order-time", "2"]) == 0

@@ -238,15 +238,18 @@ def save_result(result: DesignResult, out: str | os.PathLike, *, scene: SceneCon
     - ``metrics.json``: `result.metrics` plus the machine, the groove mode, the carving estimate
       (the toolpath in greedy order with the best directions, plus ``order_time`` s of 2-opt:
       by default none, so that the estimate is the same on every run; the 2-opt that
-      `jscratch.fabricate` runs shortens the travel by a few per cent, the hours by ~0.05 %)
+      `jscratch.fabricate` runs shortens the travel, and the hours less, the cutting dominating)
       and, with ``as_carved_samples > 0``, the
       as-carved SSIM (`jscratch.design.maker.as_carved`; also ``view<j>_carved.png``);
     - ``config.json``: ``{"design": DesignConfig, "scene": SceneConfig or None, "targets": names,
       "board", "camera", "light"}``, which ``python -m jscratch.design --config`` reads back;
     - ``view<j>_render.png``, ``view<j>_target.png``, ``comparison.png``, ``loss.png``.
 
-    An earlier result's ``view<j>_*.png`` in `out` that this one does not write are removed.
-    `python -m jscratch.design` writes its outputs with this call. Returns the metrics added.
+    `scene` and `names` default to the result's own (`DesignResult.scene`, `.names`). An earlier
+    result's ``view<j>_*.png`` in `out` that this one does not write are removed, and so are
+    `result.metrics`' as-carved figures when ``as_carved_samples`` is 0. `python -m
+    jscratch.design` writes its outputs with this call. Returns the metrics added (they are also
+    added to `result.metrics`).
     """
     from jscratch.design import maker
     from jscratch.design.checkpoint import save_npz
@@ -259,6 +262,8 @@ def save_result(result: DesignResult, out: str | os.PathLike, *, scene: SceneCon
     if not isinstance(result, DesignResult):
         raise DesignError(f"save_result needs a DesignResult (what design() returns), got "
                           f"{type(result).__name__}")
+    scene = result.scene if scene is None else scene
+    names = result.names if names is None else names
     if not (scene is None or isinstance(scene, SceneConfig)):
         raise DesignError(f"save_result: scene must be None or a SceneConfig, got {scene!r}")
     m = int(np.shape(result.targets)[0])
@@ -289,6 +294,8 @@ def save_result(result: DesignResult, out: str | os.PathLike, *, scene: SceneCon
             write_png(os.path.join(out, f"view{j}_carved.png"), img)
         add["as_carved"] = ac
     add["carving"] = maker.carving_estimate(d, profile, time_limit=order_time)
+    if not as_carved_samples:  # an earlier save's as-carved figures no longer have pictures
+        result.metrics.pop("as_carved", None)
     result.metrics.update(add)
     p = result.params
     save_npz(os.path.join(out, "result.npz"), {
@@ -413,8 +420,29 @@ def _result_from(out, cfg, metrics, config, d) -> DesignResult:
                           profile=d.profile)
     views = Views(np.asarray(d.camera, dt), np.asarray(d.light, dt), np.asarray(d.intensity, dt))
     history = json.loads(bytes(arrays["history"]).decode())
+    scene = cfg.get("scene")
+    scene = None if scene is None else SceneConfig.from_dict(scene)
+    names = cfg.get("targets")
+    if names is not None and not (isinstance(names, list) and len(names) == m
+                                  and all(isinstance(x, str) for x in names)):
+        raise DesignFileError(f"{os.path.join(out, 'config.json')!r}: 'targets' is not {m} names")
     return DesignResult(scratches, views, board, params, keep, arrays["radiance"],
-                        arrays["display"], arrays["targets"], history, metrics, config)
+                        arrays["display"], arrays["targets"], history, _json_floats(metrics),
+                        config, scene, names)
+
+
+def _json_floats(x, key=None):
+    """`_json_clean` undone for the per-view image metrics (``ssim``, ``psnr``, ``ghosting``,
+    at any depth): None back as NaN, "inf"/"-inf" as floats (a one-view run's ghosting is NaN,
+    saved as None). Other values are left as read."""
+    if isinstance(x, dict):
+        return {k: _json_floats(v, k) for k, v in x.items()}
+    if isinstance(x, list) and key in _IMAGE_METRICS:
+        return [math.nan if v is None else float(v) if v in ("inf", "-inf") else v for v in x]
+    return x
+
+
+_IMAGE_METRICS = ("ssim", "psnr", "ghosting")
 
 
 def _json_clean(x):
@@ -430,29 +458,31 @@ def _json_clean(x):
 
 def _write_pictures(result: DesignResult, out: str) -> None:
     """``view<j>_render.png``, ``view<j>_target.png``, ``comparison.png`` and ``loss.png``."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure  # not pyplot: a notebook's backend stays as it is
 
     m = result.targets.shape[0]
     for j in range(m):
         write_png(os.path.join(out, f"view{j}_render.png"), result.display[j])
         write_png(os.path.join(out, f"view{j}_target.png"), result.targets[j])
-    fig, axes = plt.subplots(2, m, figsize=(3 * m, 6.4), squeeze=False)
+
+    def num(x):
+        return "-" if x is None or not math.isfinite(x) else f"{x:.3f}"
+
+    fig = Figure(figsize=(3 * m, 6.4))
+    axes = fig.subplots(2, m, squeeze=False)
     for j in range(m):
         axes[0, j].imshow(result.targets[j], cmap="gray", vmin=0, vmax=1)
         axes[0, j].set_title(f"target {j}")
         axes[1, j].imshow(np.clip(result.display[j], 0, 1), cmap="gray", vmin=0, vmax=1)
         mt = result.metrics
-        axes[1, j].set_title(f"render {j}: SSIM {mt['ssim'][j]:.3f}, ghost {mt['ghosting'][j]:.3f}",
-                             fontsize=8)
+        axes[1, j].set_title(f"render {j}: SSIM {num(mt['ssim'][j])}, "
+                             f"ghost {num(mt['ghosting'][j])}", fontsize=8)
         for a in axes[:, j]:
             a.axis("off")
     fig.tight_layout()
     fig.savefig(os.path.join(out, "comparison.png"), dpi=100)
-    plt.close(fig)
-    fig, ax = plt.subplots(figsize=(5, 3.5))
+    fig = Figure(figsize=(5, 3.5))
+    ax = fig.subplots()
     ax.plot(np.arange(len(result.history["total"])), result.history["total"], label="total")
     for k, vals in result.history["terms"].items():
         ax.plot(np.arange(len(vals)), vals, "--", label=k)
@@ -462,4 +492,3 @@ def _write_pictures(result: DesignResult, out: str) -> None:
     ax.legend()
     fig.tight_layout()
     fig.savefig(os.path.join(out, "loss.png"), dpi=100)
-    plt.close(fig)

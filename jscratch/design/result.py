@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 from jscratch.scene import Board, Scratches, Views
-from jscratch.design.config import DesignConfig
+from jscratch.design.config import DesignConfig, SceneConfig
 from jscratch.design.params import DesignParams
 
 
@@ -42,6 +42,9 @@ class DesignResult:
       (`jscratch.native.status`). `jscratch.design.io.save_result` adds the machine, the groove
       mode, the carving estimate and (optionally) the as-carved SSIM.
     - `config`: the `DesignConfig`.
+    - `scene`, `names`: the `SceneConfig` and target names the run was made from, when known
+      (`load_result` reads them from a run folder; `save_result` writes them unless given others);
+      None for a design made from Python with views of its own.
     """
 
     scratches: Scratches
@@ -55,3 +58,5 @@ class DesignResult:
     history: dict[str, list]
     metrics: dict[str, Any]
     config: DesignConfig
+    scene: SceneConfig | None = None
+    names: list[str] | None = None
