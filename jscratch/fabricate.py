@@ -434,7 +434,8 @@ def summarize(info: dict) -> str:
     f = info.get("fit")
     if f and f.get("mode") == "design":
         out.append(
-            f"cutter fit       carvable design (machine profile {info.get('machine', '?')!r}): recorded plunges, 0 fitted; "
+            f"cutter fit       carvable design (machine profile {info.get('machine', '?')!r}): "
+            "recorded plunges, 0 fitted; "
             + ("designed with the ball's own arc; " if f.get("groove") == "arc" else
                f"wall-slope RMS error of the groove map <= {f['slope_rms_deg_max']:.2f} deg; ")
             + f"cut width {f['cut_width_mm'][0]:.4f}-{f['cut_width_mm'][1]:.4f} mm "
