@@ -60,7 +60,7 @@ from jscratch.grid import maybe_update as maybe_update
 from jscratch.grid import needs_rebin as needs_rebin
 from jscratch.grid import pair_tolerance as pair_tolerance
 from jscratch.grid import update as update
-from jscratch.scene import Board, Scratches, Views
+from jscratch.scene import Board, Scratches, Views, check_scratches
 from jscratch.shading import half_vectors
 
 __all__ = [
@@ -75,6 +75,7 @@ __all__ = [
     "allocate_lists",
     "bin_pairs",
     "build_pairs",
+    "check_chunk",
     "compact",
     "cull",
     "cull_coverage",
@@ -310,6 +311,12 @@ def pairs_of(pix, scr, val):
                      overflow=jnp.asarray(False))
 
 
+def check_chunk(where: str, chunk) -> None:
+    """`InputError` (one line) unless `chunk`, pairs evaluated per block, is an int >= 1."""
+    if isinstance(chunk, bool) or not isinstance(chunk, (int, np.integer)) or chunk < 1:
+        raise InputError(f"{where}: `chunk` (pairs per block) must be an int >= 1; got {chunk!r}")
+
+
 def bin_pairs(scratches: Scratches, board: Board, *, chunk: int = DEFAULT_CHUNK,
               shards: int = 1):
     """The complete (pixel, scratch) pair list of a scene, compacted (host code).
@@ -320,8 +327,12 @@ def bin_pairs(scratches: Scratches, board: Board, *, chunk: int = DEFAULT_CHUNK,
     ``chunk``) so that similar scenes share a compilation of `render_pairs`; padding slots hold
     the sentinel scratch ``N``.
 
-    **Returns:** `bvh.Pairs` ``(L,)`` for `render_pairs`.
+    **Returns:** `bvh.Pairs` ``(L,)`` for `render_pairs`. **Raises:** `InputError` for a
+    scratch that breaks the scene's rules (`scene.check_scratches`, endpoints on the board).
     """
+    check_chunk("bin_pairs", chunk)
+    check_scratches(scratches.p0, scratches.p1, scratches.width, scratches.depth,
+                    scratches.alpha, board=(board.Sx, board.Sy), source="bin_pairs")
     full, _ = build_pairs(scratches.p0, scratches.p1, scratches.width, scratches.depth,
                           board=(board.Sx, board.Sy), shape=board.shape)
     pix, scr, val = layout(np.asarray(full.pixel).reshape(-1),
@@ -344,6 +355,7 @@ def cull_pairs(pairs, scratches: Scratches, views: Views, board: Board, eps: flo
     """
     if eps <= 0 or not math.isfinite(eps):
         raise InputError(f"cull_pairs: `eps` must be finite and > 0; got {eps}")
+    check_chunk("cull_pairs", chunk)
     hs = half_vectors(views, board, scratches.dtype)
     keep = [np.asarray(cull(pairs, scratches.p0, scratches.p1, scratches.width,
                             scratches.depth, scratches.alpha, hs[j], eps, scratches.profile).valid)

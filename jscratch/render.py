@@ -57,14 +57,15 @@ from jaxtyping import Array, Float
 
 from jscratch import arc, lobe, native, ndf
 from jscratch.compile_options import grad_compiler_options
-from jscratch.bvh import (DEFAULT_CHUNK, bin_pairs, cull_pairs, flat_pairs, pair_checks,
-                          pixels_per_shard, view_keep)
+from jscratch.bvh import (DEFAULT_CHUNK, bin_pairs, check_chunk, cull_pairs, flat_pairs,
+                          pair_checks, pixels_per_shard, view_keep)
 from jscratch.errors import InputError
 from jscratch.scene import (
     Board,
     Scratches,
     Views,
     check_scratches,
+    check_views,
     flat_highlight,
     scene_checks,
     views_on_circle,
@@ -610,9 +611,14 @@ def render_pairs(scratches: Scratches, views: Views, board: Board, pairs,
     Gradients: reverse mode only (a `jax.custom_vjp`; see the module docstring).
     """
     _check_scene_types("render_pairs", scratches, views, board)
+    check_chunk("render_pairs", chunk)
     dtype = scratches.dtype
     if not jnp.issubdtype(dtype, jnp.floating):
         raise InputError(f"render_pairs: scratches must be floating point; got {dtype}")
+    if checked and not any(isinstance(a, jax.core.Tracer) for a in (scratches.p0, scratches.p1)):
+        # Called eagerly: the endpoints too (inside jit the board is static: `render` checks).
+        check_scratches(scratches.p0, scratches.p1, scratches.width, scratches.depth,
+                        scratches.alpha, board=(board.Sx, board.Sy), source="render_pairs")
     M, P, n = views.m, board.n_pixels, scratches.n
     axes = _mesh_axes(mesh, axis_names)
     shards = _n_shards(mesh, axes)
@@ -703,8 +709,10 @@ def render(scratches: Scratches, views: Views, board: Board, *, eps: float = 0.0
     _check_scene_types("render", scratches, views, board)
     if eps < 0 or not math.isfinite(eps):
         raise InputError(f"render: `eps` must be finite and >= 0; got {eps}")
+    check_chunk("render", chunk)
     check_scratches(scratches.p0, scratches.p1, scratches.width, scratches.depth, scratches.alpha,
                     board=(board.Sx, board.Sy), source="render")
+    check_views(views.camera, views.light, views.intensity, source="render")
     axis_names = tuple(axis_names) if isinstance(axis_names, list) else axis_names
     shards = _n_shards(mesh, _mesh_axes(mesh, axis_names))
     full_c = bin_pairs(scratches, board, chunk=chunk, shards=shards)
@@ -736,6 +744,9 @@ def render_reference(scratches: Scratches, views: Views, board: Board, *,
     """
     _check_scene_types("render_reference", scratches, views, board)
     dtype = scratches.dtype
+    if not any(isinstance(a, jax.core.Tracer) for a in (scratches.p0, scratches.p1)):
+        check_scratches(scratches.p0, scratches.p1, scratches.width, scratches.depth,
+                        scratches.alpha, board=(board.Sx, board.Sy), source="render_reference")
     scratches, views = _check_values(scratches, views)
     views = jax.tree_util.tree_map(lambda x: x.astype(dtype), views)
     fps = pixel_footprints(board, dtype)  # (P, 4, 2)

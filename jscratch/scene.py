@@ -10,14 +10,17 @@ every stage checks them by.
 - `views_on_circle`: the paper's view layout (docs/model.md §5); `flat_highlight`.
 
 **The rules** (`SCRATCH_RULES`, `check_scratches`, `check_views`, `scene_checks`): every value
-finite; ``width > 0``, ``depth > 0`` (m); ``0 < alpha < 1`` (the domain of
-`ndf.pair_integral`); endpoints on the board ``[0, Sx] x [0, Sy]`` (within `ON_BOARD_RTOL` of its
-size) when the board is known; cameras and lights above the board (``z > 0``); intensities
-``>= 0``. The scene objects (`Scratches`, `Views`), the binning (`jscratch.bvh`), the renderer
-(`jscratch.render`), the design file (`jscratch.designfile`) and the optimiser
-(`jscratch.design`) all check by these functions, so a scene one of them accepts the others
-accept too. Host checks raise one line naming the source, the scratch (or view) and the field;
-traced checks (`scene_checks`) give ``(condition, message)`` pairs for `eqx.error_if`.
+finite; ``width > 0``, ``depth > 0`` (m); ``ALPHA_RANGE[0] <= alpha <= ALPHA_RANGE[1]`` (where
+the float32 pair integral and its gradients are accurate; `ndf.pair_integral`'s domain is
+``(0, 1)``); endpoints on the board ``[0, Sx] x [0, Sy]`` (within `ON_BOARD_RTOL` of its size)
+when the board is known; cameras and lights at least `MIN_HEIGHT` above the board and within
+`MAX_DISTANCE` of its origin; intensities ``I >= 0`` with ``I / z_light^2 <= MAX_IRRADIANCE``;
+float32 or float64 arrays. The scene objects (`Scratches`, `Views`), the binning
+(`jscratch.bvh`), the renderer (`jscratch.render`), the design file (`jscratch.designfile`) and
+the optimiser (`jscratch.design`) all check by these functions, so a scene one of them accepts
+the others accept too. Host checks raise one line naming the source, the scratch (or view) and
+the field; traced checks (`scene_checks`) give ``(condition, message)`` pairs for
+`eqx.error_if`.
 
 Imports: ``jax``, ``equinox``, ``numpy`` only (no other jscratch module).
 """
@@ -36,6 +39,10 @@ from jaxtyping import Array, ArrayLike, Float
 from jscratch.errors import InputError
 
 __all__ = [
+    "ALPHA_RANGE",
+    "MAX_DISTANCE",
+    "MAX_IRRADIANCE",
+    "MIN_HEIGHT",
     "ON_BOARD_RTOL",
     "PROFILES",
     "SCRATCH_RULES",
@@ -56,12 +63,34 @@ ON_BOARD_RTOL = 1e-6
 #: Groove cross-sections (`Scratches.profile`): the paper's and the ball cutter's circular arc.
 PROFILES = ("paper", "arc")
 
+#: The roughness a scratch may have: the float32 pair integral is accurate to the stability
+#: sweep's tolerance down to 1e-4 (it loses digits below, and overflows to NaN near 1e-8), and
+#: its alpha gradient to 1e-3 of ``D / alpha`` up to 0.99 (1e-2 at 0.999).
+ALPHA_RANGE = (1e-4, 0.99)
+
+#: Cameras and lights: at least this high above the board (m; closer, the squared distance to a
+#: pixel below underflows float32) and at most this far from its origin (m; farther, it
+#: overflows; 1e3 m is already the far field, where every pixel sees the same directions).
+MIN_HEIGHT, MAX_DISTANCE = 1e-6, 1e9
+
+#: The brightest light, as its irradiance scale ``I / z^2`` at the board below it (W/m^2, `I`
+#: in W/sr, `z` its height): brighter, float32 values and gradients overflow (the default scene
+#: needs about 2e2, a light at `MAX_DISTANCE` about 1e2).
+MAX_IRRADIANCE = 1e20
+
+#: The array dtypes a scene may hold.
+DTYPES = ("float32", "float64")
+
+# The bounds above are inclusive of their float32 roundings (float32(1e-4) is 9.99999975e-5).
+_LOW, _HIGH = 1 - 1e-6, 1 + 1e-6
+
 #: The range rule of each per-scratch value: ``name -> (predicate, text)``; the predicate works
 #: elementwise on numpy and jax arrays alike.
 SCRATCH_RULES = {
     "width": (lambda v: v > 0, "must be > 0 m"),
     "depth": (lambda v: v > 0, "must be > 0 m"),
-    "alpha": (lambda v: (v > 0) & (v < 1), "must lie in (0, 1)"),
+    "alpha": (lambda v: (v >= _LOW * ALPHA_RANGE[0]) & (v <= _HIGH * ALPHA_RANGE[1]),
+              f"must lie in [{ALPHA_RANGE[0]:g}, {ALPHA_RANGE[1]:g}]"),
 }
 
 
@@ -140,10 +169,26 @@ def check_views(camera, light, intensity, *, source: str = "views",
             j = int(np.argmax(z <= 0))
             raise error(f"{source}: view {j}: {name} is at z = {z[j]}: it must be above the board"
                         " (z > 0)")
+        if (z < _LOW * MIN_HEIGHT).any():
+            j = int(np.argmax(z < _LOW * MIN_HEIGHT))
+            raise error(f"{source}: view {j}: {name} is at z = {z[j]:g} m: it must be at least "
+                        f"{MIN_HEIGHT:g} m above the board")
+        far = np.abs(arrays[name]).max(axis=1) > _HIGH * MAX_DISTANCE
+        if far.any():
+            j = int(np.argmax(far))
+            raise error(f"{source}: view {j}: {name} lies farther than {MAX_DISTANCE:g} m from the "
+                        f"board's origin (float32 squares overflow; 1e3 m is already the far "
+                        f"field)")
     i = arrays["intensity"]
     if (i < 0).any():
         j = int(np.argmax(i < 0))
         raise error(f"{source}: view {j}: intensity is negative ({i[j]}): it must be >= 0")
+    e = i / arrays["light"][:, 2] ** 2
+    if (e > _HIGH * MAX_IRRADIANCE).any():
+        j = int(np.argmax(e > _HIGH * MAX_IRRADIANCE))
+        raise error(f"{source}: view {j}: intensity {i[j]:g} W/sr at {arrays['light'][j, 2]:g} m "
+                    f"above the board is {e[j]:g} W/m^2 there, above {MAX_IRRADIANCE:g} (float32 "
+                    f"overflows)")
 
 
 def scene_checks(scratches: "Scratches", views: "Views | None" = None, *,
@@ -164,9 +209,17 @@ def scene_checks(scratches: "Scratches", views: "Views | None" = None, *,
             (~(jnp.all(jnp.isfinite(views.camera)) & jnp.all(jnp.isfinite(views.light))
                & jnp.all(jnp.isfinite(views.intensity))),
              f"{source}: a view (camera, light or intensity) is not finite"),
-            (jnp.any(views.camera[:, 2] <= 0) | jnp.any(views.light[:, 2] <= 0),
-             f"{source}: every camera and light must be above the board (z > 0)"),
-            (jnp.any(views.intensity < 0), f"{source}: a view intensity is negative"),
+            (jnp.any(views.camera[:, 2] < _LOW * MIN_HEIGHT)
+             | jnp.any(views.light[:, 2] < _LOW * MIN_HEIGHT),
+             f"{source}: every camera and light must be at least {MIN_HEIGHT:g} m above the "
+             f"board"),
+            (jnp.any(jnp.abs(views.camera) > _HIGH * MAX_DISTANCE)
+             | jnp.any(jnp.abs(views.light) > _HIGH * MAX_DISTANCE),
+             f"{source}: a camera or light lies farther than {MAX_DISTANCE:g} m"),
+            ((jnp.any(views.intensity < 0)
+              | jnp.any(views.intensity > _HIGH * MAX_IRRADIANCE * views.light[:, 2] ** 2)),
+             f"{source}: a view intensity is negative, or above {MAX_IRRADIANCE:g} W/m^2 at the "
+             f"board (I / z^2)"),
         ]
     return checks
 
@@ -179,8 +232,11 @@ def scene_checks(scratches: "Scratches", views: "Views | None" = None, *,
 def _to_shape(shape) -> tuple[int, int]:
     try:
         h, w = (int(s) for s in shape)
-    except (TypeError, ValueError):
-        raise InputError(f"Board: `shape` must be (H, W), two positive ints; got {shape!r}") from None
+        whole = all(float(s) == int(s) for s in shape)
+    except (TypeError, ValueError, OverflowError):
+        whole = False
+    if not whole:
+        raise InputError(f"Board: `shape` must be (H, W), two positive ints; got {shape!r}")
     return (h, w)
 
 
@@ -242,11 +298,30 @@ def _is_tracer(x) -> bool:
     return isinstance(x, jax.core.Tracer)
 
 
-def _float_dtype(*xs):
+def _float_dtype(*xs, source: str):
+    """The scene dtype of arrays `xs`: theirs when float32 or float64, the default float for
+    integers; `InputError` for complex, half-precision or non-numeric arrays."""
     dt = jnp.result_type(*xs)
+    if jnp.issubdtype(dt, jnp.complexfloating):
+        raise InputError(f"{source}: the arrays are complex ({dt}); a scene is real: float32 or "
+                         f"float64")
+    if jnp.issubdtype(dt, jnp.floating) and jnp.dtype(dt).name not in DTYPES:
+        raise InputError(f"{source}: the arrays are {dt}; a scene is float32 or float64 (half "
+                         f"precision cannot hold the pair integrals)")
     if not jnp.issubdtype(dt, jnp.floating):
+        if not (jnp.issubdtype(dt, jnp.integer) or dt == jnp.bool_):
+            raise InputError(f"{source}: the arrays are {dt}, not numbers")
         dt = jnp.result_type(float)
     return dt
+
+
+def _as_array(x, name: str, source: str):
+    """`jnp.asarray(x)`, with a one-line `InputError` for what is no numeric array."""
+    try:
+        return jnp.asarray(x)
+    except (TypeError, ValueError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise InputError(f"{source}: `{name}` is not a numeric array ({first[:100]})") from None
 
 
 class Scratches(eqx.Module):
@@ -283,9 +358,9 @@ class Scratches(eqx.Module):
         if profile not in PROFILES:
             raise InputError(f"Scratches: `profile` must be one of {PROFILES}; got {profile!r}")
         self.profile = profile
-        p0 = jnp.asarray(p0)
-        p1 = jnp.asarray(p1)
-        dtype = _float_dtype(p0, p1)
+        p0 = _as_array(p0, "p0", "Scratches")
+        p1 = _as_array(p1, "p1", "Scratches")
+        dtype = _float_dtype(p0, p1, source="Scratches")
         for name, p in (("p0", p0), ("p1", p1)):
             if p.ndim != 2 or p.shape[1] != 2:
                 raise InputError(f"Scratches: `{name}` must have shape (N, 2); got {p.shape}")
@@ -295,6 +370,7 @@ class Scratches(eqx.Module):
         self.p0 = p0.astype(dtype)
         self.p1 = p1.astype(dtype)
         for name, v in (("width", width), ("depth", depth), ("alpha", alpha)):
+            _float_dtype(_as_array(v, name, "Scratches"), source="Scratches")
             v = jnp.asarray(v, dtype=dtype)
             if v.ndim == 0:
                 v = jnp.broadcast_to(v, (n,))
@@ -373,9 +449,9 @@ class Views(eqx.Module):
     intensity: Float[Array, " m"]
 
     def __init__(self, camera: ArrayLike, light: ArrayLike, intensity: ArrayLike = 1.0):
-        camera = jnp.asarray(camera)
-        light = jnp.asarray(light)
-        dtype = _float_dtype(camera, light)
+        camera = _as_array(camera, "camera", "Views")
+        light = _as_array(light, "light", "Views")
+        dtype = _float_dtype(camera, light, source="Views")
         for name, p in (("camera", camera), ("light", light)):
             if p.ndim != 2 or p.shape[1] != 3:
                 raise InputError(f"Views: `{name}` must have shape (M, 3); got {p.shape}")
@@ -383,6 +459,7 @@ class Views(eqx.Module):
             raise InputError(f"Views: `camera` {camera.shape} and `light` {light.shape} must have"
                              " the same shape")
         m = camera.shape[0]
+        _float_dtype(_as_array(intensity, "intensity", "Views"), source="Views")
         intensity = jnp.asarray(intensity, dtype)
         if intensity.ndim == 0:
             intensity = jnp.broadcast_to(intensity, (m,))

@@ -556,3 +556,44 @@ def test_cut_to_slab_clamps_ends_and_flags_them():
     # Y differences are kept: 1 along the first piece, 2 * (0.3 / 0.4) along the cut second one.
     np.testing.assert_allclose(np.asarray(Yb2 - Ya2)[:3], [1.0, 1.5, 0.0], atol=1e-6)
     np.testing.assert_allclose(float(Ya2[1] - Ya2[0]), 0.5, atol=1e-6)
+
+
+@pytest.mark.float64
+@pytest.mark.parametrize("profile", ["paper", "arc"])
+def test_float32_gradients_hold_over_the_scenes_alpha_range(profile):
+    """At the ends of `scene.ALPHA_RANGE` the float32 pair integral and its alpha and width
+    gradients agree with float64 (the same float32 inputs) to 2e-3 of ``D / alpha`` and
+    ``D / w`` over lit random pairs: the range is where float32 is accurate (past 0.99 the
+    alpha gradient of the paper profile loses about 1e-2)."""
+    from jscratch import arc
+    from jscratch.scene import ALPHA_RANGE
+
+    f = arc.pair_integral_of(profile)
+    rng = np.random.default_rng(7)
+    n, P = 400, 0.000625
+    x0 = rng.uniform(0.002, 0.008, (n, 2))
+    fps = np.stack([x0, x0 + [P, 0], x0 + [P, P], x0 + [0, P]], 1)
+    mid = x0 + rng.uniform(0, P, (n, 2))
+    phi = rng.uniform(0, 2 * np.pi, n)
+    t = np.stack([np.cos(phi), np.sin(phi)], -1)
+    beta = rng.uniform(-0.3, 0.3, n)  # h in the grooves' fans of normals: lit at any alpha
+    h = np.concatenate([np.sin(beta)[:, None] * np.stack([-t[:, 1], t[:, 0]], -1),
+                        np.cos(beta)[:, None]], -1)
+    w, d = rng.uniform(1e-4, 3e-4, n), rng.uniform(0.3e-4, 2e-4, n)
+    for a in ALPHA_RANGE:
+        args = [np.asarray(x, np.float32) for x in
+                (h, fps, mid - 0.002 * t, mid + 0.002 * t, w, d, np.full(n, a))]
+
+        def run(dt):
+            z = [jnp.asarray(x, dt) for x in args]
+            D = jax.vmap(lambda *q: f(*q)[0])(*z)
+            gw, ga = jax.vmap(jax.grad(lambda *q: f(*q)[0], argnums=(4, 6)))(*z)
+            return (np.asarray(x, np.float64) for x in (D, gw, ga))
+
+        (D32, gw32, ga32), (D64, gw64, ga64) = run(jnp.float32), run(jnp.float64)
+        lit = D64 > 1e-3 * D64.max()
+        assert lit.sum() > 50
+        for g32, g64, scale in ((ga32, ga64, a), (gw32, gw64, args[4])):
+            err = (np.abs(g32 - g64) * scale)[lit] / D64[lit]
+            assert err.max() < 2e-3, (profile, a, float(err.max()))
+        assert float(np.max(np.abs(D32 - D64)[lit] / D64[lit])) < 1e-3

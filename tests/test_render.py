@@ -253,8 +253,8 @@ _vg = jax.jit(lambda sv, pairs, weights, mesh=None: jax.value_and_grad(
 
 def _stress_scene(dtype):
     """Scratches on pixel edges and corners, zero length, board edges and corners, overlapping
-    twins, tiny and unit alpha, very wide/shallow and narrow/deep; a grazing camera, a grazing
-    light and a camera straight above."""
+    twins, the smallest and largest alpha, very wide/shallow and narrow/deep; a grazing camera,
+    a grazing light and a camera straight above."""
     p0 = np.array([[0.001, 0.003], [0.002, 0.002], [0.005, 0.005], [0.0, 0.001], [0.004, 0.0],
                    [0.0031, 0.0062], [0.006, 0.001], [0.007, 0.007], [0.003, 0.008],
                    [0.0005, 0.0005], [0.0, 0.0], [0.0005, 0.0005]])
@@ -263,7 +263,7 @@ def _stress_scene(dtype):
                    [0.0095, 0.0095], [0.003, 0.002], [0.0095, 0.0095]])
     width = np.array([2e-4, 2e-4, 2e-4, 3e-4, 1e-4, 1e-3, 5e-5, 2e-4, 2e-4, 2e-4, 2e-4, 2e-4])
     depth = np.array([1e-4, 1e-4, 1e-4, 2e-4, 1e-4, 1e-6, 5e-4, 1e-4, 1e-4, 1e-4, 1e-4, 1e-4])
-    alpha = np.array([0.04, 1e-4, 0.3, 0.04, 0.999, 0.04, 0.04, 1e-3, 0.9, 0.04, 0.04, 0.04])
+    alpha = np.array([0.04, 1e-4, 0.3, 0.04, 0.99, 0.04, 0.04, 1e-3, 0.9, 0.04, 0.04, 0.04])
     s = render.Scratches(*(jnp.asarray(x, dtype) for x in (p0, p1, width, depth, alpha)))
     camera = np.array([[0.005, -1.0, 0.02], [0.005, 0.005, 0.5], [0.8, 0.005, 0.3]])
     light = np.array([[-1.0, 0.005, 0.3], [0.005, 1.0, 0.01], [0.005, -0.8, 0.4]])
@@ -512,7 +512,8 @@ def test_gradient_memory_does_not_grow_with_pairs(monkeypatch):
 def test_errors_name_the_argument():
     with pytest.raises(ValueError, match="`p1` must have shape"):
         render.Scratches(jnp.zeros((3, 2)), jnp.zeros((3, 3)))
-    with pytest.raises(ValueError, match=r"Scratches: scratch 1: alpha = 1.0 must lie in \(0, 1\)"):
+    with pytest.raises(ValueError,
+                       match=r"Scratches: scratch 1: alpha = 1.0 must lie in \[0.0001, 0.99\]"):
         render.Scratches(jnp.zeros((2, 2)), jnp.ones((2, 2)), alpha=jnp.asarray([0.1, 1.0]))
     with pytest.raises(ValueError, match="Scratches: scratch 1: width = nan is not finite"):
         render.Scratches(jnp.zeros((2, 2)), jnp.ones((2, 2)), width=jnp.asarray([1e-4, jnp.nan]))

@@ -3,6 +3,7 @@ and their one-line messages (host checks and the traced `scene_checks`), `Board`
 flat-board highlight by hand (mirror geometry), and the `views_on_circle` layout."""
 
 import math
+import re
 
 import jax
 import jax.numpy as jnp
@@ -39,7 +40,8 @@ def test_random_scratches_lie_on_the_board_with_lengths_in_range():
     [
         (dict(width=np.float32([1e-4, 0.0])), r"Scratches: scratch 1: width = 0.0 must be > 0 m"),
         (dict(depth=np.float32([1e-4, -1.0])), r"scratch 1: depth = -1.0 must be > 0 m"),
-        (dict(alpha=np.float32([0.1, 1.0])), r"scratch 1: alpha = 1.0 must lie in \(0, 1\)"),
+        (dict(alpha=np.float32([0.1, 1.0])),
+         r"scratch 1: alpha = 1.0 must lie in \[0.0001, 0.99\]"),
         (dict(width=np.float32([np.inf, 1e-4])), r"scratch 0: width = inf is not finite"),
     ],
 )
@@ -131,3 +133,79 @@ def test_groove_profile_is_checked_and_kept():
     assert jax.jit(lambda t: t)(s).profile == "arc"
     with pytest.raises(scene.InputError, match="profile.*one of"):
         Scratches(p0, p1, profile="ball")
+
+
+def test_views_and_arrays_outside_the_float32_range_are_refused_in_one_line():
+    """What float32 cannot render is refused where it is made, in one line: a light or camera
+    closer than `MIN_HEIGHT` to the board (its squared distance to the pixel below underflows)
+    or farther than `MAX_DISTANCE` (it overflows), an intensity whose irradiance at the board passes
+    `MAX_IRRADIANCE` (float32 overflows), half-precision, complex or non-numeric arrays, a board
+    shape that is no int; at the edges of the rules a float32 render and its gradient stay
+    finite."""
+    from jscratch import render
+
+    up = [[0.005, 0.005, 1.0]]
+    for cam, light, inten, words in (
+            ([[0.0, 0.0, 1e-30]], up, 1.0, "camera is at z = 1e-30 m: it must be at least 1e-06 m"),
+            (up, [[1e20, 0.0, 1e20]], 1.0, "light lies farther than 1e+09 m"),
+            (up, up, 1e30, "intensity 1e+30 W/sr at 1 m above the board is 1e+30 W/m^2 there, "
+                           "above 1e+20")):
+        with pytest.raises(ValueError, match=re.escape(words)):
+            Views(np.float32(cam), np.float32(light), np.float32(inten))
+    for p0, words in ((np.zeros((1, 2), np.float16), "float16; a scene is float32 or float64"),
+                      (jnp.zeros((1, 2), jnp.bfloat16), "bfloat16; a scene is float32 or float64"),
+                      (np.zeros((1, 2), np.complex64), "complex"),
+                      ([[0.0, 0.0], [1.0]], "`p0` is not a numeric array"),
+                      (np.array([["a", "b"]]), "`p0` is not a numeric array|not numbers"),
+                      (None, "`p0` is not a numeric array|not numbers")):
+        p1 = p0 if hasattr(p0, "dtype") else np.ones((1, 2), np.float32)
+        with pytest.raises(ValueError, match=words) as e:
+            Scratches(p0, p1)
+        assert "\n" not in str(e.value)
+    with pytest.raises(ValueError, match=r"`shape` must be \(H, W\), two positive ints"):
+        Board(shape=(16.7, 16))
+
+    board = Board(shape=(8, 8), Sx=0.01, Sy=0.01)
+    s = Scratches(np.float32([[0.002, 0.003]]), np.float32([[0.008, 0.006]]), 2e-4, 1e-4,
+                  scene.ALPHA_RANGE[0])
+    c = 0.01 / 16 + 0.01 / 8 * 3  # a pixel centre
+    z = scene.MIN_HEIGHT
+    near = Views(np.float32([[c, c, z]]), np.float32([[c, c, z]]), np.float32(1.0))
+    bright = Views(np.float32([[c, c, z]]), np.float32([[c, c, z]]),
+                   np.float32(0.999 * scene.MAX_IRRADIANCE * z * z))
+    far = Views(np.float32([[0.0, scene.MAX_DISTANCE, 1.0]]),
+                np.float32([[scene.MAX_DISTANCE, 0.0, scene.MAX_DISTANCE]]), np.float32(1e20))
+    for v in (near, bright, far):
+        pairs = render.bin_pairs(s, board)
+        val, g = jax.value_and_grad(
+            lambda s, v: jnp.sum(render.render_pairs(s, v, board, pairs)), argnums=(0, 1))(s, v)
+        assert np.isfinite(float(val))
+        assert all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree_util.tree_leaves(g))
+
+
+def test_renderers_check_what_they_are_given(tmp_path):
+    """`render` checks the views on the host (a view edited past `Views`' own check is one line,
+    not an equinox runtime error), every host entry checks the endpoints against the board and
+    `chunk`."""
+    import equinox as eqx
+
+    from jscratch import render
+
+    board = Board(shape=(8, 8), Sx=0.01, Sy=0.01)
+    s = Scratches(np.float32([[0.002, 0.003]]), np.float32([[0.008, 0.006]]), 2e-4, 1e-4, 0.04)
+    v = Views(np.float32([[0.0, 0.0, 1.0]]), np.float32([[0.01, 0.01, 1.0]]))
+    below = eqx.tree_at(lambda t: t.camera, v, -v.camera)
+    with pytest.raises(ValueError, match="render: view 0: camera is at z = -1.0") as e:
+        render.render(s, below, board)
+    assert "\n" not in str(e.value)
+    for chunk in (0, -5, 2.5):
+        with pytest.raises(ValueError, match=r"render: `chunk` \(pairs per block\) must be an int"):
+            render.render(s, v, board, chunk=chunk)
+    off = Scratches(np.float32([[0.002, 0.003]]), np.float32([[0.02, 0.006]]), 2e-4, 1e-4, 0.04)
+    pairs = render.bin_pairs(s, board)
+    for call, where in ((lambda: render.bin_pairs(off, board), "bin_pairs"),
+                        (lambda: render.render_pairs(off, v, board, pairs), "render_pairs"),
+                        (lambda: render.render_reference(off, v, board), "render_reference")):
+        with pytest.raises(ValueError,
+                           match=rf"{where}: scratch 0: p1 = \(0.02, 0.006\) m lies off"):
+            call()

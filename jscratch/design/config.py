@@ -17,6 +17,7 @@ from jscratch.designfile import DesignError
 from jscratch.errors import NonFiniteError
 from jscratch.options import option
 from jscratch.render import DEFAULT_CHUNK
+from jscratch.scene import ALPHA_RANGE
 
 __all__ = ["DesignConfig", "SceneConfig", "GROUPS", "PARAMETERISATIONS", "LR_SCHEDULES",
            "DEFAULT_IMAGES", "NonFiniteError"]
@@ -175,9 +176,10 @@ class DesignConfig:
             number(name, 0.0, what="a positive length in metres")
             if getattr(self, name) <= 0:
                 bad(name, "a positive length in metres")
-        number("init_alpha", 0.0, 1.0, "in (0, 1)")
-        if not 0 < self.init_alpha < 1:
-            bad("init_alpha", "in (0, 1)")
+        a_lo, a_hi = ALPHA_RANGE
+        number("init_alpha", a_lo, a_hi, f"in [{a_lo:g}, {a_hi:g}]")
+        if not a_lo <= self.init_alpha <= a_hi:
+            bad("init_alpha", f"in [{a_lo:g}, {a_hi:g}] (the scene's rule)")
         try:
             lo, hi = (float(x) for x in self.init_length)
         except (TypeError, ValueError, OverflowError):
