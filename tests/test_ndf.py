@@ -580,14 +580,13 @@ def test_float32_gradients_hold_over_the_scenes_alpha_range(profile):
     h = np.concatenate([np.sin(beta)[:, None] * np.stack([-t[:, 1], t[:, 0]], -1),
                         np.cos(beta)[:, None]], -1)
     w, d = rng.uniform(1e-4, 3e-4, n), rng.uniform(0.3e-4, 2e-4, n)
+    value_and_grads = jax.jit(jax.vmap(jax.value_and_grad(lambda *q: f(*q)[0], argnums=(4, 6))))
     for a in ALPHA_RANGE:
         args = [np.asarray(x, np.float32) for x in
                 (h, fps, mid - 0.002 * t, mid + 0.002 * t, w, d, np.full(n, a))]
 
         def run(dt):
-            z = [jnp.asarray(x, dt) for x in args]
-            D = jax.vmap(lambda *q: f(*q)[0])(*z)
-            gw, ga = jax.vmap(jax.grad(lambda *q: f(*q)[0], argnums=(4, 6)))(*z)
+            D, (gw, ga) = value_and_grads(*(jnp.asarray(x, dt) for x in args))
             return (np.asarray(x, np.float64) for x in (D, gw, ga))
 
         (D32, gw32, ga32), (D64, gw64, ga64) = run(jnp.float32), run(jnp.float64)
