@@ -774,6 +774,7 @@ void geometry(const V (&fp)[4][2], const Dual<V, N>& p0x, const Dual<V, N>& p0y,
   D e_ua[4], e_ub[4], e_ya[4], e_yb[4];
   D lo_in = czero, lo_out = czero, hi_in = czero, hi_out = czero;
   V sw = zero, swy = zero;
+  auto hi_touch = zero > one;  // the boundary crosses or touches y_hi (`ndf._strip_pieces`)
   for (int i = 0; i < 4; ++i) {
     const int j = (i + 1) % 4;
     D du = u[j] - u[i], dyd = y[j] - y[i];
@@ -805,12 +806,15 @@ void geometry(const V (&fp)[4][2], const Dual<V, N>& p0x, const Dual<V, N>& p0y,
     lo_out = lo_out + dsel((yi < lo) & (yj >= lo), e_ua[i], czero);
     hi_in = hi_in + dsel((yi <= hi) & (yj > hi), e_ub[i], czero);
     hi_out = hi_out + dsel((yi > hi) & (yj <= hi), e_ua[i], czero);
+    hi_touch = hi_touch | ((yi <= hi) & (yj > hi)) | ((yi > hi) & (yj <= hi));
     V wgt = vabs<T>(e_ub[i].v - e_ua[i].v) + vabs<T>(e_yb[i].v - e_ya[i].v);
     sw += wgt;
     swy += wgt * (e_ya[i].v + e_yb[i].v) / 2;
   }
-  // y_ref carries no derivative.
-  const D y_ref = cst<N>(sel<V>(sw > 0, swy / sel<V>(sw > 0, sw, one), y_lo.v));
+  // y_ref carries no derivative; a strip that holds one point of the footprint, at y_hi,
+  // takes y_hi (`ndf._strip_pieces`).
+  const D y_ref = cst<N>(sel<V>(sw > 0, swy / sel<V>(sw > 0, sw, one),
+                                sel<V>(hi_touch, y_hi.v, y_lo.v)));
   D pu[kPieces] = {e_ua[0], e_ua[1], e_ua[2], e_ua[3], lo_in, hi_in};
   D pv[kPieces] = {e_ub[0], e_ub[1], e_ub[2], e_ub[3], lo_out, hi_out};
   D pa[kPieces] = {e_ya[0] - y_ref, e_ya[1] - y_ref, e_ya[2] - y_ref, e_ya[3] - y_ref,
