@@ -232,3 +232,34 @@ def test_target_helpers_refuse_bad_arguments_in_one_line(call, match):
     with pytest.raises(DesignError, match=match) as e:
         call()
     assert "\n" not in str(e.value)
+
+
+def test_a_save_that_fails_part_way_leaves_the_folder_as_it_was(tmp_path, monkeypatch):
+    """`save_result` writes into a staging folder and moves the files in once all are written:
+    a failure while drawing the pictures leaves an earlier result whole (its files unchanged,
+    no new ones, no staging folder), and a new folder is not left behind."""
+    from jscratch.design.params import DesignParams
+
+    board = Board(shape=(16, 16))
+    s = Scratches(np.float32([[0.01, 0.02]]), np.float32([[0.05, 0.02]]), np.float32([2.5e-4]),
+                  np.float32([1.28e-4]), np.float32([0.04]))
+    views = Views(np.float32([[0.0, 0.5, 0.8]]), np.float32([[0.3, 0.3, 0.9]]), np.float32([1.0]))
+    params = DesignParams.from_physical(s, np.asarray(views.intensity), board)
+    disp = np.random.default_rng(3).random((1, 16, 16))
+    res = DesignResult(s, views, board, params, np.ones(1, bool), disp, disp, disp,
+                       {"total": [1.0], "terms": {}}, {"ssim": [0.5], "ghosting": [0.1]},
+                       DesignConfig(n_scratches=1, groove="free"))
+    io.save_result(res, tmp_path / "a")
+    before = {f.name: f.read_bytes() for f in (tmp_path / "a").iterdir()}
+
+    def broken(*args):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(io, "_write_pictures", broken)
+    res.history["total"].append(0.5)  # a different result
+    for out in (tmp_path / "a", tmp_path / "new"):
+        with pytest.raises(OSError, match="No space left"):
+            io.save_result(res, out)
+    assert {f.name: f.read_bytes() for f in (tmp_path / "a").iterdir()} == before
+    assert not (tmp_path / "new").exists()
+    assert "carving" in res.metrics  # from the first save only

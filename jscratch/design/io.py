@@ -10,6 +10,8 @@ import json
 import math
 import os
 import re
+import shutil
+import tempfile
 
 import numpy as np
 
@@ -251,9 +253,6 @@ def save_result(result: DesignResult, out: str | os.PathLike, *, scene: SceneCon
     jscratch.design` writes its outputs with this call. Returns the metrics added (they are also
     added to `result.metrics`).
     """
-    from jscratch.design import maker
-    from jscratch.design.checkpoint import save_npz
-
     if not isinstance(as_carved_samples, (int, np.integer)) or as_carved_samples < 0:
         raise DesignError(f"as_carved_samples must be an int >= 0, got {as_carved_samples!r}")
     out = os.fspath(out)
@@ -271,11 +270,37 @@ def save_result(result: DesignResult, out: str | os.PathLike, *, scene: SceneCon
                                   and all(isinstance(x, str) for x in names)):
         raise DesignError(f"save_result: names must be None or {m} strings (one per view), got "
                           f"{names!r}")
+    made = not os.path.isdir(out)
     os.makedirs(out, exist_ok=True)
-    for name in os.listdir(out):  # an earlier result's pictures that this one does not replace
-        old = re.fullmatch(r"view(\d+)_(render|target|carved)\.png", name)
-        if old and (int(old.group(1)) >= m or (old.group(2) == "carved" and not as_carved_samples)):
-            os.remove(os.path.join(out, name))
+    # Everything is written into a staging folder and moved into `out` once complete: a failure
+    # part-way leaves `out` as it was, not half of a new result beside half of an old one.
+    stage = tempfile.mkdtemp(prefix=".jscratch-save-", dir=out)
+    try:
+        add = _save_into(stage, result, scene, names, as_carved_samples, order_time)
+        for name in os.listdir(out):  # an earlier result's pictures this one does not replace
+            old = re.fullmatch(r"view(\d+)_(render|target|carved)\.png", name)
+            if old and (int(old.group(1)) >= m
+                        or (old.group(2) == "carved" and not as_carved_samples)):
+                os.remove(os.path.join(out, name))
+        for name in os.listdir(stage):
+            os.replace(os.path.join(stage, name), os.path.join(out, name))
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        if made and not os.listdir(out):
+            os.rmdir(out)
+        raise
+    shutil.rmtree(stage, ignore_errors=True)
+    if not as_carved_samples:  # an earlier save's as-carved figures no longer have pictures
+        result.metrics.pop("as_carved", None)
+    result.metrics.update(add)
+    return add
+
+
+def _save_into(out, result, scene, names, as_carved_samples, order_time) -> dict:
+    """`save_result`'s files, written into folder `out` (its staging folder)."""
+    from jscratch.design import maker
+    from jscratch.design.checkpoint import save_npz
+
     s, v, b = result.scratches, result.views, result.board
     profile = result.config.machine_profile()
     plunge = result.params.plunge()
@@ -294,9 +319,8 @@ def save_result(result: DesignResult, out: str | os.PathLike, *, scene: SceneCon
             write_png(os.path.join(out, f"view{j}_carved.png"), img)
         add["as_carved"] = ac
     add["carving"] = maker.carving_estimate(d, profile, time_limit=order_time)
-    if not as_carved_samples:  # an earlier save's as-carved figures no longer have pictures
-        result.metrics.pop("as_carved", None)
-    result.metrics.update(add)
+    metrics = {key: val for key, val in result.metrics.items() if key != "as_carved"}  # or new
+    metrics.update(add)
     p = result.params
     save_npz(os.path.join(out, "result.npz"), {
         "geom": np.asarray(p.geom), "log_width": np.asarray(p.log_width),
@@ -305,9 +329,9 @@ def save_result(result: DesignResult, out: str | os.PathLike, *, scene: SceneCon
         "targets": np.asarray(result.targets), "radiance": np.asarray(result.radiance),
         "display": np.asarray(result.display),
         "history": np.frombuffer(json.dumps(result.history).encode(), np.uint8)})
-    _write_pictures(result, out)
+    _write_pictures(result, metrics, out)
     with open(os.path.join(out, "metrics.json"), "w") as f:
-        json.dump(_json_clean(result.metrics), f, indent=2)
+        json.dump(_json_clean(metrics), f, indent=2)
     cfg = {"design": result.config.to_dict(),
            "scene": None if scene is None else scene.to_dict(),
            "targets": names,
@@ -456,7 +480,7 @@ def _json_clean(x):
     return x
 
 
-def _write_pictures(result: DesignResult, out: str) -> None:
+def _write_pictures(result: DesignResult, metrics: dict, out: str) -> None:
     """``view<j>_render.png``, ``view<j>_target.png``, ``comparison.png`` and ``loss.png``."""
     from matplotlib.figure import Figure  # not pyplot: a notebook's backend stays as it is
 
@@ -474,7 +498,7 @@ def _write_pictures(result: DesignResult, out: str) -> None:
         axes[0, j].imshow(result.targets[j], cmap="gray", vmin=0, vmax=1)
         axes[0, j].set_title(f"target {j}")
         axes[1, j].imshow(np.clip(result.display[j], 0, 1), cmap="gray", vmin=0, vmax=1)
-        mt = result.metrics
+        mt = metrics
         axes[1, j].set_title(f"render {j}: SSIM {num(mt['ssim'][j])}, "
                              f"ghost {num(mt['ghosting'][j])}", fontsize=8)
         for a in axes[:, j]:
