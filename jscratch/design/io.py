@@ -247,9 +247,11 @@ def save_result(result: DesignResult, out: str | os.PathLike, *, scene: SceneCon
       "board", "camera", "light"}``, which ``python -m jscratch.design --config`` reads back;
     - ``view<j>_render.png``, ``view<j>_target.png``, ``comparison.png``, ``loss.png``.
 
-    `scene` and `names` default to the result's own (`DesignResult.scene`, `.names`). An earlier
-    result's ``view<j>_*.png`` in `out` that this one does not write are removed, and so are
-    `result.metrics`' as-carved figures when ``as_carved_samples`` is 0. `python -m
+    `scene` and `names` default to the result's own (`DesignResult.scene`, `.names`). The files
+    are written into a staging folder inside `out` and moved in once all are written (a failure
+    part-way leaves `out` as it was). An earlier result's ``view<j>_*.png`` in `out` that this
+    one does not write are removed, and so are `result.metrics`' as-carved figures when
+    ``as_carved_samples`` is 0. `python -m
     jscratch.design` writes its outputs with this call. Returns the metrics added (they are also
     added to `result.metrics`).
     """
