@@ -280,6 +280,8 @@ def _check_travel(grbl, items, retract_z: float, zero, coord: str, untouched, wa
     soft, homing = grbl.settings.get(20, 0) == 1, grbl.settings.get(22, 0) == 1
     if not (soft or homing):
         return  # without homing, machine coordinates count from wherever the machine started
+    if grbl.settings.get(13, 0) == 1:  # `$#` reports inches ($13=1); travel and program are mm
+        zero = [25.4 * v for v in zero]
     ext = check_program_lines(items)
     z = ext["z"] or [retract_z, retract_z]
     ext["z"] = [min(z[0], retract_z), max(z[1], retract_z)]

@@ -128,8 +128,9 @@ def validate_design(p0, p1, width, depth, alpha, board, camera=None, light=None,
 
     **Raises:** `DesignError` naming the array and the first bad scratch (or view) when a
     shape is wrong, a value is not finite, `width`, `depth` or `alpha` is out of range
-    (`w > 0`, `d > 0`, `0 < alpha < 1`: the rules of `jscratch.scene.check_scratches`, the same
-    the renderer applies), or an endpoint lies off the board.
+    (`w > 0`, `d > 0`, alpha in `scene.ALPHA_RANGE`: the rules of
+    `jscratch.scene.check_scratches`, the same the renderer applies), or an endpoint lies off
+    the board.
     """
     arrays = {
         "p0": _as_float_array("p0", p0, source),

@@ -368,9 +368,7 @@ def _strip_pieces(u, y, y_lo, y_hi):
     hi_in, hi_out = chain(y_hi, (y <= y_hi) & (yb_ > y_hi), (y > y_hi) & (yb_ <= y_hi))
     wgt = sg(jnp.abs(e_ub - e_ua) + jnp.abs(e_yb - e_ya))
     sw = jnp.sum(wgt)
-    # With nothing of F in the strip but a point (F touches y_hi at a vertex), Y is taken from
-    # that level: the chain along it is then one point at Y = 0 whose ends move differently
-    # (one a vertex, one a crossing), and only Y = 0 keeps that out of the area's gradient.
+    # Only a point of F in the strip, at y_hi: Y from there (the chain there adds no gradient).
     hi_touch = jnp.any(((y <= y_hi) & (yb_ > y_hi)) | ((y > y_hi) & (yb_ <= y_hi)))
     y_ref = jnp.where(
         sw > 0, jnp.sum(wgt * sg(e_ya + e_yb) / 2) / jnp.where(sw > 0, sw, 1),

@@ -226,8 +226,8 @@ def _write_both(prefix, frames, marks, az, fps, title) -> None:
     if made:
         os.makedirs(made[0])
     names = [prefix + ".orbit.gif", prefix + ".orbit_sheet.png"]
-    tmp = [os.path.join(os.path.dirname(n), f".{os.path.basename(n)}.{os.getpid()}.tmp"
-                        + os.path.splitext(n)[1]) for n in names]
+    tmp = [os.path.join(os.path.dirname(n), f".jscratch-{os.getpid()}-{k}"
+                        + os.path.splitext(n)[1]) for k, n in enumerate(names)]
     try:
         for n in names:
             if os.path.isdir(n):

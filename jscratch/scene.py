@@ -13,16 +13,16 @@ every stage checks them by.
 finite; ``width > 0``, ``depth > 0`` (m); ``ALPHA_RANGE[0] <= alpha <= ALPHA_RANGE[1]`` (where
 the float32 pair integral and its gradients are accurate; `ndf.pair_integral`'s domain is
 ``(0, 1)``); endpoints on the board ``[0, Sx] x [0, Sy]`` (within `ON_BOARD_RTOL` of its size)
-when the board is known; cameras and lights at least `MIN_HEIGHT` above the board and within
-`MAX_DISTANCE` of its origin; intensities ``I >= 0`` with ``I / z_light^2 <= MAX_IRRADIANCE``;
-float32 or float64 arrays. The scene objects (`Scratches`, `Views`), the binning
-(`jscratch.bvh`), the renderer (`jscratch.render`), the design file (`jscratch.designfile`) and
-the optimiser (`jscratch.design`) all check by these functions, so a scene one of them accepts
-the others accept too. Host checks raise one line naming the source, the scratch (or view) and
-the field; traced checks (`scene_checks`) give ``(condition, message)`` pairs for
-`eqx.error_if`.
+when the board is known; cameras and lights at least `MIN_HEIGHT` above the board, every
+coordinate within ``+-MAX_DISTANCE``; intensities ``I >= 0`` with
+``I / z_light^2 <= MAX_IRRADIANCE``; float32 or float64 arrays. The scene objects
+(`Scratches`, `Views`), the binning (`jscratch.bvh`), the renderer (`jscratch.render`), the
+design file (`jscratch.designfile`) and the optimiser (`jscratch.design`) all check by these
+functions, so a scene one of them accepts the others accept too. Host checks raise one line
+naming the source, the scratch (or view) and the field; traced checks (`scene_checks`) give
+``(condition, message)`` pairs for `eqx.error_if`.
 
-Imports: ``jax``, ``equinox``, ``numpy`` only (no other jscratch module).
+Imports: ``jax``, ``equinox``, ``numpy`` and `jscratch.errors` (no other jscratch module).
 """
 
 from __future__ import annotations
@@ -152,8 +152,9 @@ def check_scratches(p0, p1, width, depth, alpha=None, *, board=None, source: str
 
 def check_views(camera, light, intensity, *, source: str = "views",
                 error: type[Exception] = InputError) -> None:
-    """Check view values on the host by the scene's rules (finite, cameras and lights at
-    ``z > 0``, intensities ``>= 0``); shapes are the caller's.
+    """Check view values on the host by the scene's rules (finite; cameras and lights at
+    ``z >= MIN_HEIGHT`` and every coordinate within ``+-MAX_DISTANCE``; intensities ``>= 0``
+    with ``I / z_light^2 <= MAX_IRRADIANCE``); shapes are the caller's.
 
     **Raises:** `error`, one line: ``"{source}: view {j}: {field} ..."``.
     """
@@ -332,8 +333,8 @@ class Scratches(eqx.Module):
     - `p0`, `p1`: endpoints, ``(N, 2)``, board metres.
     - `width`: profile width ``w`` (m), ``(N,)`` or a scalar broadcast to ``(N,)``. Default ``1e-4``.
     - `depth`: depth ``d`` (m), ``(N,)`` or scalar. Default ``1e-4``.
-    - `alpha`: intrinsic GGX roughness in ``(0, 1)`` (the domain of `ndf.pair_integral`),
-      ``(N,)`` or scalar. Default ``0.04``.
+    - `alpha`: intrinsic GGX roughness in `ALPHA_RANGE` (``[1e-4, 0.99]``, where float32 is
+      accurate; `ndf.pair_integral`'s domain is ``(0, 1)``), ``(N,)`` or scalar. Default ``0.04``.
     - `profile` (static): the grooves' cross-section, one of `PROFILES`: ``"paper"`` (default)
       the profile ``theta(x) = 2 atan(2x / w)`` of docs/model.md §2 with width ``w`` and depth
       ``d``; ``"arc"`` the circular arc a ball of radius ``R`` cuts at plunge ``p``
@@ -342,7 +343,7 @@ class Scratches(eqx.Module):
 
     All five arrays share one floating dtype (that of ``p0, p1``; integers become the default float).
     Shapes are checked always; values (`check_scratches`: finite, ``width, depth > 0``,
-    ``0 < alpha < 1``) when the arrays are concrete. Inside jit, `render_pairs` checks values
+    alpha in `ALPHA_RANGE`) when the arrays are concrete. Inside jit, `render_pairs` checks values
     with `eqx.error_if` (`scene_checks`).
     """
 
@@ -437,11 +438,11 @@ class Views(eqx.Module):
 
     **Arguments:**
 
-    - `camera`: camera positions ``(M, 3)`` (m), above the board (``z > 0``).
-    - `light`: point-light positions ``(M, 3)`` (m), above the board (``z > 0``).
+    - `camera`: camera positions ``(M, 3)`` (m), above the board (``z >= MIN_HEIGHT``).
+    - `light`: point-light positions ``(M, 3)`` (m), above the board (``z >= MIN_HEIGHT``).
     - `intensity`: light intensities ``I_j`` (W/sr), ``(M,)`` or a scalar. Default 1.
 
-    Shapes are checked always; values (finite, ``z > 0``, ``intensity >= 0``) when concrete.
+    Shapes are checked always; values (`check_views`) when concrete.
     """
 
     camera: Float[Array, "m 3"]

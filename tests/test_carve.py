@@ -488,6 +488,16 @@ def test_a_program_outside_the_machines_travel_is_refused_when_soft_limits_are_o
             _, done = Journal.read(path + ".journal")
             assert done < 24
             os.remove(path + ".journal")
+    # A controller reporting inches ($13=1) gives its work zero in inches: converted to mm.
+    class Inches:
+        settings, options = {**TRAVEL, 13: 1}, "V"
+
+    lines = [t for t in prog.lines if not t.startswith("(")]
+    inch_zero = [v / 25.4 for v in fits]
+    carve_mod._check_travel(Inches(), lines, 1.0, inch_zero, "G54", lambda: "", print)
+    Inches.settings = TRAVEL
+    with pytest.raises(CarveError, match="program moves X from -14.961 to 278.755 mm"):
+        carve_mod._check_travel(Inches(), lines, 1.0, inch_zero, "G54", lambda: "", print)
     # Without homing, machine coordinates count from wherever the machine started: not checked.
     r, _ = _carve_at(path, cases["X"], {**TRAVEL, 20: 0, 22: 0})
     assert r["done"] == 24

@@ -4,6 +4,7 @@ back the physical scratches (the midpoint one by hand: midpoint, angle, length),
 
 import math
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -80,3 +81,20 @@ def test_carvable_plunge_coordinate():
     xm = 0.5 * np.asarray(back.width, np.float64) * np.sqrt(
         -np.expm1(-2 * np.asarray(back.depth, np.float64) / np.asarray(back.width, np.float64)))
     np.testing.assert_allclose(xm, np.sqrt(2 * R * pl - pl**2), rtol=2e-3)
+
+
+def test_an_optimised_alpha_stays_in_the_scenes_range():
+    """`DesignParams.alpha` is ``sigmoid(logit_alpha)`` held in `scene.ALPHA_RANGE`: a logit
+    pushed past either end gives the end (a scratch the scene's rules accept), not a value the
+    health check would stop the run for; inside the range it is the plain sigmoid, bit for bit."""
+    from jscratch.scene import ALPHA_RANGE
+
+    board = Board(shape=(8, 8))
+    s = Scratches(np.float32([[0.01, 0.02]] * 3), np.float32([[0.05, 0.02]] * 3), 2.5e-4, 1e-4,
+                  np.float32([0.04, 0.5, 0.9]))
+    p = DesignParams.from_physical(s, np.ones(1), board)
+    np.testing.assert_array_equal(np.asarray(p.alpha()), np.asarray(jax.nn.sigmoid(p.logit_alpha)))
+    far = eqx.tree_at(lambda q: q.logit_alpha, p, jnp.float32([-30.0, 30.0, 2.0]))
+    a = np.asarray(far.scratches().alpha, np.float64)
+    assert a[0] == pytest.approx(ALPHA_RANGE[0], rel=1e-6) and a[1] == pytest.approx(ALPHA_RANGE[1])
+    assert ALPHA_RANGE[0] < a[2] < ALPHA_RANGE[1]

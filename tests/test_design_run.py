@@ -100,6 +100,15 @@ def test_matching_intensities_meet_the_target_means_also_below_the_knee():
     np.testing.assert_allclose(_display64(np.exp(u)[:, None, None] * rad).mean((1, 2)), t,
                                rtol=2e-5)
     np.testing.assert_allclose(matching_log_intensity(rad * 1e-7, t) - u, math.log(1e7), atol=1e-5)
+    # A pixel a float32 rounding below 0 counts as dark; a non-finite render is refused.
+    neg, zero = rad.copy(), rad.copy()
+    neg[0, 0, 0], zero[0, 0, 0] = -1e-9, 0.0
+    np.testing.assert_allclose(matching_log_intensity(neg, t), matching_log_intensity(zero, t),
+                               atol=1e-9)
+    bad = rad.copy()
+    bad[1, 3, 3] = np.nan
+    with pytest.raises(DesignError, match="view 1 renders black or non-finite"):
+        matching_log_intensity(bad, t)
 
     # Far from the board the render at intensity 1 falls as 1/r^2 (its directions converge).
     targets, views, board = _inputs()

@@ -249,9 +249,9 @@ def save_result(result: DesignResult, out: str | os.PathLike, *, scene: SceneCon
 
     `scene` and `names` default to the result's own (`DesignResult.scene`, `.names`). The files
     are written into a staging folder inside `out` and moved in once all are written (a failure
-    part-way leaves `out` as it was). An earlier result's ``view<j>_*.png`` in `out` that this
-    one does not write are removed, and so are `result.metrics`' as-carved figures when
-    ``as_carved_samples`` is 0. `python -m
+    while writing leaves `out` as it was; only the moves, file by file, are not atomic); then
+    an earlier result's ``view<j>_*.png`` in `out` that this one did not write are removed, and
+    so are `result.metrics`' as-carved figures when ``as_carved_samples`` is 0. `python -m
     jscratch.design` writes its outputs with this call. Returns the metrics added (they are also
     added to `result.metrics`).
     """
@@ -279,12 +279,12 @@ def save_result(result: DesignResult, out: str | os.PathLike, *, scene: SceneCon
     stage = tempfile.mkdtemp(prefix=".jscratch-save-", dir=out)
     try:
         add = _save_into(stage, result, scene, names, as_carved_samples, order_time)
-        for name in os.listdir(out):  # an earlier result's pictures this one does not replace
-            old = re.fullmatch(r"view(\d+)_(render|target|carved)\.png", name)
-            if old and (int(old.group(1)) >= m
-                        or (old.group(2) == "carved" and not as_carved_samples)):
-                os.remove(os.path.join(out, name))
-        for name in os.listdir(stage):
+        new = os.listdir(stage)
+        blocked = [n for n in new if os.path.isdir(os.path.join(out, n))]
+        if blocked:
+            raise DesignError(f"save_result: {os.path.join(out, blocked[0])!r} is a folder; the "
+                              "result's file of that name cannot be written")
+        for name in new:
             os.replace(os.path.join(stage, name), os.path.join(out, name))
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
@@ -292,6 +292,10 @@ def save_result(result: DesignResult, out: str | os.PathLike, *, scene: SceneCon
             os.rmdir(out)
         raise
     shutil.rmtree(stage, ignore_errors=True)
+    for name in os.listdir(out):  # an earlier result's pictures that this one did not replace
+        old = re.fullmatch(r"view(\d+)_(render|target|carved)\.png", name)
+        if old and (int(old.group(1)) >= m or (old.group(2) == "carved" and not as_carved_samples)):
+            os.remove(os.path.join(out, name))
     if not as_carved_samples:  # an earlier save's as-carved figures no longer have pictures
         result.metrics.pop("as_carved", None)
     result.metrics.update(add)

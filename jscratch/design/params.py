@@ -11,7 +11,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from jscratch.designfile import DesignError
-from jscratch.scene import Board, Scratches
+from jscratch.scene import ALPHA_RANGE, Board, Scratches
 from jscratch.design.config import PARAMETERISATIONS
 
 
@@ -103,15 +103,18 @@ class DesignParams(eqx.Module):
         t = jnp.stack([jnp.cos(ang), jnp.sin(ang)], -1) * half[:, None]
         return jnp.clip(m - t, 0, size), jnp.clip(m + t, 0, size)
 
+    def alpha(self) -> Array:
+        """Roughness ``(N,)``: ``sigmoid(logit_alpha)`` held in the scene's `ALPHA_RANGE` (an
+        optimised alpha stops at the range's ends instead of leaving it)."""
+        return jnp.clip(jax.nn.sigmoid(self.logit_alpha), *ALPHA_RANGE)
+
     def scratches(self) -> Scratches:
         """The physical `render.Scratches` (jittable)."""
         p0, p1 = self.endpoints()
         if self.groove is not None:
             w, d = self.groove.profile(self.log_width)
-            return Scratches(p0, p1, w, d, jax.nn.sigmoid(self.logit_alpha),
-                             profile=self.groove.scratch_profile)
-        return Scratches(p0, p1, jnp.exp(self.log_width), jnp.exp(self.log_depth),
-                           jax.nn.sigmoid(self.logit_alpha))
+            return Scratches(p0, p1, w, d, self.alpha(), profile=self.groove.scratch_profile)
+        return Scratches(p0, p1, jnp.exp(self.log_width), jnp.exp(self.log_depth), self.alpha())
 
     def plunge(self) -> Array | None:
         """Per-scratch plunge ``(N,)`` (m) with a `groove` map, else None."""

@@ -313,9 +313,13 @@ def matching_log_intensity(radiance, target_mean) -> np.ndarray:
     The display curve is a power law only above its knee (`jscratch.shading.display`), and a
     distant light puts most pixels below it at intensity 1, so ``u`` is found by bisection (the
     mean display value grows with ``u``), from the power law's ``u`` as the first guess."""
-    rad = np.asarray(radiance, np.float64)
+    rad = np.maximum(np.asarray(radiance, np.float64), 0.0)  # (float32 rounding below 0)
     t = np.asarray(target_mean, np.float64)
     scale = np.max(rad, axis=(1, 2))  # the brightest pixel at intensity 1 / scale is 1
+    if not (np.all(np.isfinite(rad)) and np.all(scale > 0)):
+        j = int(np.argmax(~np.isfinite(scale) | (scale <= 0)))
+        raise DesignError(f"view {j} renders black or non-finite at intensity 1: cannot set "
+                          "its light")
     rad = rad / scale[:, None, None]
 
     def mean_disp(u):
@@ -328,6 +332,9 @@ def matching_log_intensity(radiance, target_mean) -> np.ndarray:
         if not (low.any() or high.any()):
             break
         lo, hi = np.where(low, lo - 2.0, lo), np.where(high, hi + 2.0, hi)
+    if np.any(mean_disp(lo) > t) or np.any(mean_disp(hi) < t):
+        raise DesignError("the initial light intensities could not be matched to the targets' "
+                          "means (the render's mean display value does not reach them)")
     for _ in range(50):  # the bracket's width / 2**50: far below float32's resolution of u
         mid = 0.5 * (lo + hi)
         below = mean_disp(mid) < t
