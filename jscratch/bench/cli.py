@@ -91,7 +91,7 @@ def main(argv=None) -> int:
     p = OneLineParser(prog="python -m jscratch.bench", description=DESCRIPTION,
                       epilog="The options are checked before any section runs; a refusal is one "
                              "line 'error: ...' on stderr. " + EXIT_STATUS_HELP)
-    p.add_argument("--quick", action="store_true", help="small sizes (about 30 s on 2 CPU cores)")
+    p.add_argument("--quick", action="store_true", help="small sizes (30-45 s on 2 CPU cores)")
     p.add_argument("--out", default="bench_out", help="output folder (default: bench_out)")
     p.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=SECTIONS,
                    help="sections to run (default: all)")
