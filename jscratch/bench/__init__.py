@@ -24,7 +24,7 @@ reported apart), then takes the median of repeated `block_until_ready` runs. Res
    needs to reach the same error, and the speed-up.
 5. ``design``: SSIM per view against iterations and time for the default design.
 
-``--quick`` shrinks every section (about 30 s on a 2-core CPU, mostly compilation; the figures
+``--quick`` shrinks every section (30-45 s on a 2-core CPU, mostly compilation; the figures
 are in benchmarks/RESULTS.md, "Quick bench"); the test suite runs it as a smoke test.
 
 **Modules:** `jscratch.bench.timing` (helpers), `jscratch.bench.kernel` (sections 1-2),
