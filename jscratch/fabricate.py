@@ -47,7 +47,6 @@ counted unreachable).
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import math

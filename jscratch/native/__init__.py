@@ -74,7 +74,6 @@ Disabled, or another backend: the jnp path without a warning; `status()` says wh
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import ctypes
 import errno
