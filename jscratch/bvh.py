@@ -318,7 +318,7 @@ def check_chunk(where: str, chunk) -> None:
 
 
 def bin_pairs(scratches: Scratches, board: Board, *, chunk: int = DEFAULT_CHUNK,
-              shards: int = 1):
+              shards: int = 1, source: str = "bin_pairs"):
     """The complete (pixel, scratch) pair list of a scene, compacted (host code).
 
     Bins with `build_pairs` and packs the valid pairs into ``shards`` equal segments by
@@ -328,11 +328,12 @@ def bin_pairs(scratches: Scratches, board: Board, *, chunk: int = DEFAULT_CHUNK,
     the sentinel scratch ``N``.
 
     **Returns:** `bvh.Pairs` ``(L,)`` for `render_pairs`. **Raises:** `InputError` for a
-    scratch that breaks the scene's rules (`scene.check_scratches`, endpoints on the board).
+    scratch that breaks the scene's rules (`scene.check_scratches`, endpoints on the board),
+    naming `source` (the caller).
     """
-    check_chunk("bin_pairs", chunk)
+    check_chunk(source, chunk)
     check_scratches(scratches.p0, scratches.p1, scratches.width, scratches.depth,
-                    scratches.alpha, board=(board.Sx, board.Sy), source="bin_pairs")
+                    scratches.alpha, board=(board.Sx, board.Sy), source=source)
     full, _ = build_pairs(scratches.p0, scratches.p1, scratches.width, scratches.depth,
                           board=(board.Sx, board.Sy), shape=board.shape)
     pix, scr, val = layout(np.asarray(full.pixel).reshape(-1),

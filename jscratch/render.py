@@ -709,13 +709,11 @@ def render(scratches: Scratches, views: Views, board: Board, *, eps: float = 0.0
     _check_scene_types("render", scratches, views, board)
     if eps < 0 or not math.isfinite(eps):
         raise InputError(f"render: `eps` must be finite and >= 0; got {eps}")
-    check_chunk("render", chunk)
-    check_scratches(scratches.p0, scratches.p1, scratches.width, scratches.depth, scratches.alpha,
-                    board=(board.Sx, board.Sy), source="render")
     check_views(views.camera, views.light, views.intensity, source="render")
     axis_names = tuple(axis_names) if isinstance(axis_names, list) else axis_names
     shards = _n_shards(mesh, _mesh_axes(mesh, axis_names))
-    full_c = bin_pairs(scratches, board, chunk=chunk, shards=shards)
+    # (`bin_pairs` checks the chunk and the scratches, endpoints on the board, for `render`)
+    full_c = bin_pairs(scratches, board, chunk=chunk, shards=shards, source="render")
     if eps == 0:
         pairs, cov_pairs = full_c, None
     else:

@@ -138,6 +138,21 @@ def test_save_and_load_a_hand_built_result(tmp_path):
     assert back.history == res.history and back.config == res.config
 
 
+def _one_view_result(metrics, scene=None, names=None):
+    """A hand-built one-scratch, one-view `DesignResult` with free grooves on a 16 px board."""
+    from jscratch.design.params import DesignParams
+
+    board = Board(shape=(16, 16))
+    s = Scratches(np.float32([[0.01, 0.02]]), np.float32([[0.05, 0.02]]), np.float32([2.5e-4]),
+                  np.float32([1.28e-4]), np.float32([0.04]))
+    views = Views(np.float32([[0.0, 0.5, 0.8]]), np.float32([[0.3, 0.3, 0.9]]), np.float32([1.0]))
+    params = DesignParams.from_physical(s, np.asarray(views.intensity), board)
+    disp = np.random.default_rng(2).random((1, 16, 16))
+    return DesignResult(s, views, board, params, np.ones(1, bool), disp, disp, disp,
+                        {"total": [1.0], "terms": {}}, metrics,
+                        DesignConfig(n_scratches=1, groove="free"), scene, names)
+
+
 def test_a_loaded_one_view_result_saves_again_with_its_scene_and_without_stale_figures(tmp_path):
     """A one-view run's ghosting is NaN (saved as null): it loads back as NaN and saves again.
     The scene and target names a run was made from travel with the result, so a re-saved folder
@@ -148,20 +163,10 @@ def test_a_loaded_one_view_result_saves_again_with_its_scene_and_without_stale_f
     import matplotlib
 
     from jscratch.design.config import SceneConfig
-    from jscratch.design.params import DesignParams
 
-    board = Board(shape=(16, 16))
-    s = Scratches(np.float32([[0.01, 0.02]]), np.float32([[0.05, 0.02]]), np.float32([2.5e-4]),
-                  np.float32([1.28e-4]), np.float32([0.04]))
-    views = Views(np.float32([[0.0, 0.5, 0.8]]), np.float32([[0.3, 0.3, 0.9]]), np.float32([1.0]))
-    params = DesignParams.from_physical(s, np.asarray(views.intensity), board)
-    disp = np.random.default_rng(2).random((1, 16, 16))
     scene = SceneConfig(views=1, size=16, distance=2.0)
-    res = DesignResult(s, views, board, params, np.ones(1, bool), disp, disp, disp,
-                       {"total": [1.0], "terms": {}},
-                       {"ssim": [0.5], "ghosting": [float("nan")],
-                        "as_carved": {"ssim": [0.4]}},
-                       DesignConfig(n_scratches=1, groove="free"), scene, ["mine.png"])
+    res = _one_view_result({"ssim": [0.5], "ghosting": [float("nan")],
+                            "as_carved": {"ssim": [0.4]}}, scene=scene, names=["mine.png"])
     before = matplotlib.get_backend()
     matplotlib.use("pdf")  # any backend but Agg
     try:
@@ -238,17 +243,7 @@ def test_a_save_that_fails_part_way_leaves_the_folder_as_it_was(tmp_path, monkey
     """`save_result` writes into a staging folder and moves the files in once all are written:
     a failure while drawing the pictures leaves an earlier result whole (its files unchanged,
     no new ones, no staging folder), and a new folder is not left behind."""
-    from jscratch.design.params import DesignParams
-
-    board = Board(shape=(16, 16))
-    s = Scratches(np.float32([[0.01, 0.02]]), np.float32([[0.05, 0.02]]), np.float32([2.5e-4]),
-                  np.float32([1.28e-4]), np.float32([0.04]))
-    views = Views(np.float32([[0.0, 0.5, 0.8]]), np.float32([[0.3, 0.3, 0.9]]), np.float32([1.0]))
-    params = DesignParams.from_physical(s, np.asarray(views.intensity), board)
-    disp = np.random.default_rng(3).random((1, 16, 16))
-    res = DesignResult(s, views, board, params, np.ones(1, bool), disp, disp, disp,
-                       {"total": [1.0], "terms": {}}, {"ssim": [0.5], "ghosting": [0.1]},
-                       DesignConfig(n_scratches=1, groove="free"))
+    res = _one_view_result({"ssim": [0.5], "ghosting": [0.1]})
     io.save_result(res, tmp_path / "a")
     before = {f.name: f.read_bytes() for f in (tmp_path / "a").iterdir()}
 
