@@ -1,4 +1,11 @@
-"""Test configuration: float32 by default, float64 per test, 4 forced CPU devices for sharding tests.
+"""Test configuration: float32 by default, float64 per test, 4 forced CPU devices for sharding tests,
+XLA's CPU fusion emitters off.
+
+The tests compile with ``--xla_cpu_use_fusion_emitters=false`` (unless ``XLA_FLAGS`` already sets
+it): the design's step and `jscratch.compile_options.few_calls_jit` compile so anyway, and the
+suite's compilations, most of its time, are about a third faster.
+``tests/test_compile_options.py`` renders values and gradients in a process with XLA's default
+flags and checks they are the suite's to float32 rounding.
 
 Tests run in JAX's default float32 (what users run). A test that needs float64 (a float64
 reference, ``jnp.float64`` arrays) is marked ``@pytest.mark.float64`` (or its module sets
@@ -15,6 +22,8 @@ import os
 os.environ.setdefault("XLA_FLAGS", "")
 if "xla_force_host_platform_device_count" not in os.environ["XLA_FLAGS"]:
     os.environ["XLA_FLAGS"] += " --xla_force_host_platform_device_count=4"
+if "xla_cpu_use_fusion_emitters" not in os.environ["XLA_FLAGS"]:
+    os.environ["XLA_FLAGS"] += " --xla_cpu_use_fusion_emitters=false"
 
 import jax  # noqa: E402
 

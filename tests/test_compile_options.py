@@ -1,6 +1,10 @@
 """`jscratch.compile_options`: the options, and `few_calls_jit` at the top level, nested in
 another jit (where XLA refuses compiler options) and lowered ahead of time."""
 
+import os
+import subprocess
+import sys
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -75,3 +79,63 @@ def test_record_calls_lists_the_calls_and_jitted_compiles_them_again():
     for opts in (None, grad_compiler_options()):
         out = fn.jitted(opts).lower(*a, **k).compile()(a[0])
         np.testing.assert_allclose(np.asarray(out), np.asarray(_f(x, 3.0)), rtol=1e-6)
+
+
+# The suite compiles with XLA's fusion emitters off (tests/conftest.py), as the design's step and
+# `few_calls_jit` do; a process with XLA's default flags renders the same to float32 rounding.
+_RENDER_SCRIPT = r'''
+import sys
+import jax, jax.numpy as jnp, numpy as np
+from jscratch import native, render
+from jscratch.scene import Board, Scratches, views_on_circle
+
+rng = np.random.default_rng(5)
+board = Board(shape=(24, 24), Sx=0.02, Sy=0.02)
+n = 60
+mid = rng.uniform(0.004, 0.016, (n, 2))
+phi = rng.uniform(0, np.pi, n)
+t = np.stack([np.cos(phi), np.sin(phi)], -1) * rng.uniform(0.001, 0.004, (n, 1))
+weights = jnp.asarray(rng.uniform(0, 1, (2, 24, 24)), jnp.float32)
+views = views_on_circle(2, 0.8, distance=0.3, board=board, dtype=jnp.float32)
+out = {}
+for profile in ("paper",):
+    s = Scratches(jnp.asarray(mid - t, jnp.float32), jnp.asarray(mid + t, jnp.float32),
+                  width=jnp.asarray(rng.uniform(1.5e-4, 4e-4, n), jnp.float32),
+                  depth=jnp.asarray(rng.uniform(0.5e-4, 2e-4, n), jnp.float32),
+                  alpha=jnp.asarray(rng.uniform(0.05, 0.3, n), jnp.float32), profile=profile)
+    pairs = render.bin_pairs(s, board)
+    for on in (True, False):
+        with native.override(enabled=on):
+            def f(s):
+                rad = render.render_pairs(s, views, board, pairs)
+                return jnp.sum(weights * rad), rad
+            (_, rad), g = jax.jit(jax.value_and_grad(f, has_aux=True))(s)
+        key = f"{profile}_{int(on)}"
+        out[key + "_rad"] = np.asarray(rad)
+        for name in ("p0", "p1", "width", "depth", "alpha"):
+            out[f"{key}_d{name}"] = np.asarray(getattr(g, name))
+np.savez(sys.argv[1], **out)
+'''
+
+
+def _render_in_process(path, xla_flags):
+    env = dict(os.environ, XLA_FLAGS=xla_flags)
+    r = subprocess.run([sys.executable, "-c", _RENDER_SCRIPT, str(path)], env=env,
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    with np.load(path) as z:
+        return {k: z[k] for k in z.files}
+
+
+def test_xla_default_flags_render_what_the_suite_checks(tmp_path):
+    """Value and gradient of `render_pairs` (native and jnp paths) compiled with XLA's default
+    flags, against the suite's flags: within float32 rounding (1e-5 of each array's largest
+    entry; measured: 0 on the native path, 2e-7 on the jnp path)."""
+    suite = _render_in_process(tmp_path / "suite.npz", os.environ["XLA_FLAGS"])
+    default = _render_in_process(tmp_path / "default.npz", "")
+    assert "fusion_emitters=false" in os.environ["XLA_FLAGS"] and sorted(suite) == sorted(default)
+    for k, a in suite.items():
+        b = default[k]
+        scale = np.max(np.abs(b))
+        assert scale > 0, k
+        assert np.max(np.abs(a - b)) <= 1e-5 * scale, (k, np.max(np.abs(a - b)) / scale)
