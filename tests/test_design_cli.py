@@ -15,6 +15,8 @@ import pytest
 
 from jscratch.design import cli
 from jscratch.design.io import RESULT_FILES, load_result
+from jscratch.design.config import DesignConfig, SceneConfig
+from jscratch.designfile import DesignError
 from jscratch.errors import DesignFileError
 
 TINY = ["--size", "24", "--scratches", "150", "--iterations", "3", "--views", "2"]
@@ -287,3 +289,19 @@ def test_without_quiet_the_run_says_what_it_does_before_its_first_step(tmp_path)
     assert "3/3" in err and proc.stdout.startswith("wrote ")
     if shutil.which("g++") or shutil.which("c++") or shutil.which("clang++"):
         assert "building the native kernel (first run only)" in err, err[-2000:]
+
+
+def test_resume_accepts_the_runs_own_command_and_names_what_differs(cli_run):
+    """The run's own command with ``--resume`` added gives the run's configs; an option with
+    another value is refused, naming the option, the value given and the run's."""
+    run, scene, config = cli.configs([*TINY, "--out", str(cli_run), "--resume"])
+    saved = json.loads((cli_run / "config.json").read_text())
+    assert config.to_dict() == DesignConfig.from_dict(saved["design"]).to_dict()
+    assert scene == SceneConfig.from_dict(saved["scene"]) and run.resume
+    run, scene, config = cli.configs([*TINY, "--out", str(cli_run), "--resume",
+                                      "--iterations", "7"])
+    assert config.iterations == 7
+    with pytest.raises(DesignError, match=r"--scratches 10 \(the run's: 150\)$"):
+        cli.configs([*TINY, "--out", str(cli_run), "--resume", "--scratches", "10"])
+    with pytest.raises(DesignError, match=r"--views 3 \(the run's: 2\)"):
+        cli.configs(["--views", "3", "--out", str(cli_run), "--resume"])

@@ -28,7 +28,7 @@ import jax
 from jscratch import native
 from jscratch.errors import (EXIT_STATUS_HELP, DesignFileError, InputError, JscratchError,
                              error_line, report)
-from jscratch.options import OneLineParser, add_arguments, given, option, overlay
+from jscratch.options import OneLineParser, add_arguments, flags, given, option, overlay
 from jscratch.designfile import DesignError
 from jscratch.design.config import DEFAULT_IMAGES, DesignConfig, SceneConfig
 from jscratch.design import mesh as mesh_mod
@@ -48,8 +48,8 @@ class RunOptions:
         None, "settings from a config.json that a run wrote (its design and scene), under the "
         "options given here", metavar="FILE")
     resume: bool = option(False, "continue the run in --out from its checkpoint, with "
-                          "OUT/config.json (only --iterations, --quiet and --as-carved-samples "
-                          "may be given)")
+                          "OUT/config.json (--iterations may change; other design and scene "
+                          "options only repeat the run's own values)")
     quiet: bool = option(False, "no progress bar or summary")
     as_carved_samples: int = option(
         0, "strata per pixel side of the brute-force 'as carved' render, the design with the "
@@ -130,10 +130,6 @@ def configs(argv: Sequence[str] | None = None) -> tuple[RunOptions, SceneConfig,
         source = os.path.join(run.out, "config.json")
         if not os.path.isfile(source):
             raise DesignFileError(f"--resume: no run to continue in {run.out!r} (no {source!r})")
-        extra = sorted((set(scene_given) | set(design_given)) - {"iterations"})
-        if extra:
-            raise DesignError(f"--resume continues the run in {run.out!r} with its own settings; "
-                              f"only --iterations may change, got {', '.join(extra)}")
     elif run.config is not None:
         source = run.config
     if source is not None:
@@ -147,7 +143,32 @@ def configs(argv: Sequence[str] | None = None) -> tuple[RunOptions, SceneConfig,
             scene = SceneConfig.from_dict(saved.get("scene") or {})
         except InputError as e:
             raise DesignFileError(f"config file {source!r}: {e}") from None
+    if run.resume:
+        changed = [*_changed(scene, scene_given, SceneConfig),
+                   *_changed(config, {k: v for k, v in design_given.items() if k != "iterations"},
+                             DesignConfig)]
+        if changed:
+            raise DesignError(f"--resume continues the run in {run.out!r} with its own settings; "
+                              f"only --iterations may change, got {'; '.join(changed)}")
     return run, overlay(scene, scene_given), overlay(config, design_given)
+
+
+def _changed(saved, changes: dict, cls) -> list[str]:
+    """``"--flag GIVEN (the run's: SAVED)"`` for each option in `changes` (`options.given`) whose
+    value differs from the saved config's: options repeated with the run's own values pass."""
+    names = flags(cls)
+    out = []
+
+    def walk(base, changes, prefix):
+        for name, v in changes.items():
+            cur = getattr(base, name)
+            if isinstance(v, dict) and dataclasses.is_dataclass(cur):
+                walk(cur, v, prefix + name + ".")
+            elif v != cur:
+                out.append(f"{names[prefix + name]} {v!r} (the run's: {cur!r})")
+
+    walk(saved, changes, "")
+    return out
 
 
 def _run(argv) -> int:
