@@ -1,5 +1,5 @@
-"""Test configuration: float32 by default, float64 per test, 4 forced CPU devices for sharding tests,
-XLA's CPU fusion emitters off.
+"""Test configuration: float32 by default, float64 per test, 4 forced CPU devices for sharding
+tests, XLA's CPU fusion emitters off.
 
 The tests compile with ``--xla_cpu_use_fusion_emitters=false`` (unless ``XLA_FLAGS`` already sets
 it): the design's step and `jscratch.compile_options.few_calls_jit` compile so anyway, and the
