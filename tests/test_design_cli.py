@@ -305,3 +305,22 @@ def test_resume_accepts_the_runs_own_command_and_names_what_differs(cli_run):
         cli.configs([*TINY, "--out", str(cli_run), "--resume", "--scratches", "10"])
     with pytest.raises(DesignError, match=r"--views 3 \(the run's: 2\)"):
         cli.configs(["--views", "3", "--out", str(cli_run), "--resume"])
+
+
+def test_a_run_too_large_for_the_free_memory_is_refused_and_leaves_no_folder(
+        tmp_path, monkeypatch, capsys):
+    """The step's memory check (`jscratch.design.run.check_step_memory`) from the command line:
+    exit 2, one line naming both sizes; the output folder it made is gone again, and in an
+    existing folder the config.json it wrote is removed."""
+    from jscratch.design import run as run_mod
+
+    monkeypatch.setattr(run_mod, "free_memory", lambda: 1000)
+    out = tmp_path / "out"
+    assert cli.main([*TINY, "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: the design step needs about ") and err.count("\n") == 1
+    assert "this machine has 0.0 GB free" in err and not out.exists()
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    assert cli.main([*TINY, "--out", str(out), "--quiet"]) == 2
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]

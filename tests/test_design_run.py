@@ -13,9 +13,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jscratch import bvh
+from jscratch import bvh, native
 from jscratch.design import DesignConfig, design
-from jscratch.design.run import pair_lists, rebin, setup
+from jscratch.design import run as run_mod
+from jscratch.design.run import free_memory, pair_lists, rebin, setup, step_memory
+from jscratch.design.solver import compile_step
 from jscratch.designfile import DesignError
 from jscratch.scene import Board, Scratches, views_on_circle
 
@@ -123,3 +125,77 @@ def test_matching_intensities_meet_the_target_means_also_below_the_knee():
         closed[d] = DISPLAY_GAMMA * (np.log(tmean) - np.log(_display64(r).mean((1, 2))))
     np.testing.assert_allclose(u[1e4] - u[1e3], 2 * math.log(10.0), atol=1e-4)
     assert np.all(np.abs(closed[1e4] - closed[1e3] - 2 * math.log(10.0)) > 1.0)
+
+
+def test_free_memory_reads_meminfo_and_a_control_groups_limit(tmp_path):
+    """`free_memory`: ``MemAvailable + SwapFree``, or a cgroup's (v2 or v1) limit less its usage
+    without page cache where that is less; no limit ("max", v1's huge number) leaves meminfo."""
+    meminfo = tmp_path / "meminfo"
+    meminfo.write_text("MemTotal:  16000000 kB\nMemAvailable:    8000000 kB\n"
+                       "SwapFree:  1000000 kB\n")
+    sys_fs, cgroup = tmp_path / "sys", tmp_path / "cgroup"
+    host = 9_000_000 * 1024
+    assert free_memory(str(meminfo), str(tmp_path / "none"), str(sys_fs)) == host
+    cgroup.write_text("0::/job\n")
+    v2 = sys_fs / "job"
+    v2.mkdir(parents=True)
+    (v2 / "memory.current").write_text("3000000000\n")
+    (v2 / "memory.stat").write_text("anon 2000000000\nfile 1000000000\n")
+    (v2 / "memory.max").write_text("4000000000\n")
+    assert free_memory(str(meminfo), str(cgroup), str(sys_fs)) == 2_000_000_000
+    (v2 / "memory.max").write_text("max\n")
+    assert free_memory(str(meminfo), str(cgroup), str(sys_fs)) == host
+    cgroup.write_text("5:cpu,cpuacct:/\n4:memory:/job\n")
+    v1 = sys_fs / "memory" / "job"
+    v1.mkdir(parents=True)
+    (v1 / "memory.usage_in_bytes").write_text("4500000000\n")
+    (v1 / "memory.stat").write_text("cache 400000000\ntotal_cache 500000000\n")
+    (v1 / "memory.limit_in_bytes").write_text("5000000000\n")
+    assert free_memory(str(meminfo), str(cgroup), str(sys_fs)) == 1_000_000_000
+    assert free_memory(str(tmp_path / "none"), str(cgroup), str(sys_fs)) == 1_000_000_000
+    cgroup.write_text("4:memory:/docker/abc\n")  # a container that mounts its own group
+    for name in ("memory.usage_in_bytes", "memory.stat", "memory.limit_in_bytes"):
+        (sys_fs / "memory" / name).write_bytes((v1 / name).read_bytes())
+    assert free_memory(str(meminfo), str(cgroup), str(sys_fs)) == 1_000_000_000
+    cgroup.write_text("4:memory:/job\n")
+    (v1 / "memory.limit_in_bytes").write_text("9223372036854771712\n")
+    assert free_memory(str(meminfo), str(cgroup), str(sys_fs)) == host
+    assert free_memory(str(tmp_path / "none"), str(cgroup), str(sys_fs)) is None
+
+
+def test_a_step_larger_than_the_free_memory_is_refused_before_it_runs(tmp_path, monkeypatch):
+    """With less memory free than the compiled step needs, `design` refuses in one line before
+    its first step (no checkpoint written); ``JSCRATCH_MEMORY_CHECK=0`` runs it anyway."""
+    targets, views, board = _inputs()
+    monkeypatch.setattr(run_mod, "free_memory", lambda: 1000)
+    checkpoint = tmp_path / "ck.npz"
+    with pytest.raises(DesignError, match=r"^the design step needs about \d+\.\d GB of memory "
+                       r"and this machine has 0\.0 GB free: .*JSCRATCH_MEMORY_CHECK=0 runs it"):
+        design(targets, views, board, CFG, checkpoint=checkpoint)
+    assert not checkpoint.exists()
+    monkeypatch.setenv("JSCRATCH_MEMORY_CHECK", "no")
+    with pytest.raises(DesignError, match=r"^JSCRATCH_MEMORY_CHECK='no': expected 0 .* or 1"):
+        design(targets, views, board, CFG)
+    monkeypatch.setenv("JSCRATCH_MEMORY_CHECK", "0")
+    metrics = design(targets, views, board, CFG).metrics
+    assert metrics["iterations"] == 1 and metrics["step_memory_bytes"] > 0
+
+
+@pytest.mark.skipif(not native.available(jnp.float32),
+                    reason=f"native kernel unavailable: {native.status()['why']}")
+def test_step_memory_holds_every_pairs_jacobians():
+    """On one device with the native kernel the step keeps each pair slot's Jacobians,
+    ``10 M + 6`` floats (docs/model.md): `step_memory` is at least that, and it grows with the
+    pairs by that much."""
+    targets, views, board = _inputs()
+    needs = []
+    for n in (60, 600):
+        cfg = dataclasses.replace(CFG, n_scratches=n)
+        params, optimizer, ctx = setup(targets, views, board, cfg)
+        lists = pair_lists(params, ctx, cfg)
+        compiled = compile_step(params, optimizer.init(params), lists, ctx, optimizer)
+        slots = lists.shared.valid.shape[0]
+        needs.append((step_memory(compiled), slots))
+        assert needs[-1][0] >= (10 * 2 + 6) * 4 * slots
+    (small, s_small), (big, s_big) = needs
+    assert big - small >= (10 * 2 + 6) * 4 * (s_big - s_small) > 0

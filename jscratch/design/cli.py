@@ -203,6 +203,7 @@ def _run(argv) -> int:
                progress=False, mesh=mesh)
         return 0
     # ---
+    made_out = not os.path.isdir(run.out)
     os.makedirs(run.out, exist_ok=True)
     if not run.resume:  # the settings first, so that an interrupted run can be resumed
         with open(os.path.join(run.out, "config.json"), "w") as f:
@@ -213,6 +214,12 @@ def _run(argv) -> int:
     try:
         result = design(targets, views, board, config, checkpoint=checkpoint, resume=run.resume,
                         progress=not run.quiet, mesh=mesh)
+    except InputError:  # refused before its first step (the step's memory): nothing is kept
+        if not run.resume and not os.path.exists(checkpoint):
+            os.remove(os.path.join(run.out, "config.json"))
+            if made_out and not os.listdir(run.out):
+                os.rmdir(run.out)
+        raise
     except KeyboardInterrupt:
         print("error: interrupted " + (
             "(the checkpoint holds the last saved state: --resume)" if os.path.exists(checkpoint)

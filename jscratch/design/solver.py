@@ -170,8 +170,9 @@ def step(params: DesignParams, opt_state, lists: bvh.PairLists, ctx: Context, ad
 def compile_step(params: DesignParams, opt_state, lists: bvh.PairLists, ctx: Context, adam):
     """Compile `step` for these arguments' shapes without running it: the jit cache is then warm
     and the first `step` call only runs. The design calls it on a second thread while the setup
-    renders (XLA compiles without holding the GIL), so the two compilations overlap."""
-    lower_step(params, opt_state, lists, ctx, adam).compile()
+    renders (XLA compiles without holding the GIL), so the two compilations overlap. Returns
+    the compiled step (its ``memory_analysis`` sizes the run: `jscratch.design.run`)."""
+    return lower_step(params, opt_state, lists, ctx, adam).compile()
 
 
 def lower_step(params: DesignParams, opt_state, lists: bvh.PairLists, ctx: Context, adam):
