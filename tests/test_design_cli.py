@@ -6,6 +6,7 @@ refused in one line with nothing written."""
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -307,6 +308,33 @@ def test_resume_accepts_the_runs_own_command_and_names_what_differs(cli_run):
         cli.configs(["--views", "3", "--out", str(cli_run), "--resume"])
 
 
+def test_resume_compares_options_as_the_config_holds_them(tmp_path):
+    """Other spellings of the run's own values pass: groups in another order, the default
+    machine as ``none``, numbers written otherwise, target paths absolute or relative, a view
+    count equal to the targets'; another machine profile is refused field by field."""
+    import skimage.io
+
+    for name in ("t0.png", "t1.png"):
+        skimage.io.imsave(tmp_path / name, np.zeros((8, 8), np.uint8), check_contrast=False)
+    out = tmp_path / "out"
+    out.mkdir()
+    run, scene, config = cli.configs(["t0.png", "t1.png", "--freeze", "width,alpha",
+                                      "--lr-endpoints", "0.001", "--out", str(out)])
+    (out / "config.json").write_text(json.dumps({"design": config.to_dict(),
+                                                 "scene": scene.to_dict()}))
+    monkeypatch = pytest.MonkeyPatch()
+    with monkeypatch.context() as m:
+        m.chdir(tmp_path)
+        same = [str(tmp_path / "t0.png"), "t1.png", "--views", "2", "--freeze", "alpha,width",
+                "--lr-endpoints", "1e-3", "--machine", "none", "--out", str(out), "--resume"]
+        _, scene2, config2 = cli.configs(same)
+        assert config2.to_dict() == config.to_dict()
+        machine = tmp_path / "m.toml"
+        machine.write_text("feed_mm_min = 123.0\n")
+        with pytest.raises(DesignError, match=r"--machine: feed_mm_min 123\.0 \(the run's: "):
+            cli.configs([*same, "--machine", str(machine)])
+
+
 def test_a_run_too_large_for_the_free_memory_is_refused_and_leaves_no_folder(
         tmp_path, monkeypatch, capsys):
     """The step's memory check (`jscratch.design.run.check_step_memory`) from the command line:
@@ -319,8 +347,26 @@ def test_a_run_too_large_for_the_free_memory_is_refused_and_leaves_no_folder(
     assert cli.main([*TINY, "--out", str(out), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: the design step needs about ") and err.count("\n") == 1
-    assert "this machine has 0.0 GB free" in err and not out.exists()
+    assert "this machine has 0 MB free" in err and not out.exists()
+    deep = tmp_path / "new" / "a" / "b"
+    assert cli.main([*TINY, "--out", str(deep), "--quiet"]) == 2
+    assert not (tmp_path / "new").exists()
     out.mkdir()
     (out / "notes.txt").write_text("mine")
     assert cli.main([*TINY, "--out", str(out), "--quiet"]) == 2
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+
+
+def test_a_refused_run_leaves_an_earlier_run_in_its_folder_as_it_was(cli_run, tmp_path,
+                                                                     monkeypatch):
+    """A new run refused before its first step (here by the memory check) puts back the earlier
+    run's config.json and checkpoint it had replaced; every other file is untouched."""
+    from jscratch.design import run as run_mod
+
+    out = tmp_path / "run"
+    shutil.copytree(cli_run, out)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert "checkpoint.npz" in before and "config.json" in before
+    monkeypatch.setattr(run_mod, "free_memory", lambda: 1000)
+    assert cli.main([*TINY, "--seed", "5", "--out", str(out), "--quiet"]) == 2
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before

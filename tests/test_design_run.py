@@ -136,7 +136,7 @@ def test_free_memory_reads_meminfo_and_a_control_groups_limit(tmp_path):
     sys_fs, cgroup = tmp_path / "sys", tmp_path / "cgroup"
     host = 9_000_000 * 1024
     assert free_memory(str(meminfo), str(tmp_path / "none"), str(sys_fs)) == host
-    cgroup.write_text("0::/job\n")
+    cgroup.write_text("\n0::/job\n")  # (a blank line is skipped)
     v2 = sys_fs / "job"
     v2.mkdir(parents=True)
     (v2 / "memory.current").write_text("3000000000\n")
@@ -145,6 +145,16 @@ def test_free_memory_reads_meminfo_and_a_control_groups_limit(tmp_path):
     assert free_memory(str(meminfo), str(cgroup), str(sys_fs)) == 2_000_000_000
     (v2 / "memory.max").write_text("max\n")
     assert free_memory(str(meminfo), str(cgroup), str(sys_fs)) == host
+    # a limit on a parent group (a job's, over its steps' groups) holds for the process too
+    (v2 / "memory.max").write_text("4000000000\n")
+    task = v2 / "step" / "task_0"
+    task.mkdir(parents=True)
+    (task / "memory.max").write_text("max\n")
+    cgroup.write_text("0::/job/step/task_0\n")
+    assert free_memory(str(meminfo), str(cgroup), str(sys_fs)) == 2_000_000_000
+    (task / "memory.max").write_text("not a number\n")  # unreadable: that group is skipped
+    assert free_memory(str(meminfo), str(cgroup), str(sys_fs)) == 2_000_000_000
+    (v2 / "memory.max").write_text("max\n")
     cgroup.write_text("5:cpu,cpuacct:/\n4:memory:/job\n")
     v1 = sys_fs / "memory" / "job"
     v1.mkdir(parents=True)
@@ -157,6 +167,7 @@ def test_free_memory_reads_meminfo_and_a_control_groups_limit(tmp_path):
     for name in ("memory.usage_in_bytes", "memory.stat", "memory.limit_in_bytes"):
         (sys_fs / "memory" / name).write_bytes((v1 / name).read_bytes())
     assert free_memory(str(meminfo), str(cgroup), str(sys_fs)) == 1_000_000_000
+    (sys_fs / "memory" / "memory.limit_in_bytes").write_text("9223372036854771712\n")
     cgroup.write_text("4:memory:/job\n")
     (v1 / "memory.limit_in_bytes").write_text("9223372036854771712\n")
     assert free_memory(str(meminfo), str(cgroup), str(sys_fs)) == host
@@ -169,8 +180,8 @@ def test_a_step_larger_than_the_free_memory_is_refused_before_it_runs(tmp_path, 
     targets, views, board = _inputs()
     monkeypatch.setattr(run_mod, "free_memory", lambda: 1000)
     checkpoint = tmp_path / "ck.npz"
-    with pytest.raises(DesignError, match=r"^the design step needs about \d+\.\d GB of memory "
-                       r"and this machine has 0\.0 GB free: .*JSCRATCH_MEMORY_CHECK=0 runs it"):
+    with pytest.raises(DesignError, match=r"^the design step needs about \d+ MB of memory "
+                       r"and this machine has 0 MB free: .*JSCRATCH_MEMORY_CHECK=0 runs it"):
         design(targets, views, board, CFG, checkpoint=checkpoint)
     assert not checkpoint.exists()
     monkeypatch.setenv("JSCRATCH_MEMORY_CHECK", "no")

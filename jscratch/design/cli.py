@@ -155,20 +155,42 @@ def configs(argv: Sequence[str] | None = None) -> tuple[RunOptions, SceneConfig,
 
 def _changed(saved, changes: dict, cls) -> list[str]:
     """``"--flag GIVEN (the run's: SAVED)"`` for each option in `changes` (`options.given`) whose
-    value differs from the saved config's: options repeated with the run's own values pass."""
+    value, as the config holds it (`overlay`: parsed and normalised), differs from the saved
+    config's: options repeated with the run's own values pass. Target paths are compared as the
+    files they name, and a scene's ``views`` as the count it gives."""
     names = flags(cls)
+    new = overlay(saved, changes)
     out = []
 
-    def walk(base, changes, prefix):
-        for name, v in changes.items():
-            cur = getattr(base, name)
-            if isinstance(v, dict) and dataclasses.is_dataclass(cur):
-                walk(cur, v, prefix + name + ".")
-            elif v != cur:
-                out.append(f"{names[prefix + name]} {v!r} (the run's: {cur!r})")
+    def walk(a, b, given, prefix):
+        for name, v in given.items():
+            x, y = getattr(a, name), getattr(b, name)
+            if isinstance(v, dict) and dataclasses.is_dataclass(x):
+                walk(x, y, v, prefix + name + ".")
+            elif isinstance(x, dict) and isinstance(y, dict):  # a machine profile: its fields
+                out.extend(f"{names[prefix + name]}: {k} {_show(y.get(k))} (the run's: "
+                           f"{_show(x.get(k))})" for k in sorted(set(x) | set(y))
+                           if x.get(k) != y.get(k))
+            elif _comparable(a, name) != _comparable(b, name):
+                out.append(f"{names[prefix + name]} {_show(y)} (the run's: {_show(x)})")
 
-    walk(saved, changes, "")
+    walk(saved, new, changes, "")
     return out
+
+
+def _comparable(config, name):
+    value = getattr(config, name)
+    if isinstance(config, SceneConfig) and name == "targets":
+        return tuple(os.path.realpath(t) for t in value)
+    if isinstance(config, SceneConfig) and name == "views" and value is None:
+        return len(config.targets) or 3  # the default: one view per target, else 3
+    return value
+
+
+def _show(value) -> str:
+    if isinstance(value, (tuple, list)):
+        return ",".join(map(str, value)) if value else "none"
+    return "none" if value is None else str(value)
 
 
 def _run(argv) -> int:
@@ -203,33 +225,57 @@ def _run(argv) -> int:
                progress=False, mesh=mesh)
         return 0
     # ---
-    made_out = not os.path.isdir(run.out)
+    made = _missing_folders(run.out)  # removed again if the run is refused
     os.makedirs(run.out, exist_ok=True)
+    config_path, earlier = os.path.join(run.out, "config.json"), checkpoint + ".earlier"
+    earlier_config = None
     if not run.resume:  # the settings first, so that an interrupted run can be resumed
-        with open(os.path.join(run.out, "config.json"), "w") as f:
+        if os.path.isfile(config_path):
+            with open(config_path, "rb") as f:
+                earlier_config = f.read()
+        with open(config_path, "w") as f:
             json.dump({"design": config.to_dict(), "scene": scene.to_dict(), "targets": names},
                       f, indent=2)
-        if os.path.exists(checkpoint):  # an earlier run's, which these settings do not describe
-            os.remove(checkpoint)
+        if os.path.exists(checkpoint):  # an earlier run's, which these settings do not describe:
+            os.replace(checkpoint, earlier)  # put back if this run is refused, else removed
     try:
         result = design(targets, views, board, config, checkpoint=checkpoint, resume=run.resume,
                         progress=not run.quiet, mesh=mesh)
-    except InputError:  # refused before its first step (the step's memory): nothing is kept
+    except InputError:  # refused before its first step (the step's memory): the folder as it was
         if not run.resume and not os.path.exists(checkpoint):
-            os.remove(os.path.join(run.out, "config.json"))
-            if made_out and not os.listdir(run.out):
-                os.rmdir(run.out)
+            if earlier_config is None:
+                os.remove(config_path)
+            else:
+                with open(config_path, "wb") as f:
+                    f.write(earlier_config)
+            if os.path.exists(earlier):
+                os.replace(earlier, checkpoint)
+            for folder in made:
+                if not os.listdir(folder):
+                    os.rmdir(folder)
         raise
     except KeyboardInterrupt:
         print("error: interrupted " + (
             "(the checkpoint holds the last saved state: --resume)" if os.path.exists(checkpoint)
             else "before the first checkpoint: run again to start over"), file=sys.stderr)
         return 130
+    finally:
+        if not run.resume and os.path.exists(earlier):
+            os.remove(earlier)
     save_result(result, run.out, scene=scene, names=names,
                 as_carved_samples=run.as_carved_samples)
     if not run.quiet:
         _summary(result, run.out)
     return 0
+
+
+def _missing_folders(path: str) -> list[str]:
+    """The folders ``os.makedirs(path)`` would create, innermost first."""
+    out, path = [], os.path.abspath(path)
+    while not os.path.exists(path):
+        out.append(path)
+        path = os.path.dirname(path)
+    return out
 
 
 def _summary(result, out) -> None:

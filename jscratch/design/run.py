@@ -90,6 +90,7 @@ def design(
     native.prepare(getattr(config, "dtype", "float32"))
     native.keep_freed_memory()  # the steps reuse their large buffers (`native.keep_freed_memory`)
     tnp, views, board = check_inputs(targets, views, board, config, checkpoint, resume)
+    memory_check_on()  # a bad JSCRATCH_MEMORY_CHECK is refused before any work
     if stop_after is not None and not (isinstance(stop_after, (int, np.integer))
                                        and not isinstance(stop_after, bool) and stop_after >= 1):
         raise DesignError(f"stop_after must be None or an int >= 1, got {stop_after!r}")
@@ -380,11 +381,7 @@ def check_step_memory(compiled, mesh=None) -> None:
     memory (``memory_stats``; skipped where a backend has none). At 1024 px and 320,000
     scratches the step needs 6.4 GB, 77 % of the process's peak of 8.4 GB (docs/usage.md). Raises
     `DesignError` naming both sizes; ``JSCRATCH_MEMORY_CHECK=0`` turns the check off."""
-    raw = os.environ.get(MEMORY_CHECK_ENV, "").strip() or "1"
-    if raw not in ("0", "1"):
-        raise DesignError(f"{MEMORY_CHECK_ENV}={raw!r}: expected 0 (no memory check) or 1 (check "
-                          "the step's memory before the first step, the default)")
-    if compiled is None or raw == "0":
+    if compiled is None or not memory_check_on():
         return
     need = step_memory(compiled)
     if need is None:  # a backend without the analysis: nothing to check
@@ -398,9 +395,23 @@ def check_step_memory(compiled, mesh=None) -> None:
     for need_here, free, where in hosts:
         if free is not None and need_here > free:
             raise DesignError(
-                f"the design step needs about {need_here / 1e9:.1f} GB of memory and "
-                f"{where} has {free / 1e9:.1f} GB free: ask for fewer scratches, fewer views or "
-                f"a smaller --size ({MEMORY_CHECK_ENV}=0 runs it anyway)")
+                f"the design step needs about {_size(need_here)} of memory and {where} has "
+                f"{_size(free)} free: ask for fewer scratches, fewer views or a smaller --size "
+                f"({MEMORY_CHECK_ENV}=0 runs it anyway)")
+
+
+def memory_check_on() -> bool:
+    """Whether `check_step_memory` checks: ``JSCRATCH_MEMORY_CHECK`` ``1`` (or unset) or ``0``;
+    another value is refused (`DesignError`)."""
+    raw = os.environ.get(MEMORY_CHECK_ENV, "").strip() or "1"
+    if raw not in ("0", "1"):
+        raise DesignError(f"{MEMORY_CHECK_ENV}={raw!r}: expected 0 (no memory check) or 1 (check "
+                          "the step's memory before the first step, the default)")
+    return raw == "1"
+
+
+def _size(n: int) -> str:
+    return f"{n / 1e9:.1f} GB" if n >= 1e9 else f"{n / 1e6:.0f} MB"
 
 
 def step_memory(compiled) -> int | None:
@@ -437,13 +448,15 @@ def free_memory(meminfo: str = "/proc/meminfo", cgroup: str = "/proc/self/cgroup
 
 
 def _cgroup_free(cgroup: str, root: str) -> int | None:
-    """The memory control group's limit less its usage (page cache not counted), cgroup v2 or
-    v1; None without a limit."""
+    """The least that this process's memory control group and its parents leave free (each
+    group's limit less its usage, page cache not counted), cgroup v2 or v1; None without a
+    limit, or where the files cannot be read."""
     try:
         with open(cgroup) as f:
-            groups = [line.strip().split(":", 2) for line in f]
-    except OSError:
+            groups = [line.strip().split(":", 2) for line in f if line.count(":") >= 2]
+    except (OSError, UnicodeDecodeError):
         return None
+    free = None
     for hid, ctrl, path in groups:
         if hid == "0" and ctrl == "":
             mount, files = root, ("memory.max", "memory.current", "file")
@@ -452,28 +465,43 @@ def _cgroup_free(cgroup: str, root: str) -> int | None:
             files = ("memory.limit_in_bytes", "memory.usage_in_bytes", "total_cache")
         else:
             continue
-        # the group's folder; a container may mount its own group as the root
-        base = mount + path if os.path.isdir(mount + path) else mount
-        try:
-            with open(os.path.join(base, files[0])) as f:
-                raw = f.read().strip()
-            if raw == "max" or int(raw) >= 2 ** 60:
-                continue
-            with open(os.path.join(base, files[1])) as f:
-                used = int(f.read().strip())
-            with open(os.path.join(base, "memory.stat")) as f:
-                stat = dict(line.split() for line in f if len(line.split()) == 2)
-            return int(raw) - used + int(stat.get(files[2], 0))
-        except (OSError, ValueError):
-            continue
-    return None
+        # the group's folder and its parents; a container may mount its own group as the root
+        path = path.rstrip("/")
+        if not os.path.isdir(mount + path):
+            path = ""
+        while True:
+            here = _group_free(mount + path, files)
+            if here is not None:
+                free = here if free is None else min(free, here)
+            if not path:
+                break
+            path = path.rsplit("/", 1)[0]
+    return free
+
+
+def _group_free(base: str, files: tuple[str, str, str]) -> int | None:
+    """One group's limit less its usage without page cache; None without a limit."""
+    try:
+        with open(os.path.join(base, files[0])) as f:
+            raw = f.read().strip()
+        if raw == "max" or int(raw) >= 2 ** 60:
+            return None
+        with open(os.path.join(base, files[1])) as f:
+            used = int(f.read().strip())
+        with open(os.path.join(base, "memory.stat")) as f:
+            stat = dict(line.split()[:2] for line in f if len(line.split()) >= 2)
+        return int(raw) - used + int(stat.get(files[2], 0))
+    except (OSError, ValueError, UnicodeDecodeError):
+        return None
 
 
 def _device_free(device) -> int | None:
-    stats = getattr(device, "memory_stats", lambda: None)() or {}
-    if "bytes_limit" not in stats:
+    """An accelerator's free memory (``memory_stats``); None where the backend gives none."""
+    try:
+        stats = device.memory_stats() or {}
+        return int(stats["bytes_limit"]) - int(stats.get("bytes_in_use", 0))
+    except Exception:
         return None
-    return int(stats["bytes_limit"]) - int(stats.get("bytes_in_use", 0))
 
 
 def _scores_needed(ctx, config) -> bool:
