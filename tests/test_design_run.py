@@ -210,3 +210,20 @@ def test_step_memory_holds_every_pairs_jacobians():
         assert needs[-1][0] >= (10 * 2 + 6) * 4 * slots
     (small, s_small), (big, s_big) = needs
     assert big - small >= (10 * 2 + 6) * 4 * (s_big - s_small) > 0
+
+
+def test_a_resumed_run_is_checked_too(tmp_path, monkeypatch):
+    """Resuming compiles the step before its first step and checks its memory: refused with the
+    checkpoint left as it was; with the memory there, it runs on and reports the step's size."""
+    targets, views, board = _inputs()
+    cfg = dataclasses.replace(CFG, iterations=2)
+    checkpoint = tmp_path / "ck.npz"
+    design(targets, views, board, cfg, checkpoint=checkpoint, stop_after=1)
+    saved = checkpoint.read_bytes()
+    with monkeypatch.context() as m:
+        m.setattr(run_mod, "free_memory", lambda: 1000)
+        with pytest.raises(DesignError, match="^the design step needs about"):
+            design(targets, views, board, cfg, checkpoint=checkpoint, resume=True)
+    assert checkpoint.read_bytes() == saved
+    metrics = design(targets, views, board, cfg, checkpoint=checkpoint, resume=True).metrics
+    assert metrics["iterations"] == 2 and metrics["step_memory_bytes"] > 0

@@ -119,14 +119,23 @@ def design(
         else:
             phase.show("compiling the step; the initial render")
             state, warm = initial_state(params, optimizer, ctx, tnp, config)
-        compile_seconds = step_bytes = None
+        compile_seconds = compiled = None
         if warm is not None:
             phase.show("compiling the step")
             warm.join()
-            compile_seconds = warm.seconds
-            # (every process refuses together: none is left waiting for one that stopped)
-            mesh_mod.all_or_none(functools.partial(check_step_memory, warm.step, mesh))
-            step_bytes = None if warm.step is None else step_memory(warm.step)
+            compile_seconds, compiled = warm.seconds, warm.step
+        elif state.iteration < config.iterations:  # resumed: the step compiled here, to check
+            phase.show("compiling the step")
+            t_c = time.perf_counter()
+            try:
+                compiled = compile_step(state.params, state.opt_state, state.lists, ctx,
+                                        optimizer)
+            except Exception:  # the first step compiles again and raises it properly
+                pass
+            compile_seconds = time.perf_counter() - t_c
+        # (every process refuses together: none is left waiting for one that stopped)
+        mesh_mod.all_or_none(functools.partial(check_step_memory, compiled, mesh))
+        step_bytes = None if compiled is None else step_memory(compiled)
     finally:
         phase.close()
     parts["initial_state"] = time.perf_counter() - t
@@ -145,7 +154,7 @@ def design(
         "time_first_step": step_times[0] if step_times else None,
         "time_step_median": float(np.median(step_times[1:])) if len(step_times) > 1 else None,
         "time_compile_step": compile_seconds,
-        "step_memory_bytes": step_bytes,  # per device, `step_memory`; None when resumed
+        "step_memory_bytes": step_bytes,  # per device, `step_memory`
         "time_parts": {k: v for k, v in parts.items() if k != "pair_views"},
         "kernel": native.status(config.dtype),
         "mesh": mesh_mod.describe(mesh),
