@@ -210,7 +210,14 @@ class MachineProfile:
             raise DesignFileError(f"machine profile {path!r} cannot be read ({exc.strerror})") from None
         except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
             raise DesignFileError(f"{path}: not a valid TOML machine profile ({str(exc).splitlines()[0]})") from None
-        data = data.get("machine", data)
+        if "machine" in data:
+            outside = sorted(k for k in data if k != "machine")
+            if outside or not isinstance(data["machine"], dict):
+                what = (f"{', '.join(outside)} outside the [machine] table" if outside
+                        else "'machine' is not a table")
+                raise DesignFileError(f"{path}: {what} (give every setting in [machine], or "
+                                      "every one bare)")
+            data = data["machine"]
         try:
             prof = cls.from_dict(data, source=path)
         except InputError as exc:
@@ -292,7 +299,7 @@ def main(argv=None) -> int:
               f"or the shipped default (the paper's machine), as TOML.\n\n{EXIT_STATUS_HELP}")
         return 0
     if len(argv) > 1 or (argv and argv[0].startswith("-")):
-        print(f"usage: python -m jscratch.machine [FILE]\nerror: expected at most one FILE and no options, "
+        print(f"error: python -m jscratch.machine [FILE] takes at most one FILE and no options, "
               f"got {' '.join(argv)!r}", file=sys.stderr)
         return 2
     try:

@@ -399,7 +399,7 @@ def test_preview_refuses_bad_options(tmp_path, capsys, args, words):
 
 def test_machine_and_bench_usage_errors(tmp_path, capsys):
     assert machine.main(["a.toml", "b.toml"]) == 2
-    assert "at most one FILE" in capsys.readouterr().err
+    _one_error_line(capsys.readouterr().err, "at most one FILE")
     assert machine.main([str(tmp_path / "none.toml")]) == 2
     _one_error_line(capsys.readouterr().err, "none.toml", "does not exist")
     with pytest.raises(SystemExit) as e:

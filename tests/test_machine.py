@@ -5,11 +5,13 @@ back, and the carving-time estimate by hand."""
 import dataclasses
 import json
 import math
+import re
 
 import pytest
 
 from jscratch import fabricate, machine
 from jscratch.design import main as design_main
+from jscratch.errors import DesignFileError
 from jscratch.machine import MachineProfile, carving_seconds
 
 
@@ -77,3 +79,20 @@ def test_a_spin_up_dwell_written_as_zero_is_refused():
         MachineProfile(spindle_rpm=1000, spinup_s=0.0001)
     assert MachineProfile(spindle_rpm=1000, spinup_s=0).spinup_s == 0.0  # (no dwell, asked for)
     assert MachineProfile(spindle_rpm=0, spinup_s=0.0001).spinup_s == 0.0001  # (no spindle)
+
+
+@pytest.mark.parametrize("text,what", [
+    ("feed_mm_min = 5\n[machine]\ncutter_radius_mm = 0.2\n", "feed_mm_min outside the [machine]"),
+    ("[machine]\ncutter_radius_mm = 0.2\n[other]\nx = 1\n", "other outside the [machine] table"),
+    ("machine = 3\n", "'machine' is not a table"),
+])
+def test_settings_outside_the_machine_table_are_refused_not_dropped(tmp_path, text, what):
+    """A file with a ``[machine]`` table and settings beside it would lose those settings:
+    refused in one line naming them."""
+    path = tmp_path / "mixed.toml"
+    path.write_text(text)
+    with pytest.raises(DesignFileError, match=re.escape(what)):
+        MachineProfile.from_toml(path)
+    bare = tmp_path / "bare.toml"
+    bare.write_text("feed_mm_min = 500.0\ncutter_radius_mm = 0.2\n")
+    assert MachineProfile.from_toml(bare).feed_mm_min == 500.0
