@@ -370,3 +370,31 @@ def test_a_refused_run_leaves_an_earlier_run_in_its_folder_as_it_was(cli_run, tm
     monkeypatch.setattr(run_mod, "free_memory", lambda: 1000)
     assert cli.main([*TINY, "--seed", "5", "--out", str(out), "--quiet"]) == 2
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+def test_an_as_carved_render_out_of_memory_keeps_the_design(tmp_path, monkeypatch, capsys):
+    """The as-carved render (after the optimisation) running out of memory: the design is saved
+    without it, one line says so, exit 1; another error is not swallowed."""
+    import jax
+
+    from jscratch.design import maker
+
+    def too_big(*args, **kwargs):
+        raise jax.errors.JaxRuntimeError("INTERNAL: Out of memory allocating 92330000023000 "
+                                         "bytes.")
+
+    monkeypatch.setattr(maker, "as_carved", too_big)
+    out = tmp_path / "out"
+    assert cli.main([*TINY, "--as-carved-samples", "4", "--out", str(out), "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("error: the as-carved render at --as-carved-samples 4 ran out of "
+                          "memory") and err.count("\n") == 1
+    assert "as_carved" not in json.loads((out / "metrics.json").read_text())
+    assert load_result(out).params is not None
+
+    def broken(*args, **kwargs):
+        raise jax.errors.JaxRuntimeError("INTERNAL: something else")
+
+    monkeypatch.setattr(maker, "as_carved", broken)
+    with pytest.raises(jax.errors.JaxRuntimeError, match="something else"):
+        cli.main([*TINY, "--as-carved-samples", "4", "--out", str(tmp_path / "o2"), "--quiet"])

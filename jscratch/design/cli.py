@@ -262,11 +262,27 @@ def _run(argv) -> int:
     finally:
         if not run.resume and os.path.exists(earlier):
             os.remove(earlier)
-    save_result(result, run.out, scene=scene, names=names,
-                as_carved_samples=run.as_carved_samples)
+    try:
+        save_result(result, run.out, scene=scene, names=names,
+                    as_carved_samples=run.as_carved_samples)
+    except (MemoryError, jax.errors.JaxRuntimeError) as e:
+        if not (run.as_carved_samples and _out_of_memory(e)):
+            raise
+        # the design is kept; only the as-carved render is too large
+        save_result(result, run.out, scene=scene, names=names)
+        print(f"error: the as-carved render at --as-carved-samples {run.as_carved_samples} ran out "
+              f"of memory ({error_line(e, 80)}); the design is saved without it: ask for fewer "
+              "samples", file=sys.stderr)
+        return 1
     if not run.quiet:
         _summary(result, run.out)
     return 0
+
+
+def _out_of_memory(e: BaseException) -> bool:
+    """Whether `e` is an allocation failure (Python's, or XLA's on the host or a device)."""
+    return isinstance(e, MemoryError) or any(
+        s in str(e) for s in ("RESOURCE_EXHAUSTED", "Out of memory", "out of memory"))
 
 
 def _missing_folders(path: str) -> list[str]:
@@ -305,7 +321,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (JscratchError, OSError) as e:
         return report(e)
     except (MemoryError, jax.errors.JaxRuntimeError) as e:
-        if isinstance(e, jax.errors.JaxRuntimeError) and "RESOURCE_EXHAUSTED" not in str(e):
+        if not _out_of_memory(e):
             raise
         print(f"error: out of memory ({error_line(e, 100)}): ask for fewer scratches, a smaller "
               "--size or a smaller --chunk", file=sys.stderr)
