@@ -196,9 +196,10 @@ def test_resume_refuses_other_settings(cli_run, capsys):
     assert code == 2 and "only --iterations" in capsys.readouterr().err
 
 
-def test_a_new_run_removes_an_earlier_runs_checkpoint(tmp_path, monkeypatch, capsys):
-    """A run interrupted before its first checkpoint leaves no checkpoint of an earlier run in
-    its folder (which its config.json would no longer describe)."""
+def test_a_new_run_stopped_before_its_first_checkpoint_leaves_the_folder_as_it_was(
+        tmp_path, monkeypatch, capsys):
+    """A new run interrupted, or failing, before its first checkpoint puts back what it had
+    replaced (an earlier run's checkpoint and config.json) and removes what it added."""
     out = tmp_path / "out"
     out.mkdir()
     (out / "checkpoint.npz").write_bytes(b"an earlier run's")
@@ -208,8 +209,42 @@ def test_a_new_run_removes_an_earlier_runs_checkpoint(tmp_path, monkeypatch, cap
 
     monkeypatch.setattr(cli, "design", interrupted)
     assert cli.main([*TINY, "--out", str(out), "--quiet"]) == 130
-    assert not (out / "checkpoint.npz").exists() and (out / "config.json").exists()
-    assert "interrupted before the first checkpoint: run again" in capsys.readouterr().err
+    assert sorted(p.name for p in out.iterdir()) == ["checkpoint.npz"]
+    assert (out / "checkpoint.npz").read_bytes() == b"an earlier run's"
+    assert "before the first checkpoint (the folder is as it was)" in capsys.readouterr().err
+
+    def failing(*args, **kwargs):
+        raise RuntimeError("a bug")
+
+    monkeypatch.setattr(cli, "design", failing)
+    with pytest.raises(RuntimeError, match="a bug"):
+        cli.main([*TINY, "--out", str(tmp_path / "new" / "out"), "--quiet"])
+    assert not (tmp_path / "new").exists()
+
+
+def test_an_unfinished_run_over_an_earlier_result_is_not_loaded_as_it(cli_run, tmp_path,
+                                                                     monkeypatch, capsys):
+    """A new run interrupted after its first checkpoint, in the folder of an earlier result:
+    config.json is the new run's (so that --resume finishes it), and `load_result` refuses the
+    folder instead of pairing the new settings with the earlier design; resumed, it loads."""
+    out = tmp_path / "run"
+    shutil.copytree(cli_run, out)
+    run_design = cli.design
+
+    def stopped(*args, checkpoint, **kwargs):
+        run_design(*args, checkpoint=checkpoint, stop_after=1, **kwargs)  # its checkpoint
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "design", stopped)
+    assert cli.main([*TINY, "--seed", "5", "--out", str(out), "--quiet"]) == 130
+    assert "the checkpoint holds the last saved state: --resume" in capsys.readouterr().err
+    assert json.loads((out / "config.json").read_text())["design"]["seed"] == 5
+    with pytest.raises(DesignFileError, match="config.json is a later run's, which has not "
+                                              "finished"):
+        load_result(out)
+    monkeypatch.setattr(cli, "design", run_design)
+    assert cli.main(["--resume", "--out", str(out), "--quiet"]) == 0
+    assert load_result(out).config.seed == 5
 
 
 def test_out_of_memory_is_one_line(tmp_path, monkeypatch, capsys):

@@ -21,6 +21,7 @@ import dataclasses
 import json
 import os
 import sys
+import uuid
 from collections.abc import Sequence
 
 import jax
@@ -233,16 +234,17 @@ def _run(argv) -> int:
         if os.path.isfile(config_path):
             with open(config_path, "rb") as f:
                 earlier_config = f.read()
-        with open(config_path, "w") as f:
-            json.dump({"design": config.to_dict(), "scene": scene.to_dict(), "targets": names},
-                      f, indent=2)
+        with open(config_path, "w") as f:  # (its run_id: no result is this run's yet)
+            json.dump({"design": config.to_dict(), "scene": scene.to_dict(), "targets": names,
+                       "run_id": uuid.uuid4().hex}, f, indent=2)
         if os.path.exists(checkpoint):  # an earlier run's, which these settings do not describe:
             os.replace(checkpoint, earlier)  # put back if this run is refused, else removed
     try:
         result = design(targets, views, board, config, checkpoint=checkpoint, resume=run.resume,
                         progress=not run.quiet, mesh=mesh)
-    except InputError:  # refused before its first step (the step's memory): the folder as it was
-        if not run.resume and not os.path.exists(checkpoint):
+    except BaseException as e:
+        own = os.path.exists(checkpoint)  # (a resumed run's, or one this run wrote)
+        if not run.resume and not own:  # nothing of this run to keep: the folder as it was
             if earlier_config is None:
                 os.remove(config_path)
             else:
@@ -253,11 +255,12 @@ def _run(argv) -> int:
             for folder in made:
                 if not os.listdir(folder):
                     os.rmdir(folder)
-        raise
-    except KeyboardInterrupt:
+        if not isinstance(e, KeyboardInterrupt):
+            raise
         print("error: interrupted " + (
-            "(the checkpoint holds the last saved state: --resume)" if os.path.exists(checkpoint)
-            else "before the first checkpoint: run again to start over"), file=sys.stderr)
+            "(the checkpoint holds the last saved state: --resume)" if own else
+            "before the first checkpoint (the folder is as it was): run again to start over"),
+            file=sys.stderr)
         return 130
     finally:
         if not run.resume and os.path.exists(earlier):

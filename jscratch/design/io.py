@@ -12,6 +12,7 @@ import os
 import re
 import shutil
 import tempfile
+import uuid
 
 import numpy as np
 
@@ -327,6 +328,9 @@ def _save_into(out, result, scene, names, as_carved_samples, order_time) -> dict
     add["carving"] = maker.carving_estimate(d, profile, time_limit=order_time)
     metrics = {key: val for key, val in result.metrics.items() if key != "as_carved"}  # or new
     metrics.update(add)
+    # The same new token in metrics.json and config.json: `load_result` refuses a folder whose
+    # config.json a later, unfinished command-line run has replaced.
+    metrics["run_id"] = run_id = uuid.uuid4().hex
     p = result.params
     save_npz(os.path.join(out, "result.npz"), {
         "geom": np.asarray(p.geom), "log_width": np.asarray(p.log_width),
@@ -343,7 +347,8 @@ def _save_into(out, result, scene, names, as_carved_samples, order_time) -> dict
            "targets": names,
            "board": {"Sx": b.Sx, "Sy": b.Sy, "shape": list(b.shape), "F0": b.F0, "a_G": b.a_G,
                      "a_S": b.a_S},
-           "camera": np.asarray(v.camera).tolist(), "light": np.asarray(v.light).tolist()}
+           "camera": np.asarray(v.camera).tolist(), "light": np.asarray(v.light).tolist(),
+           "run_id": run_id}
     with open(os.path.join(out, "config.json"), "w") as f:
         json.dump(cfg, f, indent=2)
     return add
@@ -379,6 +384,11 @@ def load_result(out: str | os.PathLike) -> DesignResult:
         raise DesignFileError(f"{os.path.join(out, 'config.json')!r}: no 'design' config")
     if not isinstance(metrics, dict):
         raise DesignFileError(f"{os.path.join(out, 'metrics.json')!r}: not a JSON object")
+    if "run_id" in cfg and metrics.get("run_id") != cfg["run_id"]:
+        raise DesignFileError(
+            f"{out!r}: config.json is a later run's, which has not finished (python -m "
+            f"jscratch.design --resume --out {out} finishes it); the result files are an earlier "
+            "run's")
     try:
         config = DesignConfig.from_dict(cfg["design"])
     except InputError as e:
