@@ -257,6 +257,9 @@ def check_design_for_cutting(design: Design, cfg: MachineConfig):
     """
     length_mm = 1000.0 * design.length
     short = length_mm < cfg.min_length_mm
+    if short.size and short.all():
+        raise DesignError(f"every scratch ({short.size}) is shorter than min_length_mm = "
+                          f"{cfg.min_length_mm:g} mm: nothing to cut")
     if short.any() and not cfg.drop_short:
         i = int(np.flatnonzero(short)[0])
         raise DesignError(

@@ -139,8 +139,8 @@ class MachineProfile:
             off = tuple(float(v) for v in self.board_offset_mm)
         except (TypeError, ValueError):
             off = ()
-        if len(off) != 2 or not all(math.isfinite(v) for v in off):
-            bad("board_offset_mm", "two finite numbers [x, y]")
+        if len(off) != 2 or not all(math.isfinite(v) and abs(v) <= 1e5 for v in off):
+            bad("board_offset_mm", "two finite numbers [x, y] within +-1e5 mm")
         self.board_offset_mm = off
         for name, letter in (("feed_mm_min", "F"), ("plunge_mm_min", "F"), ("safe_z_mm", "Z"),
                              ("spindle_rpm", "S"), ("spinup_s", "P")):

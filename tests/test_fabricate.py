@@ -108,6 +108,12 @@ def test_zero_length_and_bad_design_give_clear_errors(tmp_path, capsys):
     # --drop-short skips it.
     assert main([str(tmp_path / "z.npz"), "--dry-run", "--quiet", "--plunge", "0.1", "--drop-short"]) == 0
     assert read_program(tmp_path / "z.gcode").info["scratches"] == 9
+    # ... but a length that drops every scratch leaves nothing to cut: refused, nothing written
+    capsys.readouterr()
+    assert main([str(tmp_path / "z.npz"), "--dry-run", "--quiet", "--plunge", "0.1",
+                 "--drop-short", "--min-length", "1e9", "--out", str(tmp_path / "all")]) == 2
+    assert "every scratch (10) is shorter than" in capsys.readouterr().err
+    assert not list(tmp_path.glob("all*"))
     arr = {k: v for k, v in d._asdict().items() if v is not None}
     arr["p0"] = arr["p0"].copy()
     arr["p0"][3, 1] = np.nan

@@ -18,7 +18,7 @@ from jscratch.machine import MachineProfile, carving_seconds
 @pytest.mark.parametrize("key,value", [
     ("cutter_radius_mm", -1.0), ("plunge_max_mm", 0.2), ("plunge_min_mm", 0.2), ("feed_mm_min", "fast"),
     ("cutter", "flat"), ("holder", "glue"), ("board_offset_mm", [1.0]), ("overhead_s", float("nan")),
-    ("drop_short", 3), ("spindle_rpm", -5.0), ("typo_mm", 1.0),
+    ("drop_short", 3), ("spindle_rpm", -5.0), ("typo_mm", 1.0), ("board_offset_mm", [1e300, 0]),
     # Values G-code would write as zero: no groove, travel on the surface, a still spindle.
     ("safe_z_mm", 0.0004), ("plunge_mm", 0.0004), ("plunge_min_mm", 0.0001), ("spindle_rpm", 0.3),
     ("plunge_mm", 0.11),  # deeper than plunge_max_mm

@@ -759,7 +759,10 @@ def main(argv=None) -> int:
     from jscratch.options import OneLineParser  # only the command line needs it
 
     ap = OneLineParser(prog="python -m jscratch.native",
-                       description="Build (if needed) and describe jscratch's native CPU kernel.")
+                       description="Build (if needed) and describe jscratch's native CPU kernel.",
+                       epilog="exit status: 0 described (in use or not, as asked); 1 the kernel "
+                              "was wanted and is unavailable (one line on stderr); 2 a refused "
+                              "option or setting (JSCRATCH_NATIVE, ...).")
     ap.add_argument("--json", action="store_true", help="print status() as JSON")
     a = ap.parse_args(argv)
     try:
