@@ -88,6 +88,17 @@ def test_config_file_under_given_options(cli_run):
     assert config.seed == 7 and config.n_scratches == 150 and scene.size == 24
 
 
+def test_config_file_with_an_unknown_key_is_refused(cli_run, tmp_path):
+    """A top-level key that no run writes (a typo, another tool's file) is refused, naming it, as
+    unknown keys under ``design`` and ``scene`` are; every key a run writes is read."""
+    saved = json.loads((cli_run / "config.json").read_text())
+    assert set(saved) <= cli.CONFIG_KEYS and "run_id" in saved
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps({**saved, "desing": {}}))
+    with pytest.raises(DesignFileError, match="unknown key 'desing'"):
+        cli.configs(["--config", str(path)])
+
+
 def test_config_file_without_a_scene_needs_scene_options(cli_run, tmp_path, capsys):
     saved = json.loads((cli_run / "config.json").read_text())
     saved["scene"] = None  # as save_result writes it for a design with views of its own

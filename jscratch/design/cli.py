@@ -115,7 +115,15 @@ def _read_config(path: str) -> dict:
     if not isinstance(saved, dict) or not isinstance(saved.get("design"), dict):
         raise DesignFileError(f"config file {path!r} has no 'design' object (python -m "
                               "jscratch.design writes one as OUT/config.json)")
+    unknown = sorted(set(saved) - CONFIG_KEYS)
+    if unknown:
+        raise DesignFileError(f"config file {path!r}: unknown key {unknown[0]!r} (known: "
+                              f"{', '.join(sorted(CONFIG_KEYS))})")
     return saved
+
+
+#: The top-level keys of a config.json (docs/model.md §12): the settings, and what the run saved.
+CONFIG_KEYS = frozenset({"design", "scene", "targets", "board", "camera", "light", "run_id"})
 
 
 def configs(argv: Sequence[str] | None = None) -> tuple[RunOptions, SceneConfig, DesignConfig]:
