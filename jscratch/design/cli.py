@@ -234,7 +234,7 @@ def _run(argv) -> int:
                progress=False, mesh=mesh)
         return 0
     # ---
-    made = _missing_folders(run.out)  # removed again if the run is refused
+    made = _missing_folders(run.out)  # removed again if the run stops before its checkpoint
     os.makedirs(run.out, exist_ok=True)
     config_path, earlier = os.path.join(run.out, "config.json"), checkpoint + ".earlier"
     earlier_config = None
