@@ -55,7 +55,8 @@ class RunOptions:
     as_carved_samples: int = option(
         0, "strata per pixel side of the brute-force 'as carved' render, the design with the "
         "ball's real arc, in metrics.json and view<j>_carved.png (0: skip it; 32 is what the "
-        "maker's path uses, about 20-25 s more at 256 px and 20k scratches)")
+        "maker's path uses, about 20-25 s more at 256 px and 20k scratches; a render too large "
+        "for the memory is left out: the design is saved without it, exit 1)")
     # --- where the design runs (jscratch.design.mesh); not part of the design or its config.json
     devices: int = option(0, "devices the image rows are split over: k the first k JAX sees "
                           "(1: one device); 0 every device (every process's) with several "
