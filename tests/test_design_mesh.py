@@ -178,12 +178,12 @@ def _cli(args):
     return [sys.executable, "-m", "jscratch.design", *_ARGS, *args]
 
 
-def _two(out0, out1, extra0=(), extra1=(), timeout=600):
+def _two(out0, out1, extra0=(), extra1=(), timeout=600, cli=_cli, env=None):
     port = _free_port()
     common = ["--coordinator", f"localhost:{port}", "--num-processes", "2", "--join-timeout", "60"]
-    procs = [subprocess.Popen(_cli(["--out", str(o), *common, "--process-id", str(i), *extra]),
+    procs = [subprocess.Popen(cli(["--out", str(o), *common, "--process-id", str(i), *extra]),
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                              env=_env())
+                              env={**_env(), **(env or {})})
              for i, (o, extra) in enumerate([(out0, extra0), (out1, extra1)])]
     try:
         return [p.communicate(timeout=timeout) + (p.returncode,) for p in procs]
@@ -209,6 +209,43 @@ def test_two_processes_equal_one(tmp_path):
         assert np.array_equal(a["keep"], b["keep"])
         for k in ("geom", "log_width", "log_depth", "logit_alpha", "log_intensity"):
             np.testing.assert_allclose(a[k], b[k], rtol=0, atol=TOL)
+
+
+# the command line, with the host's free memory read from FREE_BYTES (bytes)
+_FREE_FROM_ENV = ("import os, sys; import jscratch.design.run as r; "
+                  "r.free_memory = lambda: int(os.environ['FREE_BYTES']); "
+                  "from jscratch.design.cli import main; sys.exit(main(sys.argv[1:]))")
+
+
+def _cli_free_from_env(args):
+    return [sys.executable, "-c", _FREE_FROM_ENV, *_ARGS, *args]
+
+
+def test_processes_on_one_machine_check_their_memory_together(tmp_path):
+    """Two processes on this machine: their steps' memory is summed before it is compared with the
+    machine's free memory (`run.check_step_memory`, `mesh.per_host_total`). Free memory 1.5x
+    one process's need: each process alone would fit, both together do not, so both refuse."""
+    (_, e0, r0), (_, e1, r1) = _two(tmp_path / "a", tmp_path / "b", cli=_cli_free_from_env,
+                                    env={"FREE_BYTES": str(10 ** 12)})
+    assert (r0, r1) == (0, 0), (e0[-3000:], e1[-3000:])
+    need = json.loads((tmp_path / "a" / "metrics.json").read_text())["step_memory_bytes"]
+    assert need > 0
+    (_, e0, r0), (_, e1, r1) = _two(tmp_path / "c", tmp_path / "d", cli=_cli_free_from_env,
+                                    env={"FREE_BYTES": str(int(1.5 * need))})
+    assert (r0, r1) == (2, 2), (e0[-3000:], e1[-3000:])
+    assert "this machine (running 2 processes) has" in e0
+    assert not (tmp_path / "c").exists() and not (tmp_path / "d").exists()
+
+
+def test_same_host_sums_add_the_processes_of_one_machine():
+    hosts = ["m1/boot", "m2/boot", "m1/boot", "m1/other"]
+    values = np.array([5, 7, 11, 13], np.int64)
+    assert mesh.same_host_sums(values, hosts, 0) == (16, 2)
+    assert mesh.same_host_sums(values, hosts, 2) == (16, 2)
+    assert mesh.same_host_sums(values, hosts, 1) == (7, 1)
+    assert mesh.same_host_sums(values, hosts, 3) == (13, 1)
+    assert mesh.per_host_total(123) == (123, 1)  # one process: no collective
+    assert mesh.host_identity() == mesh.host_identity() != ""
 
 
 def test_two_processes_that_disagree_refuse(tmp_path):

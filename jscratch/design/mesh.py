@@ -281,6 +281,44 @@ def agree(items: dict[str, Any]) -> None:
                                  "command, inputs and jscratch/JAX versions on every process")
 
 
+def host_identity() -> str:
+    """This machine's name and the running kernel's boot id: equal for the processes that share
+    one machine's memory, different across machines (and across containers, which have their
+    own names and memory limits)."""
+    import socket
+
+    try:
+        with open("/proc/sys/kernel/random/boot_id") as f:
+            boot = f.read().strip()
+    except OSError:
+        boot = ""
+    return f"{socket.gethostname()}/{boot}"
+
+
+def same_host_sums(values: np.ndarray, hosts: list[str], me: int) -> tuple[int, int]:
+    """The sum of `values` (one per process) over the processes whose `hosts` entry equals
+    process `me`'s, and their count."""
+    here = [i for i, h in enumerate(hosts) if h == hosts[me]]
+    return int(sum(int(values[i]) for i in here)), len(here)
+
+
+def per_host_total(value: int) -> tuple[int, int]:
+    """``value`` (a non-negative int, such as bytes this process needs) summed over every process
+    running on this machine (`host_identity`), and the number of those processes. A collective:
+    every process of the run calls it. One process: ``(value, 1)``."""
+    if jax.process_count() == 1:
+        return int(value), 1
+    from jax.experimental import multihost_utils
+
+    # bytes, which every dtype setting carries unchanged (ints would be cut to 32 bits)
+    mine = np.concatenate([_digest(host_identity()),
+                           np.frombuffer(np.int64(value).tobytes(), np.uint8)])
+    everyone = np.asarray(multihost_utils.process_allgather(mine))  # (processes, 40)
+    hosts = [bytes(row[:32]).hex() for row in everyone]
+    values = np.frombuffer(np.ascontiguousarray(everyone[:, 32:]).tobytes(), np.int64)
+    return same_host_sums(values, hosts, jax.process_index())
+
+
 def all_or_none(checks):
     """``checks()`` (a function that raises a `JscratchError` or `OSError` to refuse) on every
     process, and its verdict shared: when it refused on any process, every process raises the

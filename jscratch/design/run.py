@@ -90,7 +90,7 @@ def design(
     native.prepare(getattr(config, "dtype", "float32"))
     native.keep_freed_memory()  # the steps reuse their large buffers (`native.keep_freed_memory`)
     tnp, views, board = check_inputs(targets, views, board, config, checkpoint, resume)
-    memory_check_on()  # a bad JSCRATCH_MEMORY_CHECK is refused before any work
+    mesh_mod.all_or_none(memory_check_on)  # a bad JSCRATCH_MEMORY_CHECK: refused before any work
     if stop_after is not None and not (isinstance(stop_after, (int, np.integer))
                                        and not isinstance(stop_after, bool) and stop_after >= 1):
         raise DesignError(f"stop_after must be None or an int >= 1, got {stop_after!r}")
@@ -385,22 +385,22 @@ def check_step_memory(compiled, mesh=None) -> None:
     """Refuse, before the first step, a run whose step needs more memory than is free.
 
     The need is the compiled step's temporary and output buffers (XLA's ``memory_analysis``;
-    its arguments are already held), on every device of the run; on the CPU their sum is
-    compared with `free_memory` (the host's), on an accelerator each device's with its own free
+    its arguments are already held), on every device of the run; on the CPU their sum over
+    every process on this machine (`mesh.per_host_total`) is compared with `free_memory` (the
+    host's), on an accelerator each device's with its own free
     memory (``memory_stats``; skipped where a backend has none). At 1024 px and 320,000
     scratches the step needs 6.4 GB, 77 % of the process's peak of 8.4 GB (docs/usage.md). Raises
     `DesignError` naming both sizes; ``JSCRATCH_MEMORY_CHECK=0`` turns the check off."""
-    if compiled is None or not memory_check_on():
-        return
-    need = step_memory(compiled)
-    if need is None:  # a backend without the analysis: nothing to check
-        return
+    need = step_memory(compiled) if compiled is not None and memory_check_on() else None
     devices = ([d for d in mesh.devices.flat if d.process_index == jax.process_index()]
                if mesh is not None else [jax.devices()[0]])
     if devices[0].platform == "cpu":
-        hosts = [(need * len(devices), free_memory(), "this machine")]
+        # every process runs this (a collective); one that does not check adds nothing
+        total, count = mesh_mod.per_host_total(0 if need is None else need * len(devices))
+        where = "this machine" if count == 1 else f"this machine (running {count} processes)"
+        hosts = [] if need is None else [(total, free_memory(), where)]
     else:
-        hosts = [(need, _device_free(d), str(d)) for d in devices]
+        hosts = [] if need is None else [(need, _device_free(d), str(d)) for d in devices]
     for need_here, free, where in hosts:
         if free is not None and need_here > free:
             raise DesignError(
