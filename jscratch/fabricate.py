@@ -270,15 +270,32 @@ def check_design_for_cutting(design: Design, cfg: MachineConfig):
 
 
 def make_program(design: Design, cfg: MachineConfig, *, improve: bool = True, time_limit: float | None = 40.0,
-                 quiet: bool = True) -> Program:
+                 quiet: bool = True, override_machine: bool = False) -> Program:
     """Order the scratches, fit the plunge and write GRBL 1.1 G-code with its line map.
 
-    **Arguments:** `design` a `jscratch.designfile.Design`; `cfg` machine settings;
-    `improve`/`time_limit` for `jscratch.toolpath.order_scratches`; `quiet`.
+    **Arguments:** `design` a `jscratch.designfile.Design`; `cfg` machine settings (a
+    `MachineProfile`; for a design that records its machine, `machine_for_design` gives it);
+    `improve`/`time_limit` for `jscratch.toolpath.order_scratches`; `quiet`; `override_machine`
+    cuts a design that records its machine with another cutter (`CUT_KEYS`) all the same.
 
     **Returns:** a `Program`. **Raises:** `DesignError` for scratches too short to cut,
-    `InputError` if a coordinate would leave the board (+ margin).
+    `InputError` if a coordinate would leave the board (+ margin), or if `cfg`'s cutter is not the
+    one the design records (its grooves would not be the designed ones), unless `override_machine`.
     """
+    if not isinstance(design, Design):
+        raise InputError(f"make_program: design must be a jscratch Design (load_design), got "
+                         f"{type(design).__name__}")
+    if not isinstance(cfg, MachineProfile):
+        raise InputError(f"make_program: cfg must be a MachineProfile (machine_for_design or "
+                         f"load_machine), got {type(cfg).__name__}")
+    if design.machine is not None and not override_machine:
+        rec = MachineProfile.from_dict(design.machine, source="the design's recorded machine")
+        cut = rec.cut_mismatch(cfg)
+        if cut:
+            diffs = ", ".join(f"{k} {getattr(rec, k)!r} (design) vs {getattr(cfg, k)!r}"
+                              for k in cut)
+            raise InputError(f"make_program: the design was made for another cutter: {diffs}; "
+                             "use machine_for_design(design, None, {}), or override_machine=True")
     keep = check_design_for_cutting(design, cfg)
     idx = np.flatnonzero(keep)
     board_mm = 1000.0 * design.board
@@ -662,7 +679,8 @@ def main(argv=None) -> int:
                 _warn_unused_options(gcode, over, args)
             else:
                 _refuse_overwrite(gcode)
-                prog = make_program(design, cfg, improve=not args.no_improve, time_limit=args.order_time)
+                prog = make_program(design, cfg, improve=not args.no_improve, time_limit=args.order_time,
+                                    override_machine=args.override_machine)
         if prog is not None:
             folder = os.path.dirname(gcode)
             if folder:  # `--out NEWDIR/job`: the folder is made, as the design command does

@@ -101,7 +101,7 @@ def test_config_file_with_an_unknown_key_is_refused(cli_run, tmp_path):
 
 def test_config_file_without_a_scene_needs_scene_options(cli_run, tmp_path, capsys):
     saved = json.loads((cli_run / "config.json").read_text())
-    saved["scene"] = None  # as save_result writes it for a design with views of its own
+    saved["scene"] = None  # as save_result writes it for a design made by design() in Python
     path = tmp_path / "config.json"
     path.write_text(json.dumps(saved))
     assert cli.main(["--config", str(path), "--out", str(tmp_path / "o"), "--quiet"]) == 2

@@ -90,6 +90,32 @@ def test_no_plunge_deeper_than_the_profile_allows():
     assert "cut at its nearest end" in summarize(fitted.info)
 
 
+def test_a_design_is_not_carved_with_another_cutter_than_it_records():
+    """`make_program` on a design that records its machine: another cutter (`CUT_KEYS`) is
+    refused in one line, as `machine_for_design` refuses it, unless `override_machine`; the
+    recorded profile and a feed change are carved."""
+    from jscratch.errors import InputError
+    from jscratch.fabricate import machine_for_design
+    from jscratch.machine import MachineProfile
+
+    rec = MachineProfile()
+    d = demo_design(8, seed=1)
+    d = d._replace(machine=rec.to_dict(), plunge=np.full(8, 0.5 * rec.plunge_max_mm / 1000))
+    other = MachineProfile.from_dict(rec.to_dict(), cutter_radius_mm=0.5)
+    with pytest.raises(InputError, match=r"^make_program: the design was made for another "
+                                         r"cutter: cutter_radius_mm 0.125 \(design\) vs 0.5") as e:
+        make_program(d, other, time_limit=0.2)
+    assert "\n" not in str(e.value)
+    assert make_program(d, other, time_limit=0.2, override_machine=True).info["scratches"] == 8
+    same = make_program(d, machine_for_design(d, None, {}), time_limit=0.2)
+    faster = MachineProfile.from_dict(rec.to_dict(), feed_mm_min=2 * rec.feed_mm_min)
+    assert make_program(d, faster, time_limit=0.2).info["scratches"] == same.info["scratches"]
+    with pytest.raises(InputError, match="^make_program: cfg must be a MachineProfile"):
+        make_program(d, {"cutter_radius_mm": 0.125}, time_limit=0.2)
+    with pytest.raises(InputError, match="^make_program: design must be a jscratch Design"):
+        make_program("design.npz", rec, time_limit=0.2)
+
+
 @pytest.fixture(scope="module")
 def small():
     d = demo_design(24, seed=2)

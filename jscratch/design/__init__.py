@@ -1,7 +1,8 @@
 """Multi-view scratch design: optimise scratches and light intensities so that the board shows each
 target image from its view (paper sections 3.4 and 4.1, docs/model.md §6).
 
-**Library:** `design(targets, views, board=None, config=DesignConfig()) -> DesignResult`.
+**Library:** `design(targets, views=None, board=None, config=None, *, checkpoint=None, ...)
+-> DesignResult`.
 **Command line:** ``python -m jscratch.design [TARGET ...] [options]`` (``--help`` lists every
 option; with no targets it uses three images bundled with scikit-image).
 

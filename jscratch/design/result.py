@@ -25,8 +25,8 @@ class DesignResult:
     - `keep`: ``(N,)`` bool, the scratches kept by the discard.
     - `radiance`, `display`: ``(M, H, W)`` final renders (after the discard).
     - `targets`: ``(M, H, W)`` the targets.
-    - `history`: per-iteration lists ``"total"`` and the loss terms (loss at the parameters the
-      iteration started from).
+    - `history`: ``{"total": [...], "terms": {name: [...]}}``, the loss and each loss term per
+      iteration (at the parameters the iteration started from).
     - `metrics`: docs/model.md §7 metrics (`metrics.image_metrics`) plus ``loss``,
       ``loss_before_discard``, ``metrics_before_discard`` (the same metrics with every scratch),
       ``discarded``, ``kept``, ``pairs_total`` (pairs binned in the final shared list),
@@ -44,7 +44,8 @@ class DesignResult:
     - `config`: the `DesignConfig`.
     - `scene`, `names`: the `SceneConfig` and target names the run was made from, when known
       (`load_result` reads them from a run folder; `save_result` writes them unless given others);
-      None for a design made from Python with views of its own.
+      None for a design made by `design` from Python (its targets are arrays, not files;
+      ``save_result(..., scene=, names=)`` records them).
     """
 
     scratches: Scratches
