@@ -21,6 +21,7 @@ the first bad scratch and field.
 
 from __future__ import annotations
 
+import math
 import os
 import tempfile
 import zipfile
@@ -180,7 +181,7 @@ def validate_design(p0, p1, width, depth, alpha, board, camera=None, light=None,
         views = {"camera": None, "light": None, "intensity": None}
     if isinstance(profile, np.ndarray) and profile.shape == ():
         profile = profile.item()
-    if profile not in PROFILES:
+    if not isinstance(profile, str) or profile not in PROFILES:
         raise DesignError(f"{source}: profile must be one of {PROFILES}, got {profile!r}")
     return Design(**arrays, **views, **_check_maker(machine, plunge, n, source), profile=profile)
 
@@ -238,7 +239,9 @@ def save_design(path, p0, p1, width, depth, alpha, board, camera=None, light=Non
 
     **Raises:** `DesignError` for an invalid design; nothing is written then.
     """
-    path = os.fspath(path)
+    path = _file_path(path, "save_design")
+    if os.path.isdir(path):
+        raise DesignFileError(f"save_design: {path!r} is a folder; give the design file's path")
     design = validate_design(p0, p1, width, depth, alpha, board, camera, light, intensity, machine, plunge,
                              profile, source=path)
     payload = {k: v for k, v in design._asdict().items() if v is not None}
@@ -263,6 +266,16 @@ def save_design(path, p0, p1, width, depth, alpha, board, camera=None, light=Non
     return design
 
 
+def _file_path(path, who: str) -> str:
+    """`path` as a str; `DesignFileError` naming `who` for anything that is not a path."""
+    if not isinstance(path, (str, os.PathLike)) or not os.fspath(path):
+        raise DesignFileError(f"{who}: expected a file path (str or os.PathLike), got {path!r}")
+    path = os.fspath(path)
+    if not isinstance(path, str):
+        raise DesignFileError(f"{who}: expected a file path (str or os.PathLike), got {path!r}")
+    return path
+
+
 def load_design(path) -> Design:
     """Read and check a design `.npz` (docs/model.md §9).
 
@@ -273,7 +286,7 @@ def load_design(path) -> Design:
     **Raises:** `DesignFileError` (one line naming the file, and the array and first bad scratch
     where there is one) for a missing or unreadable file, or one that is not a valid design.
     """
-    path = os.fspath(path)
+    path = _file_path(path, "load_design")
     if not os.path.exists(path):
         raise DesignFileError(f"design file {path!r} does not exist")
     if os.path.isdir(path):
@@ -316,6 +329,10 @@ def write_svg(path, design: Design, *, min_stroke_mm: float = 0.02) -> None:
 
     **Arguments:** `path` of the SVG; `design` a `Design`; `min_stroke_mm` the thinnest stroke.
     """
+    if isinstance(min_stroke_mm, bool) or not (isinstance(min_stroke_mm, (int, float, np.number))
+            and math.isfinite(min_stroke_mm) and min_stroke_mm >= 0):
+        raise DesignError(f"write_svg: min_stroke_mm must be a finite width >= 0 in mm, got "
+                          f"{min_stroke_mm!r}")
     sx, sy = (1000.0 * design.board).tolist()
     stroke = np.maximum(2000.0 * groove_half_width(design.width, design.depth), min_stroke_mm)
     x0, x1 = 1000.0 * design.p0[:, 0], 1000.0 * design.p1[:, 0]

@@ -137,3 +137,29 @@ def test_groove_profile_round_trip(tmp_path):
     with pytest.raises(DesignError, match="profile must be one of"):
         save_design(tmp_path / "bad.npz", **a, profile="ball")
     assert not (tmp_path / "bad.npz").exists()
+
+
+def test_paths_profiles_and_stroke_widths_that_are_not_are_refused_in_one_line(tmp_path):
+    """`save_design` / `load_design` given something that is not a file path, or a folder; a
+    profile array that is not one name; a stroke width that is not a width."""
+    d = demo_design(4)
+    arrays = (d.p0, d.p1, d.width, d.depth, d.alpha, d.board)
+    for bad in (None, 3, ""):
+        with pytest.raises(DesignFileError, match="^save_design: expected a file path"):
+            save_design(bad, *arrays)
+        with pytest.raises(DesignFileError, match="^load_design: expected a file path"):
+            load_design(bad)
+    with pytest.raises(DesignFileError, match="^save_design: .* is a folder"):
+        save_design(tmp_path, *arrays)
+    assert list(tmp_path.iterdir()) == []  # nothing left behind
+    save_design(tmp_path / "d.npz", *arrays)
+    with np.load(tmp_path / "d.npz") as z:
+        two = {**z, "profile": np.array(["arc", "paper"])}
+    np.savez(tmp_path / "two.npz", **two)
+    with pytest.raises(DesignFileError, match=r"profile must be one of \('paper', 'arc'\), got "
+                                              r"array\(\['arc', 'paper'\]"):
+        load_design(tmp_path / "two.npz")
+    for bad in (float("nan"), -1.0, "a", True):
+        with pytest.raises(DesignError, match="^write_svg: min_stroke_mm must be a finite width"):
+            write_svg(tmp_path / "d.svg", d, min_stroke_mm=bad)
+    assert not (tmp_path / "d.svg").exists()
