@@ -120,3 +120,27 @@ def test_the_default_carving_estimate_is_the_greedy_toolpath_on_every_run():
         prof, n=n, cut_mm=cut, travel_mm=travel, plunge_mm_total=1000 * plunge.sum()), rel=1e-12)
     improved = carving_estimate(d, prof, time_limit=5.0, plunge=plunge)
     assert improved["travel_m"] <= a["travel_m"]
+
+
+def test_as_carved_refuses_bad_arguments_by_their_names():
+    """`maker.as_carved`: a sample count, an image shape or a design render that is not one is
+    refused in one line naming it (not as non-finite images further on); good ones render."""
+    from jscratch.design.maker import as_carved
+    from jscratch.scene import Board, views_on_circle
+
+    d = designfile.demo_design(30, seed=4)
+    v = views_on_circle(2, board=Board(shape=(SIZE, SIZE), Sx=float(d.board[0]),
+                                       Sy=float(d.board[1])))
+    d = d._replace(camera=np.asarray(v.camera, np.float64), light=np.asarray(v.light, np.float64),
+                   intensity=np.asarray(v.intensity, np.float64))
+    prof = MachineProfile()
+    for bad in (0, -1, 2.5, True):
+        with pytest.raises(designfile.DesignError, match="^as carved: samples must be an int >= 1"):
+            as_carved(d, prof, (SIZE, SIZE), samples=bad)
+    for bad in ((SIZE,), (SIZE, 0), (SIZE, 2.5), "ab", None):
+        with pytest.raises(designfile.DesignError, match=r"^as carved: shape must be \(H, W\)"):
+            as_carved(d, prof, bad, samples=2)
+    with pytest.raises(designfile.DesignError, match=r"design_display must have shape \(2, 16, 16\)"):
+        as_carved(d, prof, (SIZE, SIZE), np.zeros((SIZE, SIZE)), samples=2)
+    out = as_carved(d, prof, (SIZE, SIZE), samples=2)
+    assert len(out["ssim"]) == 2 and np.all(np.isfinite(out["display"]))

@@ -64,8 +64,22 @@ def as_carved(design: designfile.Design, profile: MachineProfile, shape, design_
 
     if design.camera is None:
         raise designfile.DesignError("as carved: the design has no views (camera, light, intensity)")
+    if isinstance(samples, bool) or not isinstance(samples, (int, np.integer)) or samples < 1:
+        raise designfile.DesignError(f"as carved: samples must be an int >= 1 (strata per pixel "
+                                     f"side), got {samples!r}")
+    try:
+        shape = tuple(int(s) for s in shape if int(s) == s and s >= 1)
+    except (TypeError, ValueError):
+        shape = ()
+    if len(shape) != 2:
+        raise designfile.DesignError("as carved: shape must be (H, W), two ints >= 1")
+    if design_display is not None:
+        want = (design.camera.shape[0], *shape)
+        if np.shape(design_display) != want:
+            raise designfile.DesignError(f"as carved: design_display must have shape {want} "
+                                         f"(views, H, W), got {np.shape(design_display)}")
     t0 = time.perf_counter()
-    board = Board(shape=tuple(shape), Sx=float(design.board[0]), Sy=float(design.board[1]))
+    board = Board(shape=shape, Sx=float(design.board[0]), Sy=float(design.board[1]))
     views = Views(design.camera.astype(np.float32), design.light.astype(np.float32),
                   design.intensity.astype(np.float32))
     sc = Scratches(design.p0.astype(np.float32), design.p1.astype(np.float32),
