@@ -74,6 +74,7 @@ import functools
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from jscratch.errors import InputError
@@ -215,6 +216,19 @@ def view_keep(
     return ~((rho < eps) & (rho < jnp.max(rho, axis=0, keepdims=True)))
 
 
+def _host_checked_eps(where: str, eps) -> None:
+    """`InputError` (one line) for a concrete `eps` that is not a finite scalar >= 0; a traced
+    one is left to `_checked_eps`' runtime check."""
+    if isinstance(eps, jax.core.Tracer):
+        return
+    try:
+        value = np.asarray(eps, np.float64)
+    except (TypeError, ValueError):
+        value = None
+    if value is None or value.shape != () or not (np.isfinite(value) and value >= 0):
+        raise InputError(f"{where}: eps must be a finite scalar >= 0, got {eps!r}")
+
+
 def _checked_eps(eps, dtype) -> Array:
     """The culling tolerance as a scalar of `dtype`; `eqx.error_if` unless finite and >= 0."""
     eps = jnp.asarray(eps, dtype)
@@ -223,8 +237,27 @@ def _checked_eps(eps, dtype) -> Array:
     return eqx.error_if(eps, ~(jnp.isfinite(eps) & (eps >= 0)), "eps must be finite and >= 0")
 
 
+def cull(pairs: Pairs, p0, p1, width, depth, alpha, h_pixel, eps=DEFAULT_EPS,
+         profile: str = "paper") -> Pairs:
+    """Clear `valid` of pairs whose `D_hat` bound is below `eps * A / (pi alpha^2)` (jittable).
+
+    A pair is dropped when `rho < eps` (`cull_ratio`); `eps = 0` keeps every pair. Per pixel
+    the dropped pairs change `D_P` by at most `(1/S_P) sum_dropped rho_i A_i / (pi alpha_i^2)
+    < eps (1/S_P) sum_dropped A_i / (pi alpha_i^2)` (and never increase it). The coverage `c` of
+    docs/model.md §4 must still come from the unculled list, else the board term adds its own
+    error (module docstring). Use `grid.compact` to turn the dropped slots into saved time.
+
+    **Arguments:** as `cull_ratio` (`profile` the groove's, static), plus `eps >= 0` (scalar;
+    may be traced; a concrete bad value is refused at once, `InputError`).
+
+    **Returns:** `Pairs` of the same capacity with fewer valid slots.
+    """
+    _host_checked_eps("cull", eps)
+    return _cull(pairs, p0, p1, width, depth, alpha, h_pixel, eps, profile)
+
+
 @functools.partial(jax.jit, static_argnames="profile")
-def cull(
+def _cull(
     pairs: Pairs,
     p0: Float[ArrayLike, "N 2"],
     p1: Float[ArrayLike, "N 2"],
@@ -235,32 +268,13 @@ def cull(
     eps: float | Float[ArrayLike, ""] = DEFAULT_EPS,
     profile: str = "paper",
 ) -> Pairs:
-    """Clear `valid` of pairs whose `D_hat` bound is below `eps * A / (pi alpha^2)` (jittable).
-
-    A pair is dropped when `rho < eps` (`cull_ratio`); `eps = 0` keeps every pair. Per pixel
-    the dropped pairs change `D_P` by at most `(1/S_P) sum_dropped rho_i A_i / (pi alpha_i^2)
-    < eps (1/S_P) sum_dropped A_i / (pi alpha_i^2)` (and never increase it). The coverage `c` of
-    docs/model.md §4 must still come from the unculled list, else the board term adds its own error (module
-    docstring). Use `grid.compact` to turn the dropped slots into saved time.
-
-    **Arguments:** as `cull_ratio` (`profile` the groove's, static), plus `eps >= 0` (scalar;
-    may be traced).
-
-    **Returns:** `Pairs` of the same capacity with fewer valid slots.
-    """
     rho = cull_ratio(pairs, p0, p1, width, depth, alpha, h_pixel, profile)
     eps = _checked_eps(eps, rho.dtype)
     valid = pairs.valid & ~(rho < eps)
     return eqx.tree_at(lambda p: p.valid, pairs, valid)
 
 
-@jax.jit
-def cull_coverage(
-    pairs: Pairs,
-    alpha: Float[ArrayLike, "N"],
-    board_ndf: Float[ArrayLike, "P"],
-    eps: float | Float[ArrayLike, ""] = DEFAULT_EPS,
-) -> Pairs:
+def cull_coverage(pairs: Pairs, alpha, board_ndf, eps=DEFAULT_EPS) -> Pairs:
     """Clear `valid` of pairs whose coverage cannot matter at tolerance `eps` (jittable).
 
     A pair is kept when `board_ndf[pixel] * pi * alpha^2 > eps`, with `board_ndf` the flat
@@ -269,10 +283,23 @@ def cull_coverage(
     bound of `cull` (module docstring). `eps = 0` keeps every pair.
 
     **Arguments:** `pairs` (the unculled list); `alpha` `(N,)` or scalar; `board_ndf` `(P,)`
-    (e.g. ``render.board_ndf(views, board).max(0)``); `eps >= 0`.
+    (e.g. ``render.board_ndf(views, board).max(0)``); `eps >= 0` (a concrete bad value is
+    refused at once, `InputError`).
 
     **Returns:** `Pairs` of the same capacity with fewer valid slots.
     """
+    _host_checked_eps("cull_coverage", eps)
+    return _cull_coverage(pairs, alpha, board_ndf, eps)
+
+
+@jax.jit
+def _cull_coverage(
+    pairs: Pairs,
+    alpha: Float[ArrayLike, "N"],
+    board_ndf: Float[ArrayLike, "P"],
+    eps: float | Float[ArrayLike, ""] = DEFAULT_EPS,
+) -> Pairs:
+    """`cull_coverage`, jitted."""
     board_ndf = jnp.asarray(board_ndf)
     if board_ndf.ndim != 1:
         raise InputError(f"board_ndf must have shape (H*W,), got {board_ndf.shape}")

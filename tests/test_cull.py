@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from jscratch import bvh, cull
+from jscratch.errors import InputError
 
 BOARD = (0.3, 0.3)
 
@@ -360,8 +361,16 @@ def test_cull_errors():
         cull.cull(pairs, p0, p1, 1e-4, 1e-4, 0.04, h[:, :2], 1e-3)
     with pytest.raises(Exception, match="alpha must be finite and > 0"):
         cull.cull(pairs, p0, p1, 1e-4, 1e-4, 0.0, h, 1e-3)
+    for bad in (-1.0, float("nan"), "a", [1e-3, 1e-3], None):
+        with pytest.raises(InputError, match="^cull: eps must be a finite scalar >= 0"):
+            cull.cull(pairs, p0, p1, 1e-4, 1e-4, 0.04, h, bad)
+        with pytest.raises(InputError, match="^cull_coverage: eps must be a finite scalar >= 0"):
+            cull.cull_coverage(pairs, 0.04, np.ones(64, np.float32), bad)
+    # traced: the runtime check (eqx.error_if) still refuses it
     with pytest.raises(Exception, match="eps must be finite and >= 0"):
-        cull.cull(pairs, p0, p1, 1e-4, 1e-4, 0.04, h, -1.0)
+        jax.jit(lambda e: cull.cull(pairs, p0, p1, 1e-4, 1e-4, 0.04, h, e).valid)(-1.0)
+    ok = jax.jit(lambda e: cull.cull_coverage(pairs, 0.04, np.ones(64, np.float32), e).valid)
+    assert bool(jnp.all(ok(0.0) == pairs.valid))
 
 
 @pytest.mark.parametrize("profile", ["paper", "arc"])
