@@ -39,6 +39,7 @@ import functools
 import math
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
@@ -340,7 +341,29 @@ def bin_pairs(scratches: Scratches, board: Board, *, chunk: int = DEFAULT_CHUNK,
                             np.asarray(full.scratch).reshape(-1),
                             [np.asarray(full.valid).reshape(-1)], scratches.n, board, shards,
                             chunk)
-    return pairs_of(pix[0], scr[0], val[0])
+    # with the grooves it binned (`needs_rebin`): `render_pairs` refuses it for other scratches
+    return Pairs(pixel=jnp.asarray(pix[0]), scratch=jnp.asarray(scr[0]),
+                 valid=jnp.asarray(val[0]), overflow=jnp.asarray(False), bin_p0=full.bin_p0,
+                 bin_p1=full.bin_p1, bin_half_width=full.bin_half_width,
+                 bin_extend=full.bin_extend, bin_tol=full.bin_tol)
+
+
+def check_binned_for(where: str, name: str, pairs, scratches: Scratches) -> None:
+    """`InputError` (one line) when a concrete shared list that records the grooves it binned
+    (`bin_pairs`, `grid.build_pairs`) was binned for another number of scratches, or may miss a
+    pair of these (`needs_rebin`: a groove moved or grew beyond what was binned). Lists without
+    that record, traced ones and per-view lists pass (a list binned for another board shape is
+    not detected)."""
+    if (not isinstance(pairs, Pairs) or pairs.bin_p0 is None
+            or any(isinstance(x, jax.core.Tracer) for x in (pairs.bin_p0, scratches.p0))):
+        return
+    k = pairs.bin_p0.shape[0]
+    if k != scratches.n:
+        raise InputError(f"{where}: `{name}` was binned for {k} scratches, got {scratches.n}: "
+                         "bin_pairs(scratches, board) again")
+    if bool(needs_rebin(pairs, scratches.p0, scratches.p1, scratches.width, scratches.depth)):
+        raise InputError(f"{where}: `{name}` may miss pairs of these scratches (a groove moved or "
+                         "grew beyond what was binned): bin_pairs(scratches, board) again")
 
 
 def cull_pairs(pairs, scratches: Scratches, views: Views, board: Board, eps: float, *,

@@ -57,8 +57,8 @@ from jaxtyping import Array, Float
 
 from jscratch import arc, lobe, native, ndf
 from jscratch.compile_options import grad_compiler_options
-from jscratch.bvh import (DEFAULT_CHUNK, bin_pairs, check_chunk, cull_pairs, flat_pairs,
-                          pair_checks, pixels_per_shard, view_keep)
+from jscratch.bvh import (DEFAULT_CHUNK, bin_pairs, check_binned_for, check_chunk, cull_pairs,
+                          flat_pairs, pair_checks, pixels_per_shard, view_keep)
 from jscratch.errors import InputError
 from jscratch.scene import (
     Board,
@@ -604,8 +604,9 @@ def render_pairs(scratches: Scratches, views: Views, board: Board, pairs,
     **Returns:** radiance ``(M, H, W)`` (W/(sr m^2)).
 
     Errors: non-finite or out-of-range scratch or view values, a camera or light below the board,
-    an overflowed pair list, out-of-range pair indices, a pair list not laid out for the mesh.
-    Called eagerly: `ValueError`. Under jit on one device: `eqx.error_if` (a runtime error).
+    an overflowed pair list, out-of-range pair indices, a pair list not laid out for the mesh;
+    called eagerly, also a list binned for other scratches (`bvh.check_binned_for`; a list from
+    `bin_pairs` records what it binned). Called eagerly: `ValueError`. Under jit on one device: `eqx.error_if` (a runtime error).
     Under jit with a mesh: NaN radiance (a runtime error on one device of a multi-device program
     would leave the others stuck in a collective; `render` checks the scene before it renders).
     Gradients: reverse mode only (a `jax.custom_vjp`; see the module docstring).
@@ -619,6 +620,8 @@ def render_pairs(scratches: Scratches, views: Views, board: Board, pairs,
         # Called eagerly: the endpoints too (inside jit the board is static: `render` checks).
         check_scratches(scratches.p0, scratches.p1, scratches.width, scratches.depth,
                         scratches.alpha, board=(board.Sx, board.Sy), source="render_pairs")
+        for name, p in (("pairs", pairs), ("coverage_pairs", coverage_pairs)):
+            check_binned_for("render_pairs", name, p, scratches)
     M, P, n = views.m, board.n_pixels, scratches.n
     axes = _mesh_axes(mesh, axis_names)
     shards = _n_shards(mesh, axes)

@@ -652,3 +652,28 @@ def test_an_end_exactly_on_a_pixel_corner_has_the_gradient_of_its_neighbourhood(
             near = np.asarray(grad(scratch(corner - [1e-7, 0.0])).p1[0], np.float64)
             on = np.asarray(grad(scratch(corner)).p1[0], np.float64)
             np.testing.assert_allclose(on, near, rtol=2e-3)
+
+
+def test_render_pairs_refuses_a_list_binned_for_other_scratches():
+    """Called eagerly, `render_pairs` refuses a `bin_pairs` list binned for another number of
+    scratches, or for scratches that have since moved beyond it (its pairs would be wrong, with
+    every index in range); the list's own scratches render as `render` does."""
+    from jscratch.bvh import bin_pairs
+    from jscratch.render import Board, Scratches, render_pairs, views_on_circle
+
+    board = Board(shape=(16, 16))
+    views = views_on_circle(2, board=board)
+    s50 = Scratches.random(jax.random.PRNGKey(0), 50, board=board)
+    s80 = Scratches.random(jax.random.PRNGKey(1), 80, board=board)
+    pairs = bin_pairs(s50, board)
+    np.testing.assert_allclose(render_pairs(s50, views, board, pairs),
+                               render.render(s50, views, board), rtol=1e-5, atol=0)
+    with pytest.raises(InputError, match=r"^render_pairs: `pairs` was binned for 50 scratches, "
+                                         r"got 80"):
+        render_pairs(s80, views, board, pairs)
+    moved = eqx.tree_at(lambda s: s.p1, s50, s50.p0 + 0.5 * (s50.p1 - s50.p0))
+    moved = eqx.tree_at(lambda s: s.p0, moved, s80.p0[:50])
+    with pytest.raises(InputError, match=r"^render_pairs: `pairs` may miss pairs of these"):
+        render_pairs(moved, views, board, pairs)
+    with pytest.raises(InputError, match=r"^render_pairs: `coverage_pairs` may miss pairs"):
+        render_pairs(s50, views, board, pairs, coverage_pairs=bin_pairs(moved, board))
