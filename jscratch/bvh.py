@@ -318,6 +318,31 @@ def check_chunk(where: str, chunk) -> None:
         raise InputError(f"{where}: `chunk` (pairs per block) must be an int >= 1; got {chunk!r}")
 
 
+def check_shards(where: str, shards) -> None:
+    """`InputError` (one line) unless `shards`, the pixel blocks of a mesh, is an int >= 1."""
+    if isinstance(shards, bool) or not isinstance(shards, (int, np.integer)) or shards < 1:
+        raise InputError(f"{where}: `shards` (pixel blocks of the mesh) must be an int >= 1; got "
+                         f"{shards!r}")
+
+
+def check_pair_list(where: str, name: str, pairs) -> None:
+    """`InputError` (one line) unless `pairs` is a `Pairs` (or, where `render_pairs` takes
+    per-view lists, a list or tuple of them)."""
+    ok = isinstance(pairs, Pairs) or (isinstance(pairs, (list, tuple))
+                                      and all(isinstance(p, Pairs) for p in pairs))
+    if not ok:
+        raise InputError(f"{where}: `{name}` must be a bvh.Pairs pair list (bin_pairs), got "
+                         f"{type(pairs).__name__}")
+
+
+def _check_scene_args(where: str, scratches, board) -> None:
+    if not isinstance(scratches, Scratches):
+        raise InputError(f"{where}: `scratches` must be a jscratch.Scratches, got "
+                         f"{type(scratches).__name__}")
+    if not isinstance(board, Board):
+        raise InputError(f"{where}: `board` must be a jscratch.Board, got {type(board).__name__}")
+
+
 def bin_pairs(scratches: Scratches, board: Board, *, chunk: int = DEFAULT_CHUNK,
               shards: int = 1, source: str = "bin_pairs"):
     """The complete (pixel, scratch) pair list of a scene, compacted (host code).
@@ -332,7 +357,9 @@ def bin_pairs(scratches: Scratches, board: Board, *, chunk: int = DEFAULT_CHUNK,
     scratch that breaks the scene's rules (`scene.check_scratches`, endpoints on the board),
     naming `source` (the caller).
     """
+    _check_scene_args(source, scratches, board)
     check_chunk(source, chunk)
+    check_shards(source, shards)
     check_scratches(scratches.p0, scratches.p1, scratches.width, scratches.depth,
                     scratches.alpha, board=(board.Sx, board.Sy), source=source)
     full, _ = build_pairs(scratches.p0, scratches.p1, scratches.width, scratches.depth,
@@ -377,9 +404,15 @@ def cull_pairs(pairs, scratches: Scratches, views: Views, board: Board, eps: flo
 
     **Returns:** `Pairs` ``(M, Lv)`` for `render_pairs`.
     """
-    if eps <= 0 or not math.isfinite(eps):
-        raise InputError(f"cull_pairs: `eps` must be finite and > 0; got {eps}")
+    check_pair_list("cull_pairs", "pairs", pairs)
+    if isinstance(pairs, (list, tuple)):
+        raise InputError("cull_pairs: `pairs` must be one shared list (bin_pairs), got a sequence")
+    _check_scene_args("cull_pairs", scratches, board)
+    if (isinstance(eps, bool) or not isinstance(eps, (int, float, np.number))
+            or not (math.isfinite(eps) and eps > 0)):
+        raise InputError(f"cull_pairs: `eps` must be finite and > 0; got {eps!r}")
     check_chunk("cull_pairs", chunk)
+    check_shards("cull_pairs", shards)
     hs = half_vectors(views, board, scratches.dtype)
     keep = [np.asarray(cull(pairs, scratches.p0, scratches.p1, scratches.width,
                             scratches.depth, scratches.alpha, hs[j], eps, scratches.profile).valid)
@@ -399,6 +432,8 @@ def flat_pairs(pairs, M: int, n: int, name: str, shards: int, P_pad: int):
     `Pairs` ``(L,)`` shared by all views (output = pixel), a `Pairs` with leading view axis
     ``(M, L)``, or a sequence of ``M`` `Pairs` (output ``v * P_pad + pixel``). Returns ``(out,
     scratch, valid, overflow, shared)``."""
+
+    check_pair_list("render_pairs", name, pairs)
 
     def segments(x):
         if x.shape[-1] % shards:

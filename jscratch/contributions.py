@@ -13,7 +13,8 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from jscratch import arc, lobe, native
-from jscratch.bvh import DEFAULT_CHUNK
+from jscratch.bvh import DEFAULT_CHUNK, check_chunk, check_pair_list
+from jscratch.errors import InputError
 from jscratch.scene import Board, Scratches, Views
 from jscratch.shading import half_vectors, pixel_footprints, shade
 
@@ -38,6 +39,11 @@ def scratch_contributions(scratches: Scratches, views: Views, board: Board, pair
     """
     s = scratches
     n, m, dt = s.n, views.m, s.dtype
+    check_chunk("scratch_contributions", chunk)
+    check_pair_list("scratch_contributions", "pairs", pairs)
+    if h is not None and jnp.shape(h) != (m, board.n_pixels, 3):
+        raise InputError(f"scratch_contributions: `h` must have shape {(m, board.n_pixels, 3)} "
+                         f"(views, pixels, 3), got {jnp.shape(h)}")
     hs = half_vectors(views, board, dt) if h is None else h
     fps = pixel_footprints(board, dt)
     ones = jnp.ones((m, board.n_pixels), dt)

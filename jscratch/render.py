@@ -710,8 +710,9 @@ def render(scratches: Scratches, views: Views, board: Board, *, eps: float = 0.0
     coverage_pairs)``.
     """
     _check_scene_types("render", scratches, views, board)
-    if eps < 0 or not math.isfinite(eps):
-        raise InputError(f"render: `eps` must be finite and >= 0; got {eps}")
+    if (isinstance(eps, bool) or not isinstance(eps, (int, float, np.number))
+            or not (math.isfinite(eps) and eps >= 0)):
+        raise InputError(f"render: `eps` must be finite and >= 0; got {eps!r}")
     check_views(views.camera, views.light, views.intensity, source="render")
     axis_names = tuple(axis_names) if isinstance(axis_names, list) else axis_names
     shards = _n_shards(mesh, _mesh_axes(mesh, axis_names))

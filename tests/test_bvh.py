@@ -121,3 +121,33 @@ def test_pair_lists_allocate_update_overflow_grow_rebin():
     assert kept(reb.shared) == kept(ref) and reb.caps == lists.caps
     with pytest.raises(ValueError, match="cull_eps"):
         bvh.allocate_lists(s, board, hs, cull_eps=float("nan"))
+
+
+def test_pair_list_arguments_that_are_not_are_refused_in_one_line():
+    """`bin_pairs`, `cull_pairs`, `render.render` and `render_pairs`: a scene argument, a shard
+    count, a tolerance or a pair list of the wrong kind is refused by its name (`InputError`),
+    not with a ZeroDivisionError or AttributeError from inside."""
+    from jscratch.errors import InputError
+    from jscratch.render import render, render_pairs
+    from jscratch.scene import Board, Scratches, views_on_circle
+
+    b = Board(shape=(16, 16))
+    v = views_on_circle(2, board=b)
+    s = Scratches.random(jax.random.PRNGKey(0), 30, board=b)
+    p = bvh.bin_pairs(s, b)
+    cases = [
+        (lambda: bvh.bin_pairs(s, b, shards=0), r"^bin_pairs: `shards` .* int >= 1; got 0"),
+        (lambda: bvh.bin_pairs(s, b, shards=1.5), r"^bin_pairs: `shards`"),
+        (lambda: bvh.bin_pairs([s], b), r"^bin_pairs: `scratches` must be a jscratch.Scratches"),
+        (lambda: bvh.bin_pairs(s, (0.3, 0.3)), r"^bin_pairs: `board` must be a jscratch.Board"),
+        (lambda: bvh.cull_pairs(None, s, v, b, 1e-3), r"^cull_pairs: `pairs` must be a bvh"),
+        (lambda: bvh.cull_pairs(p, s, v, b, "a"), r"^cull_pairs: `eps` must be finite and > 0"),
+        (lambda: bvh.cull_pairs(p, s, v, b, 1e-3, shards=0), r"^cull_pairs: `shards`"),
+        (lambda: render_pairs(s, v, b, None), r"^render_pairs: `pairs` must be a bvh.Pairs"),
+        (lambda: render_pairs(s, v, b, p, coverage_pairs=1), r"^render_pairs: `coverage_pairs`"),
+        (lambda: render(s, v, b, eps="a"), r"^render: `eps` must be finite and >= 0; got 'a'"),
+        (lambda: render(s, v, b, eps=None), r"^render: `eps` must be finite and >= 0; got None"),
+    ]
+    for call, match in cases:
+        with pytest.raises(InputError, match=match):
+            call()

@@ -57,3 +57,20 @@ def test_native_scratch_contributions_equal_jnp_path():
         jnp.arange(3))
     np.testing.assert_allclose(total, np.sum(np.asarray(D) * np.asarray(k)[:, px], 1),
                                rtol=1e-10)
+
+
+def test_bad_arguments_are_refused_by_their_names():
+    from jscratch.errors import InputError
+
+    b = Board(shape=(16, 16))
+    v = views_on_circle(2, board=b)
+    s = Scratches.random(jax.random.PRNGKey(0), 30, board=b)
+    p = bvh.bin_pairs(s, b)
+    with pytest.raises(InputError, match=r"^scratch_contributions: `chunk` .* int >= 1; got 0"):
+        contributions.scratch_contributions(s, v, b, p, chunk=0)
+    with pytest.raises(InputError, match=r"^scratch_contributions: `h` must have shape "
+                                         r"\(2, 256, 3\) \(views, pixels, 3\), got \(2, 3\)"):
+        contributions.scratch_contributions(s, v, b, p, h=jnp.zeros((2, 3)))
+    with pytest.raises(InputError, match=r"^scratch_contributions: `pairs` must be a bvh.Pairs"):
+        contributions.scratch_contributions(s, v, b, None)
+    assert contributions.scratch_contributions(s, v, b, p).shape == (2, 30)
