@@ -150,9 +150,21 @@ def fit_plunge(width, depth, radius: float, *, mode: str = "per-scratch") -> Cut
     """
     import jax.numpy as jnp
 
-    width = np.asarray(width, np.float64)
-    depth = np.asarray(depth, np.float64)
-    if not (math.isfinite(radius) and radius > 0):
+    try:
+        width = np.asarray(width, np.float64)
+        depth = np.asarray(depth, np.float64)
+    except (TypeError, ValueError):
+        raise InputError("fit_plunge: width and depth must be arrays of lengths in metres") from None
+    if width.ndim != 1 or depth.shape != width.shape:
+        raise InputError(f"fit_plunge: width and depth must have one shape (N,), got {width.shape} "
+                         f"and {depth.shape}")
+    for name, v in (("width", width), ("depth", depth)):
+        if v.size and not (np.all(np.isfinite(v)) and np.all(v > 0)):
+            i = int(np.flatnonzero(~(np.isfinite(v) & (v > 0)))[0])
+            raise InputError(f"fit_plunge: {name}[{i}] = {float(v[i])!r} is not a finite length "
+                             "> 0 (m)")
+    if (isinstance(radius, bool) or not isinstance(radius, (int, float, np.number))
+            or not (math.isfinite(radius) and radius > 0)):
         raise InputError(f"fit_plunge: radius must be a finite length > 0 in metres, got {radius!r}")
     if mode not in ("per-scratch", "global"):
         raise InputError(f"fit_plunge: mode must be 'per-scratch' or 'global', got {mode!r}")
@@ -227,6 +239,16 @@ def machine_for_design(design: Design, file_profile: MachineProfile | None, over
 
     **Raises:** `InputError`, one line naming the keys that differ.
     """
+    if not isinstance(design, Design):
+        raise InputError(f"machine_for_design: design must be a jscratch Design (load_design), got "
+                         f"{type(design).__name__}")
+    if file_profile is not None and not isinstance(file_profile, MachineProfile):
+        raise InputError(f"machine_for_design: file_profile must be a MachineProfile or None, got "
+                         f"{type(file_profile).__name__}")
+    overrides = {} if overrides is None else overrides
+    if not isinstance(overrides, dict):
+        raise InputError(f"machine_for_design: overrides must be a dict of profile fields, got "
+                         f"{type(overrides).__name__}")
     if design.machine is None:
         base = file_profile.to_dict() if file_profile is not None else {}
         return MachineProfile.from_dict(base, **overrides)

@@ -230,3 +230,28 @@ def test_summary_bounds_are_the_programs_extents(small):
     assert any(t.startswith("limits (mm)") and "allowed" in t for t in text)
 
 
+
+
+def test_fit_plunge_machine_for_design_and_groove_map_refuse_bad_arguments_by_name():
+    from jscratch.design.carvable import groove_map
+    from jscratch.errors import InputError
+    from jscratch.fabricate import machine_for_design
+
+    d = demo_design(5)
+    cases = [
+        (lambda: fit_plunge(1e-4, 1e-4, 1e-4), r"^fit_plunge: width and depth must have one shape"),
+        (lambda: fit_plunge([1e-4, 2e-4], [1e-4], 1e-4), r"got \(2,\) and \(1,\)"),
+        (lambda: fit_plunge([1e-4, -1.0], [1e-4, 1e-4], 1e-4),
+         r"^fit_plunge: width\[1\] = -1.0 is not a finite length > 0"),
+        (lambda: fit_plunge([1e-4], [float("nan")], 1e-4), r"^fit_plunge: depth\[0\] = nan"),
+        (lambda: fit_plunge(["a"], [1e-4], 1e-4), r"^fit_plunge: width and depth must be arrays"),
+        (lambda: fit_plunge([1e-4], [1e-4], None), r"^fit_plunge: radius must be a finite length"),
+        (lambda: machine_for_design(None, None, {}), r"^machine_for_design: design must be"),
+        (lambda: machine_for_design(d, {}, {}), r"^machine_for_design: file_profile must be"),
+        (lambda: machine_for_design(d, None, [1]), r"^machine_for_design: overrides must be a dict"),
+        (lambda: groove_map(1e-4, 1e-5, 5e-5, "x"), r"^groove map: criterion must be 'arc'"),
+    ]
+    for call, match in cases:
+        with pytest.raises(InputError, match=match):
+            call()
+    assert machine_for_design(d, None, None) == machine_for_design(d, None, {})

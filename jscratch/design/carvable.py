@@ -192,7 +192,12 @@ class GrooveMap:
 @functools.lru_cache(maxsize=16)
 def groove_map(radius: float, p_min: float, p_max: float, criterion: str = "arc") -> GrooveMap:
     """The plunge -> ``(w, d)`` map for a ball of `radius` over ``[p_min, p_max]`` (m): the arc
-    itself (``criterion = "arc"``) or the paper profile fitted by `criterion`, once (cached). **Raises** `ValueError` unless ``0 < p_min < p_max < radius``."""
+    itself (``criterion = "arc"``) or the paper profile fitted by `criterion` (``"slope"`` or
+    ``"height"``), once (cached). **Raises** `InputError` unless ``0 < p_min < p_max < radius``
+    and `criterion` is one of those."""
+    if criterion not in ("arc", "slope", "height"):
+        raise InputError(f"groove map: criterion must be 'arc', 'slope' or 'height', got "
+                         f"{criterion!r}")
     if not (0 < p_min < p_max < radius):
         raise InputError(f"groove map needs 0 < p_min < p_max < radius, got {p_min}, {p_max}, {radius}")
     if criterion == "arc":  # the ball's own groove: nothing to fit
