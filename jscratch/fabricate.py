@@ -154,7 +154,8 @@ def fit_plunge(width, depth, radius: float, *, mode: str = "per-scratch") -> Cut
         width = np.asarray(width, np.float64)
         depth = np.asarray(depth, np.float64)
     except (TypeError, ValueError):
-        raise InputError("fit_plunge: width and depth must be arrays of lengths in metres") from None
+        raise InputError("fit_plunge: width and depth must be arrays of lengths in metres"
+                         ) from None
     if width.ndim != 1 or depth.shape != width.shape:
         raise InputError(f"fit_plunge: width and depth must have one shape (N,), got {width.shape} "
                          f"and {depth.shape}")

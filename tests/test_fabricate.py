@@ -248,7 +248,8 @@ def test_fit_plunge_machine_for_design_and_groove_map_refuse_bad_arguments_by_na
         (lambda: fit_plunge([1e-4], [1e-4], None), r"^fit_plunge: radius must be a finite length"),
         (lambda: machine_for_design(None, None, {}), r"^machine_for_design: design must be"),
         (lambda: machine_for_design(d, {}, {}), r"^machine_for_design: file_profile must be"),
-        (lambda: machine_for_design(d, None, [1]), r"^machine_for_design: overrides must be a dict"),
+        (lambda: machine_for_design(d, None, [1]),
+         r"^machine_for_design: overrides must be a dict"),
         (lambda: groove_map(1e-4, 1e-5, 5e-5, "x"), r"^groove map: criterion must be 'arc'"),
     ]
     for call, match in cases:
