@@ -99,7 +99,7 @@ def load_checkpoint(path: str, like: State, config: DesignConfig, inputs: dict,
     `jscratch.design.io.inputs_hash`): the same targets, scene and config but for `RESUMABLE`,
     and no more iterations done than `config.iterations`."""
     if raw is None and not os.path.isfile(path):
-        raise DesignFileError(f"--resume: no checkpoint at {path!r}")
+        raise DesignFileError(f"resume: no checkpoint at {path!r}")
     try:
         with np.load(path if raw is None else io.BytesIO(raw), allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
@@ -121,7 +121,7 @@ def load_checkpoint(path: str, like: State, config: DesignConfig, inputs: dict,
     diff = _first_difference(saved, given)
     if diff is not None:
         raise DesignError(f"checkpoint {path!r} was made with {diff[0]} = {diff[1]!r}, not "
-                          f"{diff[2]!r}: resume with the run's own options (OUT/config.json)")
+                          f"{diff[2]!r}: resume with the run's own config (its config.json)")
     if meta["iteration"] > config.iterations:
         raise DesignError(f"checkpoint {path!r} is at iteration {meta['iteration']}, past the "
                           f"{config.iterations} iterations asked for: ask for at least that many")

@@ -389,5 +389,5 @@ def checkpoint_bytes(path: str) -> bytes:
     """`read_on_zero` for ``--resume``: refuses (on every process) when process 0 has none."""
     raw = read_on_zero(path)
     if raw is None:
-        raise DesignFileError(f"--resume: no checkpoint at {path!r}")
+        raise DesignFileError(f"resume: no checkpoint at {path!r}")
     return raw
