@@ -43,8 +43,11 @@ import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
+from jscratch.errors import InputError
+from jscratch.scene import check_scratches, check_views
 from jscratch.shading import pixel_centres, pixel_edges
 
 __all__ = [
@@ -129,6 +132,22 @@ def _half_vectors(views, board, dtype):
     return wo, wi, hv / jnp.linalg.norm(hv, axis=-1, keepdims=True), r2
 
 
+def _check(where: str, scratches, views, board, n, batch) -> None:
+    """The host checks of `brute_sums` and `brute_render`: `n` and `batch` ints >= 1, and the
+    scene by the rules `render` and `render_reference` check it by (`jscratch.scene`: values,
+    endpoints on the board, views), each skipped where its arrays are traced."""
+    for name, v in (("n", n), ("batch", batch)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+            raise InputError(f"{where}: `{name}` must be an int >= 1; got {v!r}")
+    s = scratches
+    if not any(isinstance(a, jax.core.Tracer) for a in (s.p0, s.p1, s.width, s.depth, s.alpha)):
+        check_scratches(s.p0, s.p1, s.width, s.depth, s.alpha, board=(board.Sx, board.Sy),
+                        source=where)
+    if not any(isinstance(a, jax.core.Tracer) for a in (views.camera, views.light,
+                                                         views.intensity)):
+        check_views(views.camera, views.light, views.intensity, source=where)
+
+
 def brute_sums(scratches, views, board, *, n: int = 16, key=None, pairs=None,
                batch: int = 256, ball_radius: float | None = None) -> tuple[Float[Array, "m p"], Float[Array, " p"]]:
     """Supersampled patch NDF ``D_P`` ``(M, H*W)`` (1/sr) and coverage ``c`` ``(H*W,)``.
@@ -145,7 +164,17 @@ def brute_sums(scratches, views, board, *, n: int = 16, key=None, pairs=None,
     - `batch`: pairs per `lax.map` step (memory ``batch * n^2 * M``).
     - `ball_radius`: None (the scratches' own profile) or ``R`` (m): the grooves are a ball's cut
       at plunge ``depth`` (module docstring).
+
+    **Raises:** `InputError`, one line: `n` or `batch` not an int >= 1, or a scene that breaks
+    the scene's rules (as `render` checks them: endpoints on the board too), where concrete.
     """
+    _check("brute_sums", scratches, views, board, n, batch)
+    return _sums(scratches, views, board, n=n, key=key, pairs=pairs, batch=batch,
+                 ball_radius=ball_radius)
+
+
+def _sums(scratches, views, board, *, n, key, pairs, batch, ball_radius):
+    """`brute_sums` after its checks."""
     dt = scratches.dtype
     key = jax.random.PRNGKey(0) if key is None else key
     xe, ye = (jnp.asarray(e, dt) for e in pixel_edges(board))
@@ -205,9 +234,10 @@ def brute_shade(D_P, coverage, views, board) -> Float[Array, "m p"]:
 def brute_render(scratches, views, board, *, n: int = 16, key=None, pairs=None,
                  batch: int = 256, ball_radius: float | None = None) -> Float[Array, "m h w"]:
     """Brute-force radiance ``(M, H, W)`` (W/(sr m^2)): `brute_sums` then `brute_shade`.
-    Arguments as in `brute_sums`."""
-    D_P, c = brute_sums(scratches, views, board, n=n, key=key, pairs=pairs, batch=batch,
-                        ball_radius=ball_radius)
+    Arguments and checks as in `brute_sums`."""
+    _check("brute_render", scratches, views, board, n, batch)
+    D_P, c = _sums(scratches, views, board, n=n, key=key, pairs=pairs, batch=batch,
+                   ball_radius=ball_radius)
     return brute_shade(D_P, c[None], views, board).reshape(views.m, board.H, board.W)
 
 

@@ -349,9 +349,15 @@ def load_vgg19(path: str | os.PathLike) -> VGG19Features:
     if not os.path.isfile(path):
         raise DesignFileError(f"VGG-19 weights file not found: {path!r}")
     try:
-        data = np.load(path, allow_pickle=False)
+        with open(path, "rb") as f:
+            zipped = f.read(4) in (b"PK\x03\x04", b"PK\x05\x06")  # an archive, or an empty one
+        data = np.load(path, allow_pickle=False) if zipped else None
     except Exception as e:  # noqa: BLE001 - report any unreadable file the same way
         raise DesignFileError(f"VGG-19 weights file {path!r} is not a readable .npz file ({error_line(e)})") from None
+    if not isinstance(data, np.lib.npyio.NpzFile):
+        # (numpy would try it as a pickle, and advise allow_pickle: no advice for a weights file)
+        raise DesignFileError(f"VGG-19 weights file {path!r} is not a valid .npz file (not a zip "
+                              f"archive as numpy.savez writes)")
     with data:
         keys = set(data.files)
         weights, biases = [], []

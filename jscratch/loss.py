@@ -183,10 +183,16 @@ def ghost_loss(render: Float[Array, "M H W"], target: Float[Array, "M H W"],
     **Arguments:** `render`, `target`: ``(M, H, W)``; `baseline`: ``B`` if precomputed (zeros:
     the raw cross-view SSIM is penalised, ``LossConfig.ghost_baseline = "zero"``).
 
-    **Returns:** scalar (0 for ``M = 1``).
+    **Returns:** scalar (0 for ``M = 1``). **Raises:** `InputError`, one line, for a `baseline`
+    that is not ``(M, M)`` (shapes are static: also under jit).
     """
     render, target = _check_images(render, target)
-    baseline = None if baseline is None else baseline.astype(render.dtype)
+    if baseline is not None:
+        m, shape = render.shape[0], jnp.shape(baseline)
+        if shape != (m, m):
+            raise InputError(f"ghost_loss: `baseline` must have shape (M, M) = ({m}, {m}), one "
+                             f"value per pair of views; got {shape}")
+        baseline = jnp.asarray(baseline).astype(render.dtype)
     return _ghost(render, *_ghost_target(target, baseline))
 
 

@@ -95,6 +95,11 @@ class MachineProfile:
     plunge_max_mm: float = 0.1
     groove_fit: str = "arc"
 
+    def __new__(cls, *args, **kwargs):
+        # An unknown keyword is refused as `from_dict` refuses an unknown key (before __init__).
+        _check_names(cls, kwargs, "MachineProfile")
+        return super().__new__(cls)
+
     def __post_init__(self):
         from jscratch.grbl import gword
 
@@ -177,11 +182,8 @@ class MachineProfile:
         """
         if not isinstance(data, dict):
             raise InputError(f"{source}: expected a table of machine settings, got {type(data).__name__}")
-        fields = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(data) - fields)
-        if unknown:
-            raise InputError(f"{source}: unknown machine setting machine.{unknown[0]} "
-                             f"(known: {', '.join(sorted(fields))})")
+        _check_names(cls, data, source)
+        _check_names(cls, overrides, source)
         data = dict(data)
         data.update({k: v for k, v in overrides.items() if v is not None})
         try:
@@ -201,6 +203,7 @@ class MachineProfile:
         import tomllib
 
         path = str(path)
+        _check_names(cls, overrides, f"{path} with the given options")
         try:
             with open(path, "rb") as f:
                 data = tomllib.load(f)
@@ -261,12 +264,24 @@ class MachineProfile:
         return self.plunge_min_mm / 1000.0, self.plunge_max_mm / 1000.0
 
 
+def _check_names(cls, names, source: str) -> None:
+    """`InputError`, one line naming `source`, when a name in `names` is no field of `cls`."""
+    fields = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(str(k) for k in set(names) - fields)
+    if unknown:
+        raise InputError(f"{source}: unknown machine setting machine.{unknown[0]} "
+                         f"(known: {', '.join(sorted(fields))})")
+
+
 #: An alias, for `jscratch.fabricate`'s callers.
 MachineConfig = MachineProfile
 
 
 def load_machine(path=None, **overrides) -> MachineProfile:
-    """The profile in TOML file `path`, or the shipped default when `path` is None."""
+    """The profile in TOML file `path`, or the shipped default when `path` is None, then
+    `overrides` (those not None). **Raises:** `InputError` (`DesignFileError` for the file), one
+    line, for an unknown override name, an unknown key or a bad value."""
+    _check_names(MachineProfile, overrides, "load_machine")
     if path is None:
         return MachineProfile.from_dict({}, **overrides)
     return MachineProfile.from_toml(path, **overrides)
@@ -281,8 +296,17 @@ def carving_seconds(profile: MachineProfile, *, n: int, cut_mm: float, travel_mm
     spindle's spin-up.
 
     **Arguments:** `n` scratches; `cut_mm` total cut length; `travel_mm` total rapid travel of the
-    ordered path; `plunge_mm_total` sum of plunge depths.
+    ordered path; `plunge_mm_total` sum of plunge depths. Each a finite number >= 0 (else
+    `InputError`, one line).
     """
+    for name, v in (("n", n), ("cut_mm", cut_mm), ("travel_mm", travel_mm),
+                    ("plunge_mm_total", plunge_mm_total)):
+        try:
+            ok = not isinstance(v, (bool, str)) and math.isfinite(v) and v >= 0
+        except TypeError:
+            ok = False
+        if not ok:
+            raise InputError(f"carving_seconds: `{name}` must be a finite number >= 0, got {v!r}")
     p = profile
     minutes = (travel_mm / p.rapid_mm_min + cut_mm / p.feed_mm_min + plunge_mm_total / p.plunge_mm_min
                + n * 2 * p.safe_z_mm / p.rapid_mm_min + n * p.safe_z_mm / p.plunge_mm_min)

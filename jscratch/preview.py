@@ -33,6 +33,10 @@ from jscratch.errors import (EXIT_STATUS_HELP, DesignFileError, InputError, Jscr
 __all__ = ["orbit_views", "render_orbit", "write_gif", "write_sheet", "main"]
 
 
+#: What an orbit of a design without views is refused with (after the design's name).
+_NO_VIEWS = "the design has no views (camera, light, intensity) to orbit"
+
+
 def _load(path):
     from jscratch.designfile import load_design
 
@@ -40,13 +44,29 @@ def _load(path):
         path = os.path.join(path, "design.npz")
     d = load_design(path)
     if d.camera is None:
-        raise DesignFileError(f"{path}: the design has no views (camera, light, intensity) to orbit")
+        raise DesignFileError(f"{path}: {_NO_VIEWS}")
     return d, path
+
+
+def _count(where: str, name: str, v, low: int) -> int:
+    """`v` as an int ``>= low`` (not a bool); `InputError` naming `where` and `name` otherwise."""
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
+        raise InputError(f"{where}: `{name}` must be an int >= {low}, got {v!r}")
+    return int(v)
+
+
+def _check_orbit(where: str, design, frames) -> int:
+    """`frames` as an int >= 1, and a design with views; `InputError` otherwise."""
+    if getattr(design, "camera", None) is None:
+        raise InputError(f"{where}: {_NO_VIEWS}")
+    return _count(where, "frames", frames, 1)
 
 
 def orbit_views(design, frames: int):
     """Camera positions ``(F, 3)``, the light ``(3,)``, the azimuths ``(F,)`` (rad) and, per frame,
-    the design view it shows (or -1), for an orbit at the views' polar angle and distance."""
+    the design view it shows (or -1), for an orbit at the views' polar angle and distance.
+    `InputError` for a design without views or `frames` not an int >= 1."""
+    frames = _check_orbit("orbit_views", design, frames)
     centre = np.array([design.board[0] / 2, design.board[1] / 2, 0.0])
     rel = design.camera - centre
     dist = np.linalg.norm(rel, axis=1)
@@ -68,12 +88,15 @@ def render_orbit(design, *, frames: int = 36, size: int = 128, batch: int = 6,
                  intensity: float | None = None, progress: bool = True):
     """Display images ``(F, size, size)`` of the orbit, with `orbit_views`' azimuths and marks.
 
-    Frames are rendered `batch` at a time (one compilation: the last batch is padded)."""
+    Frames are rendered `batch` at a time (one compilation: the last batch is padded).
+    `InputError`, one line, for a design without views, or `frames` or `batch` not an int >= 1."""
     import jax.numpy as jnp
     from jscratch.render import render
     from jscratch.scene import Board, Scratches, Views
     from jscratch.shading import display
 
+    frames = _check_orbit("render_orbit", design, frames)
+    batch = _count("render_orbit", "batch", batch, 1)
     cams, light, az, marks = orbit_views(design, frames)
     board = Board(shape=(size, size), Sx=float(design.board[0]), Sy=float(design.board[1]))
     inten = _default_intensity(design) if intensity is None else float(intensity)
@@ -115,9 +138,16 @@ def _frame_rgb(img, mark):
 
 
 def write_gif(path, frames, marks, az, *, fps: float = 8.0):
-    """Animated GIF (Pillow), looping; design views framed in orange and labelled."""
+    """Animated GIF (Pillow), looping; design views framed in orange and labelled.
+    `InputError` for no frames or an `fps` that is not a finite number > 0."""
     from PIL import Image, ImageDraw
 
+    if len(frames) == 0:
+        raise InputError("write_gif: `frames` is empty: there is no frame to write")
+    if isinstance(fps, bool) or not isinstance(fps, (int, float, np.integer, np.floating)) or not (
+            math.isfinite(fps) and fps > 0):
+        raise InputError(f"write_gif: `fps` must be a finite number > 0 (frames per second), "
+                         f"got {fps!r}")
     ims = []
     for img, m, a in zip(frames, marks, az):
         im = Image.fromarray(_frame_rgb(img, m))
@@ -129,10 +159,13 @@ def write_gif(path, frames, marks, az, *, fps: float = 8.0):
 
 
 def write_sheet(path, frames, marks, az, title=""):
-    """Contact sheet PNG of the frames (matplotlib), design views framed in orange."""
+    """Contact sheet PNG of the frames (matplotlib), design views framed in orange.
+    `InputError` for no frames."""
     from matplotlib.figure import Figure  # not pyplot: a notebook's backend stays as it is
 
     f = len(frames)
+    if f == 0:
+        raise InputError("write_sheet: `frames` is empty: there is no frame to write")
     cols = min(f, 9)
     rows = math.ceil(f / cols)
     fig = Figure(figsize=(1.4 * cols, 1.55 * rows + 0.3))

@@ -156,10 +156,28 @@ def check_views(camera, light, intensity, *, source: str = "views",
     ``z >= MIN_HEIGHT`` and every coordinate within ``+-MAX_DISTANCE``; intensities ``>= 0``
     with ``I / z_light^2 <= MAX_IRRADIANCE``); shapes are the caller's.
 
-    **Raises:** `error`, one line: ``"{source}: view {j}: {field} ..."``.
+    **Arguments:** `camera`, `light` ``(M, 3)`` (m); `intensity` ``(M,)`` or a scalar (W/sr);
+    `source` names the caller in messages; `error` the exception class raised.
+
+    **Raises:** `error`, one line: ``"{source}: view {j}: {field} ..."``, or naming the argument
+    whose shape is wrong.
     """
-    arrays = {"camera": np.asarray(camera, np.float64), "light": np.asarray(light, np.float64),
-              "intensity": np.asarray(intensity, np.float64)}
+    arrays = {}
+    for name, v in (("camera", camera), ("light", light), ("intensity", intensity)):
+        try:
+            arrays[name] = np.asarray(v, np.float64)
+        except (TypeError, ValueError):
+            raise error(f"{source}: `{name}` is not a numeric array; got {_show(v)}") from None
+    cs, ls = arrays["camera"].shape, arrays["light"].shape
+    if len(cs) != 2 or cs[1] != 3 or ls != cs:
+        raise error(f"{source}: `camera` and `light` must have one shape (M, 3); got camera {cs},"
+                    f" light {ls}")
+    m = arrays["camera"].shape[0]
+    if arrays["intensity"].ndim == 0:
+        arrays["intensity"] = np.broadcast_to(arrays["intensity"], (m,))
+    if arrays["intensity"].shape != (m,):
+        raise error(f"{source}: `intensity` must have shape (M,) = ({m},) or be a scalar; got "
+                    f"{arrays['intensity'].shape}")
     for name, a in arrays.items():
         bad = ~np.isfinite(a)
         if bad.any():
@@ -230,6 +248,38 @@ def scene_checks(scratches: "Scratches", views: "Views | None" = None, *,
 # --------------------------------------------------------------------------------------------
 
 
+def _show(v, limit: int = 60) -> str:
+    """``repr(v)`` on one line and at most `limit` characters, for a message."""
+    text = " ".join(repr(v).split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _real(v) -> float | None:
+    """``float(v)`` for one real number (Python, numpy or a 0-d array); None for anything else
+    (None, a bool, a string, an array of several values, a tracer)."""
+    if v is None or isinstance(v, (bool, str, bytes)):
+        return None
+    try:
+        return float(v) if np.ndim(v) == 0 else None
+    except (TypeError, ValueError):
+        return None
+
+
+def _to_float(name: str):
+    """The converter of `Board`'s field `name`: ``float``, refusing in one line what it cannot
+    convert."""
+
+    def convert(v) -> float:
+        try:
+            if np.ndim(v) == 0:
+                return float(v)
+        except (TypeError, ValueError):
+            pass
+        raise InputError(f"Board: `{name}` must be a real number; got {_show(v)}")
+
+    return convert
+
+
 def _to_shape(shape) -> tuple[int, int]:
     try:
         h, w = (int(s) for s in shape)
@@ -256,11 +306,11 @@ class Board(eqx.Module):
     """
 
     shape: tuple[int, int] = eqx.field(static=True, default=(256, 256), converter=_to_shape)
-    Sx: float = eqx.field(static=True, default=0.3, converter=float)
-    Sy: float = eqx.field(static=True, default=0.3, converter=float)
-    F0: float = eqx.field(static=True, default=0.91, converter=float)
-    a_G: float = eqx.field(static=True, default=0.04, converter=float)
-    a_S: float = eqx.field(static=True, default=0.04, converter=float)
+    Sx: float = eqx.field(static=True, default=0.3, converter=_to_float("Sx"))
+    Sy: float = eqx.field(static=True, default=0.3, converter=_to_float("Sy"))
+    F0: float = eqx.field(static=True, default=0.91, converter=_to_float("F0"))
+    a_G: float = eqx.field(static=True, default=0.04, converter=_to_float("a_G"))
+    a_S: float = eqx.field(static=True, default=0.04, converter=_to_float("a_S"))
 
     def __check_init__(self):
         h, w = self.shape
@@ -297,6 +347,48 @@ class Board(eqx.Module):
 
 def _is_tracer(x) -> bool:
     return isinstance(x, jax.core.Tracer)
+
+
+def _count(source: str, name: str, v, low: int) -> int:
+    """`v` as an int ``>= low`` (a Python or numpy int, not a bool); `InputError` otherwise."""
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
+        raise InputError(f"{source}: `{name}` must be an int >= {low}; got {_show(v)}")
+    return int(v)
+
+
+def _board_arg(source: str, board) -> "Board":
+    """`board`, or `Board()` for None; `InputError` for anything that is no `Board`."""
+    if board is None:
+        return Board()
+    if not isinstance(board, Board):
+        raise InputError(f"{source}: `board` must be a jscratch.Board or None; got "
+                         f"{type(board).__name__} {_show(board)}")
+    return board
+
+
+def _scene_dtype(source: str, dtype):
+    """`dtype` as one of `DTYPES` (None: the default float); `InputError` otherwise."""
+    if dtype is None:
+        return jnp.dtype(jnp.result_type(float))
+    try:
+        dt = jnp.dtype(dtype)
+    except TypeError:
+        dt = None
+    if dt is None or dt.name not in DTYPES:
+        shown = dt.name if dt is not None else _show(dtype)
+        raise InputError(f"{source}: `dtype` must be float32 or float64; got {shown}")
+    return dt
+
+
+def _prng_key(source: str, key):
+    """`key` if it is one PRNG key (``jax.random.key`` or a raw ``jax.random.PRNGKey``, also
+    traced); `InputError` otherwise."""
+    dt, ndim = getattr(key, "dtype", None), getattr(key, "ndim", None)
+    typed = dt is not None and jax.dtypes.issubdtype(dt, jax.dtypes.prng_key)
+    if not ((typed and ndim == 0) or (not typed and dt == np.uint32 and ndim == 1)):
+        raise InputError(f"{source}: `key` must be one PRNG key (jax.random.key(seed) or "
+                         f"jax.random.PRNGKey(seed)); got {_show(key)}")
+    return key
 
 
 def _float_dtype(*xs, source: str):
@@ -401,15 +493,25 @@ class Scratches(eqx.Module):
         lengths uniform in ``length`` (m); a segment that would leave the board is shortened about
         its midpoint (keeping its direction) so both endpoints lie on the board.
 
-        **Arguments:** `key` a PRNG key; `n` number of scratches; `board` (default `Board()`);
-        `length` ``(min, max)`` (m); `width, depth, alpha` scalars; `dtype` (default float).
+        **Arguments:** `key` a PRNG key; `n` number of scratches (an int >= 0); `board` (default
+        `Board()`); `length` ``(min, max)`` (m) with ``0 < min <= max``; `width, depth, alpha`
+        scalars; `dtype` float32 or float64 (default float).
 
-        **Returns:** `Scratches`.
+        **Returns:** `Scratches`. **Raises:** `InputError`, one line naming the argument.
         """
-        board = Board() if board is None else board
-        dtype = jnp.result_type(float) if dtype is None else dtype
-        p0, p1 = _random_endpoints(key, n, float(board.Sx), float(board.Sy),
-                                   tuple(float(x) for x in length), jnp.dtype(dtype))
+        where = "Scratches.random"
+        n = _count(where, "n", n, 0)
+        key = _prng_key(where, key)
+        board = _board_arg(where, board)
+        try:
+            lo, hi = (_real(x) for x in length)
+        except (TypeError, ValueError):
+            lo = hi = None
+        if lo is None or hi is None or not (math.isfinite(hi) and 0 < lo <= hi):
+            raise InputError(f"{where}: `length` must be (min, max) metres with 0 < min <= max; "
+                             f"got {_show(length)}")
+        p0, p1 = _random_endpoints(key, n, float(board.Sx), float(board.Sy), (lo, hi),
+                                   _scene_dtype(where, dtype))
         return Scratches(p0, p1, width, depth, alpha)
 
 
@@ -531,15 +633,33 @@ def views_on_circle(M: int, theta: float = DEFAULT_THETA, distance: float = 1.0,
       else ``0`` (the mirror midway between two cameras, ``pi / M`` from both; camera 0 then shares
       the light's azimuth, a retro-reflection view).
     - `board`: the board (its centre and extent). Default `Board()`.
-    - `light_azimuth`, `camera_theta`, `intensity` ((M,) or scalar, W/sr), `dtype`.
+    - `light_azimuth`, `camera_theta`, `intensity` ((M,) or scalar, W/sr), `dtype` (float32 or
+      float64; default float).
 
     **Returns:** `Views` with ``camera, light`` ``(M, 3)`` and ``intensity`` ``(M,)``.
     """
-    board = Board() if board is None else board
-    if int(M) != M or M < 1:
-        raise InputError(f"views_on_circle: `M` must be a positive int; got {M!r}")
+    where = "views_on_circle"
+    board = _board_arg(where, board)
+    try:
+        whole = int(M) == M
+    except (TypeError, ValueError, OverflowError):
+        whole = False
+    if isinstance(M, (bool, str)) or not whole or M < 1:
+        raise InputError(f"views_on_circle: `M` must be a positive int; got {_show(M)}")
     M = int(M)
+    dtype = _scene_dtype(where, dtype)
     camera_theta = theta if camera_theta is None else camera_theta
+    given = {"theta": theta, "camera_theta": camera_theta, "distance": distance,
+             "light_azimuth": light_azimuth, "offset": offset}
+    for name, v in given.items():
+        if (v is not None or name != "offset") and _real(v) is None:
+            raise InputError(f"views_on_circle: `{name}` must be a real number"
+                             f"{' (m)' if name == 'distance' else ' (rad)'}; got {_show(v)}")
+    theta, camera_theta, distance, light_azimuth = (
+        _real(given[k]) for k in ("theta", "camera_theta", "distance", "light_azimuth"))
+    for name in ("light_azimuth", "offset"):
+        if given[name] is not None and not math.isfinite(_real(given[name])):
+            raise InputError(f"views_on_circle: `{name}` must be finite (rad); got {given[name]}")
     for name, v in (("theta", theta), ("camera_theta", camera_theta)):
         if not (math.isfinite(v) and 0.0 <= v < math.pi / 2):
             hint = (f" (angles are in radians: did you mean {math.radians(v):.4f}?)"
@@ -572,6 +692,5 @@ def views_on_circle(M: int, theta: float = DEFAULT_THETA, distance: float = 1.0,
             f" the light mirrored by the flat board at board point ({spot[j, 0]:.4f},"
             f" {spot[j, 1]:.4f}) m, inside the board: the board's specular peak would dominate"
             " that view. Change `offset`, `M`, `theta`/`camera_theta` or `distance`.")
-    dtype = jnp.result_type(float) if dtype is None else dtype
     return Views(jnp.asarray(cameras, dtype), jnp.asarray(np.repeat(light[None], M, 0), dtype),
                  jnp.asarray(intensity, dtype))

@@ -8,6 +8,7 @@ Imports: `jscratch.scene` (`Board`, `Views`).
 from __future__ import annotations
 
 import functools
+import math
 from typing import NamedTuple
 
 import equinox as eqx
@@ -16,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from jscratch.errors import InputError
 from jscratch.scene import Board, Views
 
 __all__ = [
@@ -153,8 +155,26 @@ def display(radiance: ArrayLike, gamma: float = DISPLAY_GAMMA,
     The slope at 0 is ``(2 - g) P``: ``232.6`` for the defaults (``gamma = 2.2``, ``k = 1e-4``, where
     ``y = 0.0152``, about 4/255). Negative inputs (the renderer produces none beyond rounding) follow
     the same quadratic. No clipping above 1. Elementwise, any shape, follows the input dtype.
+
+    **Raises:** `InputError`, one line, for a `gamma` or `knee` that is not a finite number > 0.
     """
-    return _display(jnp.asarray(radiance), float(gamma), float(knee))
+    return _display(jnp.asarray(radiance), _positive("gamma", gamma), _positive("knee", knee))
+
+
+def _positive(name: str, v) -> float:
+    """`display`'s `gamma` or `knee` as a float: a finite number > 0 (``gamma <= 0`` has no
+    ``1 / gamma``, ``knee <= 0`` no ``knee ** (1/gamma - 1)``); `InputError` otherwise. A traced
+    value is left to ``float``, which refuses it (both are static)."""
+    if isinstance(v, jax.core.Tracer):
+        return float(v)
+    try:
+        x = float(v) if np.ndim(v) == 0 and not isinstance(v, (str, bytes)) else None
+    except (TypeError, ValueError):
+        x = None
+    if x is None or not (math.isfinite(x) and x > 0):
+        shown = " ".join(repr(v).split())
+        raise InputError(f"display: `{name}` must be a finite number > 0; got {shown[:60]}")
+    return x
 
 
 @functools.partial(jax.jit, static_argnums=(1, 2))

@@ -1,12 +1,15 @@
 """A differentiable SSIM equal to scikit-image's (`ssim_mean`): the measure of the
 ghosting of docs/model.md §7, which `jscratch.loss.ghost_loss` penalises. Pure jax; imports
-nothing of jscratch."""
+only `jscratch.errors`."""
 
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
+
+from jscratch.errors import InputError
 
 __all__ = ["ssim_mean", "ssim_moments"]
 
@@ -43,7 +46,23 @@ def ssim_mean(x: Float[Array, "... H W"], y: Float[Array, "... H W"],
     **Arguments:** `x`, `y`: ``(..., H, W)`` with ``H, W >= 7``; `moments_x`, `moments_y`:
     their `ssim_moments` if already computed (broadcast like ``x`` and ``y``). **Returns:**
     ``(...)``.
+
+    **Raises:** `InputError`, one line, when ``x`` and ``y`` differ in ``(H, W)`` or their
+    leading axes do not broadcast, or ``H`` or ``W`` is below 7 (no window fits: scikit-image
+    refuses it too). Shapes are static: the check holds under jit.
     """
+    sx, sy = jnp.shape(x), jnp.shape(y)
+    if len(sx) < 2 or len(sy) < 2 or sx[-2:] != sy[-2:]:
+        raise InputError(f"ssim_mean: `x` and `y` must be images (..., H, W) of one size; got "
+                         f"shapes {sx} and {sy}")
+    try:
+        np.broadcast_shapes(sx, sy)
+    except ValueError:
+        raise InputError(f"ssim_mean: the leading axes of `x` {sx} and `y` {sy} do not "
+                         f"broadcast") from None
+    if min(sx[-2:]) < SSIM_WINDOW:
+        raise InputError(f"ssim_mean: images must be at least {SSIM_WINDOW}x{SSIM_WINDOW} px (the "
+                         f"window); got H, W = {sx[-2]}, {sx[-1]}")
     mx, vx = ssim_moments(x) if moments_x is None else moments_x
     my, vy = ssim_moments(y) if moments_y is None else moments_y
     vxy = _CN * (_mean(x * y) - mx * my)

@@ -468,13 +468,31 @@ def order_scratches(p0, p1, start=(0.0, 0.0), *, improve: bool = True, k: int = 
     position before the first scratch; `improve` runs the local search; `k` neighbours per endpoint;
     `time_limit` seconds for the local search (None: to a local optimum).
 
-    **Returns:** an `Ordering`.
+    **Returns:** an `Ordering`. **Raises:** `InputError`, one line: endpoints not ``(N, 2)`` or not
+    finite, `start` not two finite numbers, `k` not an int >= 1.
     """
     t0 = time.perf_counter()
     p0 = np.asarray(p0, np.float64)
     p1 = np.asarray(p1, np.float64)
     if p0.ndim != 2 or p0.shape[1] != 2 or p1.shape != p0.shape:
         raise InputError(f"p0 and p1 must both have shape (N, 2), got {p0.shape} and {p1.shape}")
+    for name, p in (("p0", p0), ("p1", p1)):
+        bad = ~np.isfinite(p).all(axis=1)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise InputError(f"order_scratches: {name} of scratch {i} is not finite "
+                             f"({p[i, 0]}, {p[i, 1]}); {int(bad.sum())} such endpoints in {name}")
+    try:
+        start_xy = np.asarray(start, np.float64)
+    except (TypeError, ValueError):
+        start_xy = np.full(0, np.nan)
+    if start_xy.shape != (2,) or not np.isfinite(start_xy).all():
+        shown = " ".join(repr(start).split())[:60]
+        raise InputError(f"order_scratches: `start` must be (x, y), two finite numbers; got "
+                         f"{shown}")
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
+        raise InputError(f"order_scratches: `k` (neighbours per endpoint) must be an int >= 1, "
+                         f"got {k!r}")
     n = p0.shape[0]
     ident = np.arange(n)
     t_in = path_travel(p0, p1, ident, np.zeros(n, bool), start)

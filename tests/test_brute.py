@@ -78,3 +78,25 @@ def test_ball_brute_render_against_quadrature():
     ref = 0.01 * integrate.quad(f, -a, a, limit=200)[0] / 1e-4
     assert float(c[0]) == pytest.approx(2 * a * 0.01 / 1e-4, rel=2e-2)
     assert float(D[0, 0]) == pytest.approx(ref, rel=3e-2)
+
+
+def test_brute_refuses_what_render_refuses():
+    """The scene checks of `render` (endpoints on the board), and `n`, `batch` ints >= 1, in
+    one line each, also under the name of `brute_sums`; traced scenes are left to the caller."""
+    import jax
+
+    from jscratch.errors import InputError
+
+    board, views, sc, _ = _one_pixel_scene(2e-3, 8e-4, 0.3)
+    off = render.Scratches(jnp.asarray([[0.005, 0.0]], jnp.float32),
+                           jnp.asarray([[0.005, 0.02]], jnp.float32), 2e-3, 8e-4, 0.3)
+    with pytest.raises(InputError, match=r"^brute_render: scratch 0: p1 = \(0.005, 0.02\) m lies "
+                                         r"off the board \[0, 0.01\] x \[0, 0.01\] m"):
+        brute.brute_render(off, views, board, n=2)
+    for n in (0, -1, 2.5):
+        with pytest.raises(InputError, match=rf"^brute_render: `n` must be an int >= 1; got {n}$"):
+            brute.brute_render(sc, views, board, n=n)
+    with pytest.raises(InputError, match=r"^brute_sums: `batch` must be an int >= 1; got 0$"):
+        brute.brute_sums(sc, views, board, n=2, batch=0)
+    traced = jax.jit(lambda s: brute.brute_render(s, views, board, n=2))(sc)
+    assert traced.shape == (1, 1, 1) and bool(jnp.isfinite(traced).all())

@@ -5,6 +5,7 @@ targets, the PNG writer's rounding, the targets' hash, and `save_result` / `load
 hand-built result (its design file read back)."""
 
 import json
+import re
 
 import jax.numpy as jnp
 import numpy as np
@@ -75,6 +76,18 @@ def test_load_target_files(tmp_path):
         io.load_target(tmp_path / "bad.png", (16, 16))
     with pytest.raises(DesignError, match=r"is 32x32 px \(aspect 1.000\).*crop it first"):
         io.load_target(tmp_path / "g.png", (16, 32))
+
+
+def test_load_target_names_a_junk_npz_file_without_numpy_advice(tmp_path):
+    """A file that is neither an image nor a .npz archive is refused in one line naming it, not
+    with numpy's advice on pickled data; a real .npz array still loads (the reader takes it)."""
+    junk = tmp_path / "junk.npz"
+    junk.write_bytes(b"this is not a zip archive\n" * 10)
+    with pytest.raises(DesignError, match=rf"^target image {re.escape(repr(str(junk)))} is not a "
+                                          r"valid image or \.npz file$"):
+        io.load_target(junk, (16, 16))
+    np.savez(tmp_path / "real.npz", np.full((16, 16), 0.25))
+    np.testing.assert_allclose(io.load_target(tmp_path / "real.npz", (16, 16)), 0.25, atol=1e-6)
 
 
 def test_prepare_target_crops_the_centre_and_default_targets():

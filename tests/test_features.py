@@ -101,3 +101,21 @@ def test_gram_derivatives_match_plain_product():
     h_fast = jax.grad(lambda f: jax.jvp(loss(features.gram), (f,), (v,))[1])(f)
     h_ref = jax.grad(lambda f: jax.jvp(loss(_plain_gram), (f,), (v,))[1])(f)
     np.testing.assert_allclose(np.asarray(h_fast), np.asarray(h_ref), rtol=1e-11)
+
+
+def test_load_vgg19_names_a_file_that_is_no_npz_archive(tmp_path):
+    """Junk, or a single-array .npy, is refused in one line naming the file, not with numpy's
+    advice on pickled data."""
+    import re
+
+    from jscratch.errors import DesignFileError
+
+    junk, single = tmp_path / "junk.npz", tmp_path / "w.npy"
+    junk.write_bytes(b"this is not a zip archive\n" * 10)
+    np.save(single, np.zeros(3))
+    for path in (junk, single):
+        with pytest.raises(DesignFileError, match=rf"^VGG-19 weights file "
+                                                  rf"{re.escape(repr(str(path)))} is not a valid "
+                                                  r"\.npz file \(not a zip archive") as e:
+            features.load_vgg19(path)
+        assert "pickle" not in str(e.value)

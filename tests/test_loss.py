@@ -5,6 +5,7 @@ import dataclasses
 import importlib.util
 import math
 import pathlib
+import re
 
 import equinox as eqx
 import jax
@@ -424,7 +425,7 @@ def test_vgg_loader_structure_errors(tmp_path, edit, match):
 def test_vgg_loader_unreadable_file(tmp_path):
     path = tmp_path / "junk.npz"
     path.write_bytes(b"not a zip file")
-    with pytest.raises(ValueError, match="not a readable .npz"):
+    with pytest.raises(ValueError, match="not a valid .npz file"):
         loss_mod.load_vgg19(path)
 
 
@@ -577,3 +578,14 @@ def test_ghost_weight_factor_rule_and_no_gradient():
                      + w * loss_mod.ghost_loss(r, t, zero))(i)
     np.testing.assert_allclose(np.asarray(g), np.asarray(g_ref), rtol=1e-10, atol=1e-16)
 
+
+
+@pytest.mark.parametrize("shape", [(3, 3), (1,), (2,), (2, 2, 1)])
+def test_ghost_loss_refuses_a_baseline_of_the_wrong_shape(shape):
+    r = jnp.zeros((2, 8, 8), jnp.float32)
+    t = jnp.full((2, 8, 8), 0.5, jnp.float32)
+    with pytest.raises(InputError, match=r"^ghost_loss: `baseline` must have shape \(M, M\) = "
+                                         rf"\(2, 2\), one value per pair of views; got "
+                                         rf"{re.escape(str(shape))}$"):
+        loss_mod.ghost_loss(r, t, baseline=jnp.zeros(shape, jnp.float32))
+    assert float(loss_mod.ghost_loss(r, t, baseline=np.zeros((2, 2), np.float32))) >= 0

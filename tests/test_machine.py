@@ -11,7 +11,7 @@ import pytest
 
 from jscratch import fabricate, machine
 from jscratch.design import main as design_main
-from jscratch.errors import DesignFileError
+from jscratch.errors import DesignFileError, InputError
 from jscratch.machine import MachineProfile, carving_seconds
 
 
@@ -96,3 +96,32 @@ def test_settings_outside_the_machine_table_are_refused_not_dropped(tmp_path, te
     bare = tmp_path / "bare.toml"
     bare.write_text("feed_mm_min = 500.0\ncutter_radius_mm = 0.2\n")
     assert MachineProfile.from_toml(bare).feed_mm_min == 500.0
+
+
+@pytest.mark.parametrize("name", ["n", "cut_mm", "travel_mm", "plunge_mm_total"])
+@pytest.mark.parametrize("value", [-1, float("nan"), float("inf"), None])
+def test_carving_seconds_refuses_negative_or_non_finite_amounts(name, value):
+    kw = dict(n=3, cut_mm=30.0, travel_mm=12.0, plunge_mm_total=0.3) | {name: value}
+    with pytest.raises(InputError, match=rf"^carving_seconds: `{name}` must be a finite number "
+                                         rf">= 0, got {value}$"):
+        carving_seconds(MachineProfile(), **kw)
+
+
+def test_unknown_keywords_are_refused_like_unknown_keys(tmp_path):
+    """`load_machine(foo=1)` and `MachineProfile(foo=1)` refuse the name in one line, as
+    `from_dict` refuses an unknown key, not with a TypeError."""
+    known = r"\(known: board_offset_mm, cutter, .*\)$"
+    with pytest.raises(InputError,
+                       match=rf"^load_machine: unknown machine setting machine.foo {known}"):
+        machine.load_machine(foo=1)
+    path = tmp_path / "m.toml"
+    path.write_text(MachineProfile().to_toml())
+    with pytest.raises(InputError, match=r"^load_machine: unknown machine setting machine.foo "):
+        machine.load_machine(path, foo=None)
+    with pytest.raises(InputError,
+                       match=rf"^MachineProfile: unknown machine setting machine.foo {known}"):
+        MachineProfile(foo=1)
+    with pytest.raises(InputError, match=r"^src: unknown machine setting machine.bar "):
+        MachineProfile.from_dict({}, source="src", bar=2.0)
+    assert machine.load_machine(path, feed_mm_min=800.0).feed_mm_min == 800.0
+    assert MachineProfile(feed_mm_min=800).feed_mm_min == 800.0

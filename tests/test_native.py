@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 import warnings
@@ -1019,3 +1020,11 @@ def test_keep_freed_memory_keeps_a_freed_block_and_can_be_turned_off():
         assert on["memory"] == on["again"] == on["status"]
         assert on["kept_mb"] > 80  # ... and stays in the process when kept
     assert bad.returncode != 0 and "JSCRATCH_KEEP_MEMORY='2'" in bad.stderr
+
+
+def test_status_refuses_what_is_no_dtype():
+    for bad, shown in (("foo", "'foo'"), (1.5, "1.5")):
+        with pytest.raises(InputError, match=rf"^native.status: `dtype` must be a dtype \(float32 "
+                                             rf"or float64\), got {re.escape(shown)}$"):
+            native.status(bad)
+    assert native.status(jnp.int32)["kernel"] == "jnp"  # a dtype without a kernel: says why

@@ -76,3 +76,39 @@ def test_preview_writes_both_files_or_neither_and_lights_a_design_with_an_unlit_
     assert main(args) == 0
     assert sorted(os.listdir(out)) == ["p.orbit.gif", "p.orbit_sheet.png"]
     assert Image.open(out / "p.orbit.gif").n_frames == 3
+
+
+def test_orbit_and_writers_refuse_bad_arguments_in_one_line(tmp_path):
+    """A design without views is refused with the command line's words; `frames`, `batch` and
+    `fps` out of range, and writers given no frames, are one-line `InputError`s."""
+    from jscratch.errors import InputError
+    from jscratch.preview import orbit_views, render_orbit, write_gif, write_sheet
+
+    bare = designfile.demo_design(20)
+    assert bare.camera is None
+    for call, where in ((lambda: render_orbit(bare, frames=3, size=8, progress=False),
+                         "render_orbit"), (lambda: orbit_views(bare, 3), "orbit_views")):
+        with pytest.raises(InputError, match=rf"^{where}: the design has no views \(camera, "
+                                             r"light, intensity\) to orbit$"):
+            call()
+    d = designfile.demo_design(20)
+    views = render.views_on_circle(2, math.radians(50))
+    path = tmp_path / "d.npz"
+    designfile.save_design(path, d.p0, d.p1, d.width, d.depth, d.alpha, d.board,
+                           np.asarray(views.camera), np.asarray(views.light), np.ones(2))
+    d = designfile.load_design(path)
+    for kw, match in ((dict(frames=0), "`frames` must be an int >= 1, got 0"),
+                      (dict(frames=-1), "`frames` must be an int >= 1, got -1"),
+                      (dict(frames=2, batch=0), "`batch` must be an int >= 1, got 0")):
+        with pytest.raises(InputError, match=f"^render_orbit: {match}$"):
+            render_orbit(d, size=8, progress=False, **kw)
+    frames, marks, az = np.zeros((2, 8, 8)), np.array([0, -1]), np.array([0.0, 1.0])
+    for fps in (0, -1.0, float("nan")):
+        with pytest.raises(InputError, match=r"^write_gif: `fps` must be a finite number > 0 "
+                                             rf"\(frames per second\), got {fps}$"):
+            write_gif(tmp_path / "a.gif", frames, marks, az, fps=fps)
+    with pytest.raises(InputError, match=r"^write_gif: `frames` is empty"):
+        write_gif(tmp_path / "a.gif", [], [], [])
+    with pytest.raises(InputError, match=r"^write_sheet: `frames` is empty"):
+        write_sheet(tmp_path / "a.png", [], [], [])
+    assert not list(tmp_path.glob("a.*"))

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from jscratch import scene
+from jscratch.errors import InputError
 from jscratch.scene import Board, Scratches, Views, flat_highlight, views_on_circle
 
 
@@ -131,7 +132,7 @@ def test_groove_profile_is_checked_and_kept():
     assert s.profile == "arc" and Scratches(p0, p1).profile == "paper"
     assert jax.tree_util.tree_map(lambda x: 2 * x, s).profile == "arc"
     assert jax.jit(lambda t: t)(s).profile == "arc"
-    with pytest.raises(scene.InputError, match="profile.*one of"):
+    with pytest.raises(InputError, match="profile.*one of"):
         Scratches(p0, p1, profile="ball")
 
 
@@ -209,3 +210,54 @@ def test_renderers_check_what_they_are_given(tmp_path):
         with pytest.raises(ValueError,
                            match=rf"{where}: scratch 0: p1 = \(0.02, 0.006\) m lies off"):
             call()
+
+
+@pytest.mark.parametrize("kw, match", [
+    (dict(length=(0.03, 0.01)), r"`length` must be \(min, max\) metres with 0 < min <= max; "
+                                r"got \(0.03, 0.01\)"),
+    (dict(length=(0, 0)), r"`length` must be \(min, max\) .*; got \(0, 0\)"),
+    (dict(length=0.01), r"`length` must be \(min, max\) .*; got 0.01"),
+    (dict(n=-1), r"`n` must be an int >= 0; got -1"),
+    (dict(n=2.5), r"`n` must be an int >= 0; got 2.5"),
+    (dict(n="5"), r"`n` must be an int >= 0; got '5'"),
+    (dict(key=0), r"`key` must be one PRNG key .*; got 0"),
+    (dict(board=[0.3, 0.3]), r"`board` must be a jscratch.Board or None; got list"),
+    (dict(dtype=jnp.int32), r"`dtype` must be float32 or float64; got int32"),
+])
+def test_random_refuses_bad_arguments_in_one_line(kw, match):
+    args = dict(key=jax.random.PRNGKey(0), n=5) | kw
+    key, n = args.pop("key"), args.pop("n")
+    with pytest.raises(InputError, match="^Scratches.random: " + match) as e:
+        Scratches.random(key, n, **args)
+    assert "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize("kw, match", [
+    (dict(M=None), r"`M` must be a positive int; got None"),
+    (dict(theta=None), r"`theta` must be a real number \(rad\); got None"),
+    (dict(theta="a"), r"`theta` must be a real number \(rad\); got 'a'"),
+    (dict(distance=None), r"`distance` must be a real number \(m\); got None"),
+    (dict(offset="x"), r"`offset` must be a real number \(rad\); got 'x'"),
+    (dict(board=[0.3, 0.3]), r"`board` must be a jscratch.Board or None; got list"),
+    (dict(dtype="int32"), r"`dtype` must be float32 or float64; got int32"),
+])
+def test_views_on_circle_refuses_bad_arguments_in_one_line(kw, match):
+    args = dict(M=3) | kw
+    with pytest.raises(InputError, match="^views_on_circle: " + match):
+        views_on_circle(args.pop("M"), **args)
+
+
+@pytest.mark.parametrize("value, shown", [("a", "'a'"), (None, "None"),
+                                          (np.array([1, 2]), r"array\(\[1, 2\]\)")])
+def test_board_refuses_what_is_no_number(value, shown):
+    with pytest.raises(InputError, match=rf"^Board: `Sx` must be a real number; got {shown}$"):
+        Board(Sx=value)
+
+
+def test_check_views_refuses_wrong_shapes():
+    with pytest.raises(InputError, match=r"^views: `camera` and `light` must have one shape "
+                                               r"\(M, 3\); got camera \(3,\), light \(3,\)$"):
+        scene.check_views([0, 0, 1.0], [0, 0, 1.0], 1.0)
+    with pytest.raises(InputError, match=r"`intensity` must have shape \(M,\) = \(1,\)"):
+        scene.check_views([[0, 0, 1.0]], [[0, 0, 1.0]], [1.0, 2.0])
+    scene.check_views([[0, 0, 1.0]], [[0, 0, 1.0]], 1.0)  # a scalar intensity is every view's

@@ -3,6 +3,7 @@ vectors and the flat board's GGX against a numpy evaluation, `shade` against the
 `brute.brute_shade`, and `display` (a C1 gamma with a finite slope at 0)."""
 
 import math
+import re
 
 import jax
 import jax.numpy as jnp
@@ -101,3 +102,18 @@ def test_display_float32():
     assert y.dtype == jnp.float32
     np.testing.assert_allclose(np.asarray(y)[2:], np.asarray(x, np.float64)[2:] ** (1 / 2.2), rtol=1e-6)
     assert float(y[0]) == 0.0 and 0 < float(y[1]) < float(y[2])
+
+
+@pytest.mark.parametrize("kw, name, shown", [
+    (dict(knee=-1), "knee", "-1"), (dict(knee=0.0), "knee", "0.0"),
+    (dict(knee=float("nan")), "knee", "nan"), (dict(gamma=0), "gamma", "0"),
+    (dict(gamma=-1), "gamma", "-1"), (dict(gamma=float("inf")), "gamma", "inf"),
+    (dict(gamma="a"), "gamma", "'a'"), (dict(knee=np.array([1e-4, 1e-3])), "knee", "array"),
+])
+def test_display_refuses_a_gamma_or_knee_not_finite_and_positive(kw, name, shown):
+    from jscratch.errors import InputError
+
+    with pytest.raises(InputError, match=rf"^display: `{name}` must be a finite number > 0; "
+                                         rf"got {re.escape(shown)}"):
+        shading.display(jnp.asarray([0.0, 0.5], jnp.float32), **kw)
+    assert shading.display(jnp.float32(0.5), gamma=np.float32(2.0), knee=1e-3).dtype == jnp.float32

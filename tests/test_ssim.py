@@ -56,3 +56,19 @@ def test_ssim_moments_match_sliding_windows_and_feed_ssim_mean(smooth_images):
     got = ssim_mean(xs, ys, (mean[:, None], var[:, None]), (my[None], vy[None]))
     assert got.shape == (2, 3)
     np.testing.assert_allclose(np.asarray(got), np.asarray(ssim_mean(xs, ys)), rtol=1e-14)
+
+
+def test_ssim_mean_refuses_mismatched_or_too_small_images():
+    """Shapes are static, so the refusal holds under jit too; scikit-image refuses a window that
+    does not fit."""
+    from jscratch.errors import InputError
+
+    with pytest.raises(InputError, match=r"^ssim_mean: `x` and `y` must be images \(\.\.\., H, W\) "
+                                         r"of one size; got shapes \(8, 8\) and \(9, 9\)$"):
+        ssim_mean(jnp.zeros((8, 8)), jnp.zeros((9, 9)))
+    with pytest.raises(InputError, match=r"leading axes of `x` \(2, 8, 8\) and `y` \(3, 8, 8\)"):
+        ssim_mean(jnp.zeros((2, 8, 8)), jnp.zeros((3, 8, 8)))
+    for shape in ((6, 8), (8, 6)):
+        with pytest.raises(InputError, match=r"^ssim_mean: images must be at least 7x7 px"):
+            jax.jit(ssim_mean)(jnp.zeros(shape), jnp.zeros(shape))
+    assert ssim_mean(jnp.zeros((2, 7, 7)), jnp.zeros((7, 7))).shape == (2,)

@@ -5,8 +5,10 @@ gains), and the k-nearest-neighbour grid against brute force."""
 import itertools
 
 import numpy as np
+import pytest
 
 from jscratch.designfile import demo_design
+from jscratch.errors import InputError
 from jscratch.toolpath import (
     best_directions, greedy_order, improve_order, knn_grid, order_scratches, path_travel,
 )
@@ -61,3 +63,18 @@ def test_knn_grid_matches_brute_force():
     np.fill_diagonal(d, np.inf)
     ref = np.argsort(d, axis=1)[:, :4]
     assert np.mean(np.all(nb == ref, axis=1)) > 0.98
+
+
+@pytest.mark.parametrize("kw, match", [
+    (dict(p0=[[0.0, 0.0], [np.nan, 1.0]]), r"p0 of scratch 1 is not finite \(nan, 1.0\); 1 such"),
+    (dict(p1=[[np.inf, 0.5], [1.5, 1.5]]), r"p1 of scratch 0 is not finite \(inf, 0.5\)"),
+    (dict(k=-1), r"`k` \(neighbours per endpoint\) must be an int >= 1, got -1$"),
+    (dict(k=2.5), r"`k` \(neighbours per endpoint\) must be an int >= 1, got 2.5$"),
+    (dict(start=(0,)), r"`start` must be \(x, y\), two finite numbers; got \(0,\)$"),
+    (dict(start=(np.nan, 0.0)), r"`start` must be \(x, y\), two finite numbers; got \(nan, 0.0\)$"),
+    (dict(start="ab"), r"`start` must be \(x, y\), two finite numbers; got 'ab'$"),
+])
+def test_order_scratches_refuses_bad_arguments_in_one_line(kw, match):
+    args = dict(p0=[[0.0, 0.0], [1.0, 1.0]], p1=[[0.5, 0.5], [1.5, 1.5]]) | kw
+    with pytest.raises(InputError, match="^order_scratches: " + match):
+        order_scratches(args.pop("p0"), args.pop("p1"), **args)

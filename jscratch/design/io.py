@@ -156,6 +156,8 @@ def load_target(path: str | os.PathLike, shape: tuple[int, int]) -> np.ndarray:
         img = _as_shown(path)
         img = io.imread(path) if img is None else img
     except Exception as e:  # noqa: BLE001 - any reader failure is an unreadable image
+        if "allow_pickle" in str(e):  # numpy's advice on a junk .npz: no image array in it
+            raise DesignError(f"target image {path!r} is not a valid image or .npz file") from None
         raise DesignError(f"target image {path!r} is not a readable image ({error_line(e)})") from None
     return prepare_target(img, _image_shape(shape), repr(path), crop=False)
 

@@ -528,7 +528,12 @@ def status(dtype=jnp.float32) -> dict:
 
     ``library``: that dtype's; ``covers``: the key's inputs (`_key_parts`). Starts nothing; waits
     for a build in progress. ``"jnp"`` also where nothing in this process has asked for the
-    kernel of that dtype yet."""
+    kernel of that dtype yet. `InputError` (one line) for what is not a dtype."""
+    try:
+        dt = jnp.dtype(dtype)
+    except TypeError:
+        raise InputError(f"native.status: `dtype` must be a dtype (float32 or float64), got "
+                         f"{' '.join(repr(dtype).split())[:60]}") from None
     on, backend = enabled(), jax.default_backend()
     st = {"kernel": "jnp", "why": "", "enabled": on, "backend": backend, "library": None,
           "key": None, "covers": None, "compiler": None, "jaxlib": jaxlib.__version__,
@@ -537,9 +542,9 @@ def status(dtype=jnp.float32) -> dict:
         return st | {"why": "disabled (JSCRATCH_NATIVE=0)"}
     if backend != "cpu":
         return st | {"why": f"the default backend is {backend}; the native kernel is CPU-only"}
-    name = _DTYPES.get(jnp.dtype(dtype))
+    name = _DTYPES.get(dt)
     if name is None:
-        return st | {"why": f"no native kernel for {jnp.dtype(dtype).name}"}
+        return st | {"why": f"no native kernel for {dt.name}"}
     build = _build.get(name)
     if build is None:
         return st | {"why": "not asked for in this process yet (python -m jscratch.native "
