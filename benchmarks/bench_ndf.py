@@ -12,4 +12,4 @@ import sys
 from jscratch import bench
 
 if __name__ == "__main__":
-    bench.main(["--sections", "kernel", *sys.argv[1:]])
+    sys.exit(bench.main(["--sections", "kernel", *sys.argv[1:]]))

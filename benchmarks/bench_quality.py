@@ -150,16 +150,20 @@ def suite(name: str, lx=(0.003, 0.01, 0.03), prune=((10, 0.05), (20, 0.1)), lg_n
           ) -> list[tuple[str, dict]]:
     """``(row label, DesignConfig overrides)`` of a suite (``lx``: ``lambda_x`` values;
     ``prune``: ``(prune_every, prune_fraction)`` settings; ``lg_new``: the new ``lambda_g``)."""
+    # (each row names the loss terms it has: `lambda_x` 0 where its label has no E_x, and the
+    # E_x rows their baseline, so that a suite does not move with the defaults)
     if name == "lambda":
-        rows = [("E_p alone (lambda_g 0)", {"loss": {"kind": "perceptual"}})]
+        rows = [("E_p alone (lambda_g 0)", {"loss": {"kind": "perceptual", "lambda_x": 0.0}})]
         for lg in (20, 50, 100, 200, 400):
-            rows.append((f"E_p + {lg} E_g", {"loss": {"kind": "perceptual+gram", "lambda_g": lg}}))
+            rows.append((f"E_p + {lg} E_g", {"loss": {"kind": "perceptual+gram", "lambda_g": lg,
+                                                      "lambda_x": 0.0}}))
         return rows
     if name == "ghost":
-        return [(f"E_p + {lx} E_x", {"loss": {"kind": "perceptual", "lambda_x": lx}})
+        return [(f"E_p + {lx} E_x (zero baseline)",
+                 {"loss": {"kind": "perceptual", "lambda_x": lx, "ghost_baseline": "zero"}})
                 for lx in lx]
     if name == "prune":
-        return [(f"E_p, prune every {e}, {f:.0%}", {"loss": {"kind": "perceptual"},
+        return [(f"E_p, prune every {e}, {f:.0%}", {"loss": {"kind": "perceptual", "lambda_x": 0.0},
                                                      "prune_every": e, "prune_fraction": f})
                 for e, f in prune]
     if name == "pieces":
@@ -170,7 +174,8 @@ def suite(name: str, lx=(0.003, 0.01, 0.03), prune=((10, 0.05), (20, 0.1)), lg_n
         return [
             ("baseline (E_p + 200 E_g, no prune, no E_x)", old),
             ("E_p alone (lambda_g 0)", ep),
-            ("E_p + 20 E_g", {**ep, "loss": {"kind": "perceptual+gram", "lambda_g": 20.0}}),
+            ("E_p + 20 E_g", {**ep, "loss": {**ep["loss"], "kind": "perceptual+gram",
+                                              "lambda_g": 20.0}}),
             (f"E_p + {x} E_x (ghosting term)", {**ep, "loss": {**ep["loss"], "lambda_x": x}}),
             (f"E_p + prune every {pe}, {pf:.0%}", {**ep, "prune_every": pe, "prune_fraction": pf}),
             ("E_p + 20 E_g, prune every 10, 5%",
@@ -191,11 +196,11 @@ def suite(name: str, lx=(0.003, 0.01, 0.03), prune=((10, 0.05), (20, 0.1)), lg_n
             (f"prune every {pe}, {pf:.0%} alone (E_p + 200 E_g)", {**old, **pr}),
             (f"proposal: E_p + 20 E_g, prune every {pe}, {pf:.0%}", {"loss": g20, **pr}),
         ]
-        for x in lx:  # lambda_g left to the design: 20, or `dense_lambda_g` for a dense design
-            rows.append((f"proposal + {x} E_x", {"loss": {"kind": "perceptual+gram",
-                                                          "lambda_x": x}, **pr}))
+        for x in lx:  # the current defaults but lambda_x (lambda_g: 20, or `dense_lambda_g`)
+            rows.append((f"current defaults with {x} E_x", {"loss": {"kind": "perceptual+gram",
+                                                                      "lambda_x": x}, **pr}))
         for x in lx:
-            rows.append((f"proposal + {x} E_x raw (zero baseline)",
+            rows.append((f"proposal + {x} E_x raw (zero baseline, lambda_g 20)",
                          {"loss": {**g20, "lambda_x": x, "ghost_baseline": "zero"}, **pr}))
         return rows
     raise SystemExit(f"unknown suite {name!r}")

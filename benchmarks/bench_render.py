@@ -1,5 +1,5 @@
 """Benchmark the multi-view renderer: sections ``render`` and ``brute`` of `jscratch.bench`
-(`jscratch.bench_render`), in full mode, written as a Markdown fragment for RESULTS.md.
+(`jscratch.bench.rendering`), in full mode, written as a Markdown fragment for RESULTS.md.
 
     python benchmarks/bench_render.py                 # both sections, full size
     python benchmarks/bench_render.py --sections render

@@ -89,6 +89,8 @@ def main(argv=None):
     ap.add_argument("--out", default=os.path.join(os.path.dirname(os.path.abspath(__file__)),
                                                    "..", "docs", "gallery"))
     args = ap.parse_args(argv)
+    if args.views < 1 or args.res < 1 or args.count < 1:
+        ap.error("--views, --res and --count must be at least 1")
     os.makedirs(args.out, exist_ok=True)
     board = render.Board(shape=(args.res, args.res))
     key = jax.random.PRNGKey(12)
@@ -107,7 +109,8 @@ def main(argv=None):
           [f"camera az {a:.0f} deg" for a in az],
           f"{args.count} scratches, w = d = 0.1 mm, alpha = 0.04; light az 0, polar 40 deg")
 
-    one = render.Views(views.camera[1:2], views.light[1:2], views.intensity[1:2])
+    k = min(1, args.views - 1)  # the sweeps' view: the second, or the only one
+    one = render.Views(views.camera[k:k + 1], views.light[k:k + 1], views.intensity[k:k + 1])
     sweeps = {
         "alpha": ("alpha", [0.01, 0.04, 0.12, 0.3], lambda v: dict(base, alpha=v)),
         "width": ("w (mm)", [5e-5, 1e-4, 2e-4, 4e-4], lambda v: dict(base, width=v)),
@@ -124,13 +127,13 @@ def main(argv=None):
         fmt = (lambda v: f"{label} = {1e3 * v:g}") if name == "width" else (
             lambda v: f"{label} = {v:g}")
         _save(os.path.join(args.out, f"sweep_{name}.png"), rows, ["random", "horizontal"],
-              [fmt(v) for v in values], f"sweep of {label}; camera az {az[1]:.0f} deg")
+              [fmt(v) for v in values], f"sweep of {label}; camera az {az[k]:.0f} deg")
 
     counts = [300, 1000, 3000, 10000]
     rows = [[np.asarray(render.render(f(key, c, board, **base), one, board))[0] for c in counts]
             for f in (_random, lambda k, c, b, **kw: brushed(k, c, b, 0.0, **kw))]
     _save(os.path.join(args.out, "sweep_count.png"), rows, ["random", "horizontal"],
-          [f"{c} scratches" for c in counts], f"sweep of scratch count; camera az {az[1]:.0f} deg")
+          [f"{c} scratches" for c in counts], f"sweep of scratch count; camera az {az[k]:.0f} deg")
 
 
 if __name__ == "__main__":
