@@ -271,3 +271,33 @@ def test_a_save_that_fails_part_way_leaves_the_folder_as_it_was(tmp_path, monkey
     assert {f.name: f.read_bytes() for f in (tmp_path / "a").iterdir()} == before
     assert not (tmp_path / "new").exists()
     assert "carving" in res.metrics  # from the first save only
+
+
+def test_save_and_load_result_refuse_what_is_no_result_or_path_in_one_line(tmp_path):
+    """`save_result`, `load_result` and `load_scene` refuse a path, a time, a result whose images
+    disagree or whose history is not `design`'s, and a scene of the wrong type, naming them;
+    `save_result` then writes nothing."""
+    import dataclasses
+
+    from jscratch.errors import DesignFileError
+
+    metrics = {"ssim": [0.5], "psnr": [10.0], "ghosting": [float("nan")], "loss": 1.0}
+    res = _one_view_result(metrics)
+    out = tmp_path / "r"
+    for bad in (None, 3, ""):
+        with pytest.raises(DesignError, match="^save_result: expected a folder path"):
+            io.save_result(res, bad)
+        with pytest.raises(DesignFileError, match="^load_result: expected a folder path"):
+            io.load_result(bad)
+    for bad in ("a", -1.0, float("nan"), None, True):
+        with pytest.raises(DesignError, match="^save_result: order_time must be a finite number"):
+            io.save_result(res, out, order_time=bad)
+    two = np.concatenate([res.display, res.display])
+    with pytest.raises(DesignError, match=r"targets \(1, 16, 16\), radiance \(1, 16, 16\), "
+                                          r"display \(2, 16, 16\)"):
+        io.save_result(dataclasses.replace(res, display=two), out)
+    with pytest.raises(DesignError, match="^save_result: the result's history must be"):
+        io.save_result(dataclasses.replace(res, history={"total": [1.0]}), out)
+    assert not out.exists()
+    with pytest.raises(DesignError, match="^load_scene: scene must be a SceneConfig"):
+        io.load_scene({"size": 32})

@@ -209,6 +209,9 @@ def load_scene(scene: SceneConfig) -> tuple[np.ndarray, list[str], Views, Board]
     """The inputs a `SceneConfig` describes: ``(targets (M, H, W), names, views, board)``: the
     target files (or `default_targets`) at the scene's size, its views on a circle and its board.
     Raises `DesignError` naming the file or field."""
+    if not isinstance(scene, SceneConfig):
+        raise DesignError(f"load_scene: scene must be a SceneConfig (SceneConfig.from_dict for a "
+                          f"dict), got {type(scene).__name__}")
     shape = (scene.size, scene.size)
     board = scene.make_board()
     if scene.targets:
@@ -258,14 +261,20 @@ def save_result(result: DesignResult, out: str | os.PathLike, *, scene: SceneCon
     jscratch.design` writes its outputs with this call. Returns the metrics added (they are also
     added to `result.metrics`).
     """
-    if not isinstance(as_carved_samples, (int, np.integer)) or as_carved_samples < 0:
+    if (isinstance(as_carved_samples, bool) or not isinstance(as_carved_samples, (int, np.integer))
+            or as_carved_samples < 0):
         raise DesignError(f"as_carved_samples must be an int >= 0, got {as_carved_samples!r}")
-    out = os.fspath(out)
+    if (isinstance(order_time, bool) or not isinstance(order_time, (int, float, np.number))
+            or not (math.isfinite(order_time) and order_time >= 0)):
+        raise DesignError(f"save_result: order_time must be a finite number of seconds >= 0, got "
+                          f"{order_time!r}")
+    out = _folder("save_result", out)
     if os.path.exists(out) and not os.path.isdir(out):
         raise DesignError(f"save_result: {out!r} is a file, not a folder")
     if not isinstance(result, DesignResult):
         raise DesignError(f"save_result needs a DesignResult (what design() returns), got "
                           f"{type(result).__name__}")
+    _check_result(result)
     scene = result.scene if scene is None else scene
     names = result.names if names is None else names
     if not (scene is None or isinstance(scene, SceneConfig)):
@@ -303,6 +312,30 @@ def save_result(result: DesignResult, out: str | os.PathLike, *, scene: SceneCon
         result.metrics.pop("as_carved", None)
     result.metrics.update(add)
     return add
+
+
+def _folder(who: str, out) -> str:
+    """`out` as a str; `DesignError` naming `who` for anything that is not a path."""
+    if not isinstance(out, (str, os.PathLike)) or not isinstance(os.fspath(out), str) \
+            or not os.fspath(out):
+        raise DesignError(f"{who}: expected a folder path (str or os.PathLike), got {out!r}")
+    return os.fspath(out)
+
+
+def _check_result(result: DesignResult) -> None:
+    """`DesignError` (one line) when a result's images or history do not have the form
+    `design` gives them (e.g. a hand-edited result): targets, radiance and display ``(M, H,
+    W)`` alike, history ``{"total": [...], "terms": {name: [...]}}``."""
+    shapes = {k: np.shape(getattr(result, k)) for k in ("targets", "radiance", "display")}
+    if len(shapes["targets"]) != 3 or len(set(shapes.values())) != 1:
+        got = ", ".join(f"{k} {v}" for k, v in shapes.items())
+        raise DesignError("save_result: the result's targets, radiance and display must share one "
+                          f"shape (M, H, W), got {got}")
+    h = result.history
+    if not (isinstance(h, dict) and isinstance(h.get("total"), (list, tuple))
+            and isinstance(h.get("terms"), dict)):
+        raise DesignError('save_result: the result\'s history must be {"total": [...], "terms": '
+                          '{name: [...]}} as design() gives it')
 
 
 def _save_into(out, result, scene, names, as_carved_samples, order_time) -> dict:
@@ -366,6 +399,10 @@ def load_result(out: str | os.PathLike) -> DesignResult:
     from jscratch.design.config import DesignConfig
     from jscratch.errors import DesignFileError
 
+    if (not isinstance(out, (str, os.PathLike)) or not isinstance(os.fspath(out), str)
+            or not os.fspath(out)):
+        raise DesignFileError(f"load_result: expected a folder path (str or os.PathLike), got "
+                              f"{out!r}")
     out = os.fspath(out)
     if not os.path.isdir(out):
         raise DesignFileError(f"{out!r} is not a result folder (save_result writes one)")
