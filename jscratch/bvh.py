@@ -44,7 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from jscratch.errors import InputError
+from jscratch.errors import InputError, real_number
 from jscratch.cull import DEFAULT_EPS as DEFAULT_EPS
 from jscratch.cull import cull as cull
 from jscratch.cull import cull_coverage as cull_coverage
@@ -378,17 +378,21 @@ def bin_pairs(scratches: Scratches, board: Board, *, chunk: int = DEFAULT_CHUNK,
 def check_binned_for(where: str, name: str, pairs, scratches: Scratches) -> None:
     """`InputError` (one line) when a concrete shared list that records the grooves it binned
     (`bin_pairs`, `grid.build_pairs`) was binned for another number of scratches, or may miss a
-    pair of these (`needs_rebin`: a groove moved or grew beyond what was binned). Lists without
-    that record, traced ones and per-view lists pass (a list binned for another board shape is
-    not detected)."""
-    if (not isinstance(pairs, Pairs) or pairs.bin_p0 is None
+    pair of these (`needs_rebin`, when the list was binned in the scratches' dtype: a groove
+    moved or grew beyond what was binned). Lists without that record, traced ones and per-view
+    lists (a leading view axis) pass; a list binned for another board shape is not detected."""
+    if (not isinstance(pairs, Pairs) or pairs.bin_p0 is None or jnp.ndim(pairs.pixel) != 1
+            or jnp.ndim(pairs.bin_p0) != 2
             or any(isinstance(x, jax.core.Tracer) for x in (pairs.bin_p0, scratches.p0))):
         return
     k = pairs.bin_p0.shape[0]
     if k != scratches.n:
         raise InputError(f"{where}: `{name}` was binned for {k} scratches, got {scratches.n}: "
                          "bin_pairs(scratches, board) again")
-    if bool(needs_rebin(pairs, scratches.p0, scratches.p1, scratches.width, scratches.depth)):
+    # (the groove test's slack is the binning dtype's rounding: compared in that dtype only)
+    same = pairs.bin_p0.dtype == scratches.p0.dtype
+    if same and bool(needs_rebin(pairs, scratches.p0, scratches.p1, scratches.width,
+                                 scratches.depth)):
         raise InputError(f"{where}: `{name}` may miss pairs of these scratches (a groove moved or "
                          "grew beyond what was binned): bin_pairs(scratches, board) again")
 
@@ -408,9 +412,9 @@ def cull_pairs(pairs, scratches: Scratches, views: Views, board: Board, eps: flo
     if isinstance(pairs, (list, tuple)):
         raise InputError("cull_pairs: `pairs` must be one shared list (bin_pairs), got a sequence")
     _check_scene_args("cull_pairs", scratches, board)
-    if (isinstance(eps, bool) or not isinstance(eps, (int, float, np.number))
-            or not (math.isfinite(eps) and eps > 0)):
-        raise InputError(f"cull_pairs: `eps` must be finite and > 0; got {eps!r}")
+    given, eps = eps, real_number(eps)
+    if eps is None or not (math.isfinite(eps) and eps > 0):
+        raise InputError(f"cull_pairs: `eps` must be a finite number > 0; got {given!r}")
     check_chunk("cull_pairs", chunk)
     check_shards("cull_pairs", shards)
     hs = half_vectors(views, board, scratches.dtype)

@@ -30,7 +30,7 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
-from jscratch.errors import DesignFileError, InputError, error_line
+from jscratch.errors import DesignFileError, InputError, error_line, real_number
 from jscratch.scene import PROFILES, check_scratches, check_views
 
 __all__ = [
@@ -329,10 +329,10 @@ def write_svg(path, design: Design, *, min_stroke_mm: float = 0.02) -> None:
 
     **Arguments:** `path` of the SVG; `design` a `Design`; `min_stroke_mm` the thinnest stroke.
     """
-    if isinstance(min_stroke_mm, bool) or not (isinstance(min_stroke_mm, (int, float, np.number))
-            and math.isfinite(min_stroke_mm) and min_stroke_mm >= 0):
+    given, min_stroke_mm = min_stroke_mm, real_number(min_stroke_mm)
+    if min_stroke_mm is None or not (math.isfinite(min_stroke_mm) and min_stroke_mm >= 0):
         raise DesignError(f"write_svg: min_stroke_mm must be a finite width >= 0 in mm, got "
-                          f"{min_stroke_mm!r}")
+                          f"{given!r}")
     sx, sy = (1000.0 * design.board).tolist()
     stroke = np.maximum(2000.0 * groove_half_width(design.width, design.depth), min_stroke_mm)
     x0, x1 = 1000.0 * design.p0[:, 0], 1000.0 * design.p1[:, 0]

@@ -28,6 +28,7 @@ __all__ = [
     "EXIT_STATUS_HELP",
     "NonFiniteError",
     "error_line",
+    "real_number",
     "exit_status",
     "report",
 ]
@@ -96,3 +97,18 @@ def report(exc: BaseException, stream=None) -> int:
     text = " ".join(text.split()) or type(exc).__name__
     print(f"error: {text}", file=sys.stderr if stream is None else stream)
     return exit_status(exc)
+
+
+def real_number(value) -> float | None:
+    """`value` as a float when it is one real number: a Python or numpy scalar, or a 0-d array
+    (numpy or a concrete JAX array); None for anything else (None, a bool, a string, an array of
+    several values, a traced value). The argument checks read numbers with it, then test the
+    range themselves."""
+    import numpy as np
+
+    if value is None or isinstance(value, (bool, str, bytes)):
+        return None
+    try:
+        return float(value) if np.ndim(value) == 0 else None
+    except (TypeError, ValueError):  # (a tracer's concretization error is a TypeError)
+        return None

@@ -59,7 +59,7 @@ import numpy as np
 
 from jscratch.designfile import Design, DesignError, demo_design, groove_half_width, load_design
 from jscratch.options import OneLineParser, check_out_prefix
-from jscratch.errors import EXIT_STATUS_HELP, InputError, JscratchError, report
+from jscratch.errors import EXIT_STATUS_HELP, InputError, JscratchError, real_number, report
 from jscratch.grbl import clip, gword
 from jscratch.carve import CarveError, carve
 from jscratch.gcode import (Program, check_program_lines, digest_comment, limits_comment,
@@ -164,9 +164,9 @@ def fit_plunge(width, depth, radius: float, *, mode: str = "per-scratch") -> Cut
             i = int(np.flatnonzero(~(np.isfinite(v) & (v > 0)))[0])
             raise InputError(f"fit_plunge: {name}[{i}] = {float(v[i])!r} is not a finite length "
                              "> 0 (m)")
-    if (isinstance(radius, bool) or not isinstance(radius, (int, float, np.number))
-            or not (math.isfinite(radius) and radius > 0)):
-        raise InputError(f"fit_plunge: radius must be a finite length > 0 in metres, got {radius!r}")
+    given, radius = radius, real_number(radius)
+    if radius is None or not (math.isfinite(radius) and radius > 0):
+        raise InputError(f"fit_plunge: radius must be a finite length > 0 in metres, got {given!r}")
     if mode not in ("per-scratch", "global"):
         raise InputError(f"fit_plunge: mode must be 'per-scratch' or 'global', got {mode!r}")
     n = width.shape[0]

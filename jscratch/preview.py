@@ -28,7 +28,7 @@ import numpy as np
 
 from jscratch.options import OneLineParser, check_out_prefix
 from jscratch.errors import (EXIT_STATUS_HELP, DesignFileError, InputError, JscratchError,
-                             error_line, report)
+                             error_line, real_number, report)
 
 __all__ = ["orbit_views", "render_orbit", "write_gif", "write_sheet", "main"]
 
@@ -57,7 +57,12 @@ def _count(where: str, name: str, v, low: int) -> int:
 
 def _check_orbit(where: str, design, frames) -> int:
     """`frames` as an int >= 1, and a design with views; `InputError` otherwise."""
-    if getattr(design, "camera", None) is None:
+    from jscratch.designfile import Design
+
+    if not isinstance(design, Design):
+        raise InputError(f"{where}: design must be a jscratch Design (load_design), got "
+                         f"{type(design).__name__}")
+    if design.camera is None:
         raise InputError(f"{where}: {_NO_VIEWS}")
     return _count(where, "frames", frames, 1)
 
@@ -144,10 +149,10 @@ def write_gif(path, frames, marks, az, *, fps: float = 8.0):
 
     if len(frames) == 0:
         raise InputError("write_gif: `frames` is empty: there is no frame to write")
-    if isinstance(fps, bool) or not isinstance(fps, (int, float, np.integer, np.floating)) or not (
-            math.isfinite(fps) and fps > 0):
+    given, fps = fps, real_number(fps)
+    if fps is None or not (math.isfinite(fps) and fps > 0):
         raise InputError(f"write_gif: `fps` must be a finite number > 0 (frames per second), "
-                         f"got {fps!r}")
+                         f"got {given!r}")
     ims = []
     for img, m, a in zip(frames, marks, az):
         im = Image.fromarray(_frame_rgb(img, m))

@@ -59,7 +59,7 @@ from jscratch import arc, lobe, native, ndf
 from jscratch.compile_options import grad_compiler_options
 from jscratch.bvh import (DEFAULT_CHUNK, bin_pairs, check_binned_for, check_chunk, cull_pairs,
                           flat_pairs, pair_checks, pixels_per_shard, view_keep)
-from jscratch.errors import InputError
+from jscratch.errors import InputError, real_number
 from jscratch.scene import (
     Board,
     Scratches,
@@ -710,9 +710,9 @@ def render(scratches: Scratches, views: Views, board: Board, *, eps: float = 0.0
     coverage_pairs)``.
     """
     _check_scene_types("render", scratches, views, board)
-    if (isinstance(eps, bool) or not isinstance(eps, (int, float, np.number))
-            or not (math.isfinite(eps) and eps >= 0)):
-        raise InputError(f"render: `eps` must be finite and >= 0; got {eps!r}")
+    given, eps = eps, real_number(eps)
+    if eps is None or not (math.isfinite(eps) and eps >= 0):
+        raise InputError(f"render: `eps` must be a finite number >= 0; got {given!r}")
     check_views(views.camera, views.light, views.intensity, source="render")
     axis_names = tuple(axis_names) if isinstance(axis_names, list) else axis_names
     shards = _n_shards(mesh, _mesh_axes(mesh, axis_names))

@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from jscratch.errors import InputError
+from jscratch.errors import InputError, real_number
 
 __all__ = [
     "ALPHA_RANGE",
@@ -252,17 +252,6 @@ def _show(v, limit: int = 60) -> str:
     """``repr(v)`` on one line and at most `limit` characters, for a message."""
     text = " ".join(repr(v).split())
     return text if len(text) <= limit else text[: limit - 3] + "..."
-
-
-def _real(v) -> float | None:
-    """``float(v)`` for one real number (Python, numpy or a 0-d array); None for anything else
-    (None, a bool, a string, an array of several values, a tracer)."""
-    if v is None or isinstance(v, (bool, str, bytes)):
-        return None
-    try:
-        return float(v) if np.ndim(v) == 0 else None
-    except (TypeError, ValueError):
-        return None
 
 
 def _to_float(name: str):
@@ -504,7 +493,7 @@ class Scratches(eqx.Module):
         key = _prng_key(where, key)
         board = _board_arg(where, board)
         try:
-            lo, hi = (_real(x) for x in length)
+            lo, hi = (real_number(x) for x in length)
         except (TypeError, ValueError):
             lo = hi = None
         if lo is None or hi is None or not (math.isfinite(hi) and 0 < lo <= hi):
@@ -652,13 +641,13 @@ def views_on_circle(M: int, theta: float = DEFAULT_THETA, distance: float = 1.0,
     given = {"theta": theta, "camera_theta": camera_theta, "distance": distance,
              "light_azimuth": light_azimuth, "offset": offset}
     for name, v in given.items():
-        if (v is not None or name != "offset") and _real(v) is None:
+        if (v is not None or name != "offset") and real_number(v) is None:
             raise InputError(f"views_on_circle: `{name}` must be a real number"
                              f"{' (m)' if name == 'distance' else ' (rad)'}; got {_show(v)}")
     theta, camera_theta, distance, light_azimuth = (
-        _real(given[k]) for k in ("theta", "camera_theta", "distance", "light_azimuth"))
+        real_number(given[k]) for k in ("theta", "camera_theta", "distance", "light_azimuth"))
     for name in ("light_azimuth", "offset"):
-        if given[name] is not None and not math.isfinite(_real(given[name])):
+        if given[name] is not None and not math.isfinite(real_number(given[name])):
             raise InputError(f"views_on_circle: `{name}` must be finite (rad); got {given[name]}")
     for name, v in (("theta", theta), ("camera_theta", camera_theta)):
         if not (math.isfinite(v) and 0.0 <= v < math.pi / 2):

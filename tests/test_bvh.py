@@ -141,13 +141,38 @@ def test_pair_list_arguments_that_are_not_are_refused_in_one_line():
         (lambda: bvh.bin_pairs([s], b), r"^bin_pairs: `scratches` must be a jscratch.Scratches"),
         (lambda: bvh.bin_pairs(s, (0.3, 0.3)), r"^bin_pairs: `board` must be a jscratch.Board"),
         (lambda: bvh.cull_pairs(None, s, v, b, 1e-3), r"^cull_pairs: `pairs` must be a bvh"),
-        (lambda: bvh.cull_pairs(p, s, v, b, "a"), r"^cull_pairs: `eps` must be finite and > 0"),
+        (lambda: bvh.cull_pairs(p, s, v, b, "a"), r"^cull_pairs: `eps` must be a finite number > 0"),
         (lambda: bvh.cull_pairs(p, s, v, b, 1e-3, shards=0), r"^cull_pairs: `shards`"),
         (lambda: render_pairs(s, v, b, None), r"^render_pairs: `pairs` must be a bvh.Pairs"),
         (lambda: render_pairs(s, v, b, p, coverage_pairs=1), r"^render_pairs: `coverage_pairs`"),
-        (lambda: render(s, v, b, eps="a"), r"^render: `eps` must be finite and >= 0; got 'a'"),
-        (lambda: render(s, v, b, eps=None), r"^render: `eps` must be finite and >= 0; got None"),
+        (lambda: render(s, v, b, eps="a"), r"^render: `eps` must be a finite number >= 0; got 'a'"),
+        (lambda: render(s, v, b, eps=None), r"^render: `eps` must be a finite number >= 0; got None"),
     ]
     for call, match in cases:
         with pytest.raises(InputError, match=match):
             call()
+    # numbers given as numpy or JAX scalars and 0-d arrays are numbers
+    for eps in (np.float32(1e-3), jnp.float32(1e-3), np.array(1e-3)):
+        assert bvh.cull_pairs(p, s, v, b, eps).pixel.shape[0] == 2
+        assert render(s, v, b, eps=eps).shape == (2, 16, 16)
+
+
+def test_render_pairs_takes_bin_pairs_lists_stacked_per_view_and_binned_in_float64():
+    """`render_pairs`' check of what a list was binned for (`bvh.check_binned_for`) passes the
+    lists it was given before: `bin_pairs` lists stacked per view ``(M, L)``, and a list binned
+    from the float64 endpoints of float32 scratches (float32 rounding is not a move)."""
+    from jscratch.render import render_pairs
+    from jscratch.scene import Board, Scratches, views_on_circle
+
+    b = Board(shape=(16, 16))
+    v = views_on_circle(2, board=b)
+    s = Scratches.random(jax.random.PRNGKey(3), 40, board=b)
+    p = bvh.bin_pairs(s, b)
+    ref = np.asarray(render_pairs(s, v, b, p))
+    stacked = jax.tree.map(lambda x: jnp.stack([x, x]), p)
+    np.testing.assert_allclose(render_pairs(s, v, b, stacked, coverage_pairs=p), ref, rtol=1e-6)
+    with jax.enable_x64(True):
+        s64 = jax.tree.map(lambda x: jnp.asarray(np.asarray(x, np.float64)), s)
+        p64 = bvh.bin_pairs(s64, b)
+    assert p64.bin_p0.dtype == np.float64
+    np.testing.assert_allclose(render_pairs(s, v, b, p64), ref, rtol=1e-6)

@@ -137,7 +137,7 @@ def test_as_carved_refuses_bad_arguments_by_their_names():
     for bad in (0, -1, 2.5, True):
         with pytest.raises(designfile.DesignError, match="^as carved: samples must be an int >= 1"):
             as_carved(d, prof, (SIZE, SIZE), samples=bad)
-    for bad in ((SIZE,), (SIZE, 0), (SIZE, 2.5), "ab", None):
+    for bad in ((SIZE,), (SIZE, 0), (SIZE, 2.5), "ab", None, (SIZE, 0, SIZE), (SIZE, 16.5, SIZE)):
         with pytest.raises(designfile.DesignError, match=r"^as carved: shape must be \(H, W\)"):
             as_carved(d, prof, bad, samples=2)
     with pytest.raises(designfile.DesignError, match=r"design_display must have shape \(2, 16, 16\)"):

@@ -163,3 +163,5 @@ def test_paths_profiles_and_stroke_widths_that_are_not_are_refused_in_one_line(t
         with pytest.raises(DesignError, match="^write_svg: min_stroke_mm must be a finite width"):
             write_svg(tmp_path / "d.svg", d, min_stroke_mm=bad)
     assert not (tmp_path / "d.svg").exists()
+    write_svg(tmp_path / "d.svg", d, min_stroke_mm=np.array(0.02))  # a 0-d array is a number
+    assert (tmp_path / "d.svg").exists()

@@ -186,7 +186,7 @@ def test_unreadable_checkpoint(tmp_path):
     one_line(e, "ck.npz", "not a readable jscratch checkpoint")
     with pytest.raises(DesignFileError) as e:
         load_checkpoint(str(tmp_path / "none.npz"), None, None, "")
-    one_line(e, "--resume", "no checkpoint")
+    one_line(e, "resume: no checkpoint", "none.npz")
 
 
 @pytest.mark.parametrize("content,words", [
@@ -434,3 +434,19 @@ def test_negative_numbers_in_exponent_form_are_values_not_options(capsys):
         fabricate._parser().parse_args(["d.npz", "--offset", "-1e-4"])
     assert e.value.code == 2
     _one_error_line(capsys.readouterr().err, "--offset", "expected 2 arguments", "see --help")
+
+
+def test_real_number_reads_one_number_in_any_scalar_form():
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from jscratch.errors import real_number
+
+    for v, want in ((2, 2.0), (2.5, 2.5), (np.float32(0.5), 0.5), (np.int64(3), 3.0),
+                    (jnp.float32(0.25), 0.25), (np.array(4.0), 4.0), (float("nan"), None)):
+        got = real_number(v)
+        assert (got is None and np.isnan(v)) if want is None else got == want, (v, got)
+    for v in (None, True, "1", b"1", [1.0], np.array([1.0]), np.zeros((2, 2)), object()):
+        assert real_number(v) is None, v
+    assert jax.jit(lambda x: x * (real_number(x) is None))(3.0) == 3.0  # a tracer is no number

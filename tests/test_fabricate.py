@@ -256,3 +256,6 @@ def test_fit_plunge_machine_for_design_and_groove_map_refuse_bad_arguments_by_na
         with pytest.raises(InputError, match=match):
             call()
     assert machine_for_design(d, None, None) == machine_for_design(d, None, {})
+    one = fit_plunge([2e-4], [5e-5], 1.25e-4).plunge
+    for radius in (np.float32(1.25e-4), np.array(1.25e-4)):  # numbers as numpy scalars / 0-d
+        np.testing.assert_allclose(fit_plunge([2e-4], [5e-5], radius).plunge, one, rtol=1e-5)

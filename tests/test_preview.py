@@ -112,3 +112,8 @@ def test_orbit_and_writers_refuse_bad_arguments_in_one_line(tmp_path):
     with pytest.raises(InputError, match=r"^write_sheet: `frames` is empty"):
         write_sheet(tmp_path / "a.png", [], [], [])
     assert not list(tmp_path.glob("a.*"))
+    for bad in (str(path), None):  # a path is not a design: named as what it is
+        with pytest.raises(InputError, match="^render_orbit: design must be a jscratch Design"):
+            render_orbit(bad, frames=2, size=8, progress=False)
+    write_gif(tmp_path / "b.gif", frames, marks, az, fps=np.array(8.0))  # a 0-d array is a number
+    assert (tmp_path / "b.gif").exists()

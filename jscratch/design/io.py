@@ -18,7 +18,7 @@ import numpy as np
 
 from jscratch import designfile
 from jscratch.designfile import DesignError
-from jscratch.errors import InputError, error_line
+from jscratch.errors import InputError, error_line, real_number
 from jscratch.scene import Board, Views, check_views, flat_highlight
 from jscratch.design.config import DEFAULT_IMAGES, SceneConfig
 from jscratch.design.result import DesignResult
@@ -264,10 +264,10 @@ def save_result(result: DesignResult, out: str | os.PathLike, *, scene: SceneCon
     if (isinstance(as_carved_samples, bool) or not isinstance(as_carved_samples, (int, np.integer))
             or as_carved_samples < 0):
         raise DesignError(f"as_carved_samples must be an int >= 0, got {as_carved_samples!r}")
-    if (isinstance(order_time, bool) or not isinstance(order_time, (int, float, np.number))
-            or not (math.isfinite(order_time) and order_time >= 0)):
+    given, order_time = order_time, real_number(order_time)
+    if order_time is None or not (math.isfinite(order_time) and order_time >= 0):
         raise DesignError(f"save_result: order_time must be a finite number of seconds >= 0, got "
-                          f"{order_time!r}")
+                          f"{given!r}")
     out = _folder("save_result", out)
     if os.path.exists(out) and not os.path.isdir(out):
         raise DesignError(f"save_result: {out!r} is a file, not a folder")

@@ -68,11 +68,13 @@ def as_carved(design: designfile.Design, profile: MachineProfile, shape, design_
         raise designfile.DesignError(f"as carved: samples must be an int >= 1 (strata per pixel "
                                      f"side), got {samples!r}")
     try:
-        shape = tuple(int(s) for s in shape if int(s) == s and s >= 1)
+        ok = len(shape) == 2 and all(int(s) == s and s >= 1 for s in shape)
     except (TypeError, ValueError):
-        shape = ()
-    if len(shape) != 2:
-        raise designfile.DesignError("as carved: shape must be (H, W), two ints >= 1")
+        ok = False
+    if isinstance(shape, (str, bytes)) or not ok:
+        raise designfile.DesignError(f"as carved: shape must be (H, W), two ints >= 1, got "
+                                     f"{shape!r}")
+    shape = tuple(int(s) for s in shape)
     if design_display is not None:
         want = (design.camera.shape[0], *shape)
         if np.shape(design_display) != want:
