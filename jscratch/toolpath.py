@@ -29,7 +29,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from jscratch.errors import InputError
+from jscratch.errors import InputError, real_number
 
 __all__ = ["Ordering", "order_scratches", "path_travel", "greedy_order", "improve_order",
            "best_directions", "knn_grid"]
@@ -493,6 +493,11 @@ def order_scratches(p0, p1, start=(0.0, 0.0), *, improve: bool = True, k: int = 
     if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
         raise InputError(f"order_scratches: `k` (neighbours per endpoint) must be an int >= 1, "
                          f"got {k!r}")
+    if time_limit is not None:
+        seconds = real_number(time_limit)
+        if seconds is None or not (math.isfinite(seconds) and seconds >= 0):
+            raise InputError(f"order_scratches: `time_limit` must be None or a finite number of "
+                             f"seconds >= 0, got {time_limit!r}")
     n = p0.shape[0]
     ident = np.arange(n)
     t_in = path_travel(p0, p1, ident, np.zeros(n, bool), start)

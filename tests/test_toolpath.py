@@ -73,6 +73,9 @@ def test_knn_grid_matches_brute_force():
     (dict(start=(0,)), r"`start` must be \(x, y\), two finite numbers; got \(0,\)$"),
     (dict(start=(np.nan, 0.0)), r"`start` must be \(x, y\), two finite numbers; got \(nan, 0.0\)$"),
     (dict(start="ab"), r"`start` must be \(x, y\), two finite numbers; got 'ab'$"),
+    (dict(time_limit=-1.0), r"`time_limit` must be None or a finite number of seconds >= 0"),
+    (dict(time_limit=float("nan")), r"`time_limit` must be None or a finite number"),
+    (dict(time_limit="5"), r"`time_limit` must be None or a finite number"),
 ])
 def test_order_scratches_refuses_bad_arguments_in_one_line(kw, match):
     args = dict(p0=[[0.0, 0.0], [1.0, 1.0]], p1=[[0.5, 0.5], [1.5, 1.5]]) | kw
