@@ -525,7 +525,7 @@ def _random_endpoints(key, n: int, Sx: float, Sy: float, length: tuple, dtype):
 
 
 class Views(eqx.Module):
-    """``M`` view/light configurations (docs/model.md §4).
+    """``M`` view/light configurations (docs/model.md §1; shaded in §4).
 
     **Arguments:**
 

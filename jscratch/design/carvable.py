@@ -29,7 +29,7 @@ map chooses, for each plunge, the ``(w, d)`` whose groove
    Measured on the default design (`benchmarks/RESULTS.md`): SSIM of the as-carved
    render against the render of the mapped grooves, same plunges, 32x32 samples per pixel:
    height 0.918/0.986/0.966, slope 0.888/0.988/0.960, cdf 0.869/0.990/0.955. The paper profile
-   cannot follow the ball's arc everywhere (its wall-angle density ``(w/2) sec^2(theta/2)`` against
+   cannot follow the ball's arc everywhere (its wall-angle density ``(w/4) sec^2(theta/2)`` against
    the ball's ``R cos(theta)``); the slope fit weights every ``x`` alike and so gives the steep
    wall tops, which a view whose half vector is 49 degrees from the normal sees, too little
    slope; the height fit ends steeper (``w / 2a`` 1.53 against 1.66 at the deepest plunge) and
@@ -192,11 +192,11 @@ class GrooveMap:
 @functools.lru_cache(maxsize=16)
 def groove_map(radius: float, p_min: float, p_max: float, criterion: str = "arc") -> GrooveMap:
     """The plunge -> ``(w, d)`` map for a ball of `radius` over ``[p_min, p_max]`` (m): the arc
-    itself (``criterion = "arc"``) or the paper profile fitted by `criterion` (``"slope"`` or
-    ``"height"``), once (cached). **Raises** `InputError` unless ``0 < p_min < p_max < radius``
-    and `criterion` is one of those."""
-    if criterion not in ("arc", "slope", "height"):
-        raise InputError(f"groove map: criterion must be 'arc', 'slope' or 'height', got "
+    itself (``criterion = "arc"``) or the paper profile fitted by `criterion` (``"slope"``,
+    ``"height"`` or ``"cdf"``, `ball_slope_fit`), once (cached). **Raises** `InputError` unless
+    ``0 < p_min < p_max < radius`` and `criterion` is one of those."""
+    if criterion not in ("arc", *_fit_vmapped):
+        raise InputError(f"groove map: criterion must be 'arc', 'slope', 'height' or 'cdf', got "
                          f"{criterion!r}")
     if not (0 < p_min < p_max < radius):
         raise InputError(f"groove map needs 0 < p_min < p_max < radius, got {p_min}, {p_max}, {radius}")
