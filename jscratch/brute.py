@@ -3,8 +3,8 @@
 The independent ground truth for `jscratch.render`: every pixel footprint is supersampled with an
 ``n x n`` jittered stratified pattern (one uniform point per stratum, fresh for every pixel); at each
 sample point ``q`` and for every scratch whose groove contains ``q`` it computes the real groove
-geometry (docs/model.md §1-§2: local coordinates ``x = (q - p0).b``, ``y = (q - p0).t``; inside when
-``|x| < x_max`` and ``0 <= y <= |p1 - p0|``; the normal from the slope of the height profile
+geometry (docs/model.md §1-§2: local coordinates ``x = (q - p0).b``, ``y = (q - p0).t``; inside
+when ``|x| < x_max`` and ``0 <= y <= |p1 - p0|``; the normal from the slope of the height profile
 ``h(x) = -(w/2) log(1 - 4x^2/w^2) - d``, differentiated by autodiff, not from Eq. 5) and evaluates the
 GGX point NDF there. The pixel's ``D_P`` and coverage ``c`` are sample means::
 

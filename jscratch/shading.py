@@ -152,7 +152,8 @@ def display(radiance: ArrayLike, gamma: float = DISPLAY_GAMMA,
     - ``x < k``: ``y = (2 - g) P x + (g - 1) (P / k) x**2``, the quadratic through ``0`` that
       matches ``x ** g`` in value and slope at ``k`` (so ``y`` is C1 and increasing on ``[0, inf)``).
 
-    The slope at 0 is ``(2 - g) P``: ``234.9`` for the defaults (``gamma = 2.2``, ``k = 1e-4``, where
+    The slope at 0 is ``(2 - g) P``: ``234.9`` for the defaults (``gamma = 2.2``, ``k = 1e-4``,
+    where
     ``y = 0.0152``, about 4/255). Negative inputs (the renderer produces none beyond rounding) follow
     the same quadratic. No clipping above 1. Elementwise, any shape, follows the input dtype.
 

@@ -250,7 +250,8 @@ def test_fit_plunge_machine_for_design_and_groove_map_refuse_bad_arguments_by_na
         (lambda: machine_for_design(d, {}, {}), r"^machine_for_design: file_profile must be"),
         (lambda: machine_for_design(d, None, [1]),
          r"^machine_for_design: overrides must be a dict"),
-        (lambda: groove_map(1e-4, 1e-5, 5e-5, "x"), r"^groove map: criterion must be 'arc', 'slope', 'height' or 'cdf'"),
+        (lambda: groove_map(1e-4, 1e-5, 5e-5, "x"),
+         r"^groove map: criterion must be 'arc', 'slope', 'height' or 'cdf'"),
     ]
     for call, match in cases:
         with pytest.raises(InputError, match=match):
