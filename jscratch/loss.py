@@ -38,7 +38,7 @@ from jscratch.compile_options import few_calls_jit
 from jscratch.errors import InputError
 from jscratch.features import (VGG19_LAYERS, VGG19_TAPS, Features, FilterBank, VGG19Features,
                                gram, load_vgg19, separable3)
-from jscratch.options import option
+from jscratch.options import KnownFields, option
 from jscratch.ssim import ssim_mean, ssim_moments
 
 __all__ = [
@@ -340,7 +340,7 @@ def calibrate_lambda_g(
 
 
 @dataclasses.dataclass(frozen=True)
-class LossConfig:
+class LossConfig(KnownFields):
     """Which loss the optimiser minimises (JSON-friendly: ``dataclasses.asdict``).
 
     **Fields:**

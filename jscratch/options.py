@@ -32,9 +32,25 @@ from typing import Any
 from jscratch.errors import InputError
 
 __all__ = ["option", "add_arguments", "given", "flags", "overlay", "field_help", "check_out_prefix",
-           "OneLineParser"]
+           "OneLineParser", "KnownFields"]
 
 _NESTED = "nested"
+
+
+class KnownFields:
+    """Base of the option dataclasses (`DesignConfig`, `SceneConfig`, `LossConfig`): a keyword
+    that names no field is refused in one line (``_unknown_error``, default `InputError`), as
+    their ``from_dict`` refuses an unknown key, rather than with Python's ``TypeError``."""
+
+    _unknown_error = InputError
+
+    def __new__(cls, *args, **kwargs):
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(str(k) for k in set(kwargs) - names)
+        if unknown:
+            raise cls._unknown_error(f"{cls.__name__}: unknown fields {unknown} (known: "
+                                     f"{', '.join(sorted(names))})")
+        return super().__new__(cls)
 
 
 def option(default: Any = dataclasses.MISSING, help: str = "", *, unit: str | None = None,

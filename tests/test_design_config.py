@@ -251,3 +251,28 @@ def test_dense_design_weighs_the_gram_term_by_dense_lambda_g():
     assert not never.is_dense(px) and never.design_loss(px).lambda_g is None
     assert DesignConfig(n_scratches=60_000, loss={"kind": "perceptual"}).design_loss(px) == \
         DesignConfig(loss={"kind": "perceptual"}).loss
+
+
+def test_an_unknown_keyword_is_refused_in_one_line_as_an_unknown_key():
+    """`DesignConfig`, `SceneConfig` and `LossConfig` called with a keyword that names no field
+    (a typo) refuse it as their ``from_dict`` refuses an unknown key: a one-line jscratch error
+    naming it, not Python's TypeError; copies, replacements and pickles still work."""
+    import copy
+    import pickle
+
+    from jscratch.designfile import DesignError
+    from jscratch.errors import InputError
+    from jscratch.loss import LossConfig
+
+    for make, cls, err in ((lambda: DesignConfig(n_scratch=10), "DesignConfig", DesignError),
+                           (lambda: SceneConfig(sise=32), "SceneConfig", DesignError),
+                           (lambda: LossConfig(lamda_x=0.0), "LossConfig", InputError)):
+        with pytest.raises(err, match=rf"^{cls}: unknown fields \['\w+'\] \(known: ") as e:
+            make()
+        assert "\n" not in str(e.value)
+    with pytest.raises(DesignError, match=r"^DesignConfig.loss: unknown fields \['kindd'\]$"):
+        DesignConfig(loss={"kindd": "l2"})
+    c = DesignConfig(n_scratches=10, loss={"lambda_x": 0.0})
+    assert dataclasses.replace(c, iterations=3).iterations == 3
+    assert copy.deepcopy(c) == c == pickle.loads(pickle.dumps(c)) == DesignConfig.from_dict(
+        c.to_dict())

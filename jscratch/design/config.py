@@ -14,8 +14,8 @@ import numpy as np
 from jscratch import loss as loss_mod
 from jscratch.design.carvable import GROOVE_MODES
 from jscratch.designfile import DesignError
-from jscratch.errors import NonFiniteError
-from jscratch.options import option
+from jscratch.errors import InputError, NonFiniteError
+from jscratch.options import KnownFields, option
 from jscratch.render import DEFAULT_CHUNK
 from jscratch.scene import ALPHA_RANGE
 
@@ -59,7 +59,7 @@ def _machine_file(path: str) -> dict | None:
 
 
 @dataclasses.dataclass(frozen=True)
-class DesignConfig:
+class DesignConfig(KnownFields):
     """Everything that controls an optimisation (JSON-friendly: `to_dict` / `from_dict`).
 
     Each field's help, unit and command-line flag are declared with it (``python -m
@@ -68,6 +68,8 @@ class DesignConfig:
     + 0.001 E_x``, prune/re-seed every 10 iterations). Invalid values raise `DesignError` (an
     `jscratch.InputError`) naming the field and the accepted values.
     """
+
+    _unknown_error = DesignError  # (`KnownFields`: a keyword that names no field)
 
     n_scratches: int = option(20000, "number of scratches N", flag="--scratches")
     iterations: int = option(100, "Adam iterations (with --resume: the total to reach)")
@@ -200,7 +202,9 @@ class DesignConfig:
                 bad("loss", "a jscratch.loss.LossConfig or its fields (a dict)")
             try:
                 object.__setattr__(self, "loss", loss_mod.LossConfig(**self.loss))
-            except TypeError:
+            except (TypeError, InputError) as e:
+                if not str(e).startswith("LossConfig: unknown fields"):
+                    raise
                 unknown = sorted(set(self.loss) - {f.name for f in dataclasses.fields(
                     loss_mod.LossConfig)})
                 raise DesignError(f"DesignConfig.loss: unknown fields {unknown}") from None
@@ -285,7 +289,7 @@ class DesignConfig:
 
 
 @dataclasses.dataclass(frozen=True)
-class SceneConfig:
+class SceneConfig(KnownFields):
     """The inputs of a design run that are not optimised: targets, views and board, as the
     command line sets them up (`jscratch.design.io.load_scene` builds them; `design` uses the same
     view and board defaults when none are given).
@@ -293,6 +297,8 @@ class SceneConfig:
     Angles are in degrees here (the command line's unit); `jscratch.scene.views_on_circle` takes
     radians. Invalid values raise `DesignError` naming the field.
     """
+
+    _unknown_error = DesignError  # (`KnownFields`: a keyword that names no field)
 
     targets: tuple[str, ...] = option((), "target image files, one per view (grayscale or RGB, "
                                       "the board's aspect); none: images bundled with "
