@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from jscratch.errors import InputError
+from jscratch.errors import InputError, real_number
 from jscratch.scene import Board, Views
 
 __all__ = [
@@ -153,13 +153,18 @@ def display(radiance: ArrayLike, gamma: float = DISPLAY_GAMMA,
       matches ``x ** g`` in value and slope at ``k`` (so ``y`` is C1 and increasing on ``[0, inf)``).
 
     The slope at 0 is ``(2 - g) P``: ``234.9`` for the defaults (``gamma = 2.2``, ``k = 1e-4``,
-    where
-    ``y = 0.0152``, about 4/255). Negative inputs (the renderer produces none beyond rounding) follow
+    where ``y = 0.0152``, about 4/255); it is positive for ``gamma > 1/2`` only, so a smaller
+    ``gamma`` is refused. Negative inputs (the renderer produces none beyond rounding) follow
     the same quadratic. No clipping above 1. Elementwise, any shape, follows the input dtype.
 
-    **Raises:** `InputError`, one line, for a `gamma` or `knee` that is not a finite number > 0.
+    **Raises:** `InputError`, one line, for a `gamma` or `knee` that is not a finite number > 0,
+    or a `gamma` of 1/2 or less.
     """
-    return _display(jnp.asarray(radiance), _positive("gamma", gamma), _positive("knee", knee))
+    gamma, knee = _positive("gamma", gamma), _positive("knee", knee)
+    if gamma <= 0.5:
+        raise InputError(f"display: `gamma` must be > 0.5 (below, the curve falls near 0: its "
+                         f"slope there, (2 - 1/gamma) knee^(1/gamma - 1), is negative); got {gamma}")
+    return _display(jnp.asarray(radiance), gamma, knee)
 
 
 def _positive(name: str, v) -> float:
@@ -168,10 +173,7 @@ def _positive(name: str, v) -> float:
     value is left to ``float``, which refuses it (both are static)."""
     if isinstance(v, jax.core.Tracer):
         return float(v)
-    try:
-        x = float(v) if np.ndim(v) == 0 and not isinstance(v, (str, bytes)) else None
-    except (TypeError, ValueError):
-        x = None
+    x = real_number(v)
     if x is None or not (math.isfinite(x) and x > 0):
         shown = " ".join(repr(v).split())
         raise InputError(f"display: `{name}` must be a finite number > 0; got {shown[:60]}")

@@ -117,3 +117,16 @@ def test_display_refuses_a_gamma_or_knee_not_finite_and_positive(kw, name, shown
                                          rf"got {re.escape(shown)}"):
         shading.display(jnp.asarray([0.0, 0.5], jnp.float32), **kw)
     assert shading.display(jnp.float32(0.5), gamma=np.float32(2.0), knee=1e-3).dtype == jnp.float32
+
+
+def test_display_refuses_a_gamma_whose_curve_falls_near_zero():
+    """`display` is increasing on ``[0, inf)`` exactly for ``gamma > 1/2`` (the quadratic's slope
+    at 0, ``(2 - 1/gamma) P``, is positive): checked by differences, and a smaller gamma refused."""
+    from jscratch.errors import InputError
+
+    x = jnp.linspace(0.0, 3e-4, 301, dtype=jnp.float32)
+    for gamma in (0.51, 1.0, 2.2, 8.0):
+        assert np.all(np.diff(np.asarray(shading.display(x, gamma=gamma))) > 0), gamma
+    for gamma in (0.5, 0.3):
+        with pytest.raises(InputError, match=r"^display: `gamma` must be > 0.5 \(below, the curve"):
+            shading.display(x, gamma=gamma)
