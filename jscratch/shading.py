@@ -163,7 +163,8 @@ def display(radiance: ArrayLike, gamma: float = DISPLAY_GAMMA,
     gamma, knee = _positive("gamma", gamma), _positive("knee", knee)
     if gamma <= 0.5:
         raise InputError(f"display: `gamma` must be > 0.5 (below, the curve falls near 0: its "
-                         f"slope there, (2 - 1/gamma) knee^(1/gamma - 1), is negative); got {gamma}")
+                         f"slope there, (2 - 1/gamma) knee^(1/gamma - 1), is negative); got "
+                         f"{gamma}")
     return _display(jnp.asarray(radiance), gamma, knee)
 
 
