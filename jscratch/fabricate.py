@@ -702,7 +702,8 @@ def main(argv=None) -> int:
                 _warn_unused_options(gcode, over, args)
             else:
                 _refuse_overwrite(gcode)
-                prog = make_program(design, cfg, improve=not args.no_improve, time_limit=args.order_time,
+                prog = make_program(design, cfg, improve=not args.no_improve,
+                                    time_limit=args.order_time,
                                     override_machine=args.override_machine)
         if prog is not None:
             folder = os.path.dirname(gcode)

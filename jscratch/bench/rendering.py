@@ -105,7 +105,8 @@ def render_case(n: int, res: int, views: int = DEFAULT_VIEWS, repeats: int = 3,
                 chunk: int = DEFAULT_CHUNK) -> tuple[dict, _Case]:
     """Time one scene: binning (host, after a first call that compiles it), the jitted forward
     render of all views from one shared pair list, and a jitted value-and-gradient of a
-    display-space L2 loss with respect to every scratch and view parameter. Compile times apart; medians of `repeats` runs.
+    display-space L2 loss with respect to every scratch and view parameter. Compile times apart;
+    medians of `repeats` runs.
 
     **Returns:** ``(row, case)``: the table row and the scene with its compiled forward."""
     board, s, v = scene(n, res, views)

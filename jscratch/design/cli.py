@@ -147,7 +147,8 @@ def configs(argv: Sequence[str] | None = None) -> tuple[RunOptions, SceneConfig,
         if saved.get("scene") is None and not scene_given:
             raise DesignFileError(
                 f"config file {source!r} has no scene (a result saved from Python, whose targets "
-                "are arrays): give the targets and view options too, or save_result(..., scene=...)")
+                "are arrays): give the targets and view options too, or "
+                "save_result(..., scene=...)")
         try:
             config = DesignConfig.from_dict(saved["design"])
             scene = SceneConfig.from_dict(saved.get("scene") or {})
