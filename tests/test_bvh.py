@@ -141,12 +141,14 @@ def test_pair_list_arguments_that_are_not_are_refused_in_one_line():
         (lambda: bvh.bin_pairs([s], b), r"^bin_pairs: `scratches` must be a jscratch.Scratches"),
         (lambda: bvh.bin_pairs(s, (0.3, 0.3)), r"^bin_pairs: `board` must be a jscratch.Board"),
         (lambda: bvh.cull_pairs(None, s, v, b, 1e-3), r"^cull_pairs: `pairs` must be a bvh"),
-        (lambda: bvh.cull_pairs(p, s, v, b, "a"), r"^cull_pairs: `eps` must be a finite number > 0"),
+        (lambda: bvh.cull_pairs(p, s, v, b, "a"),
+         r"^cull_pairs: `eps` must be a finite number > 0"),
         (lambda: bvh.cull_pairs(p, s, v, b, 1e-3, shards=0), r"^cull_pairs: `shards`"),
         (lambda: render_pairs(s, v, b, None), r"^render_pairs: `pairs` must be a bvh.Pairs"),
         (lambda: render_pairs(s, v, b, p, coverage_pairs=1), r"^render_pairs: `coverage_pairs`"),
         (lambda: render(s, v, b, eps="a"), r"^render: `eps` must be a finite number >= 0; got 'a'"),
-        (lambda: render(s, v, b, eps=None), r"^render: `eps` must be a finite number >= 0; got None"),
+        (lambda: render(s, v, b, eps=None),
+         r"^render: `eps` must be a finite number >= 0; got None"),
     ]
     for call, match in cases:
         with pytest.raises(InputError, match=match):

@@ -140,7 +140,8 @@ def test_as_carved_refuses_bad_arguments_by_their_names():
     for bad in ((SIZE,), (SIZE, 0), (SIZE, 2.5), "ab", None, (SIZE, 0, SIZE), (SIZE, 16.5, SIZE)):
         with pytest.raises(designfile.DesignError, match=r"^as carved: shape must be \(H, W\)"):
             as_carved(d, prof, bad, samples=2)
-    with pytest.raises(designfile.DesignError, match=r"design_display must have shape \(2, 16, 16\)"):
+    with pytest.raises(designfile.DesignError,
+                       match=r"design_display must have shape \(2, 16, 16\)"):
         as_carved(d, prof, (SIZE, SIZE), np.zeros((SIZE, SIZE)), samples=2)
     out = as_carved(d, prof, (SIZE, SIZE), samples=2)
     assert len(out["ssim"]) == 2 and np.all(np.isfinite(out["display"]))
