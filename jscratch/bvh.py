@@ -375,12 +375,13 @@ def bin_pairs(scratches: Scratches, board: Board, *, chunk: int = DEFAULT_CHUNK,
                  bin_extend=full.bin_extend, bin_tol=full.bin_tol)
 
 
-def check_binned_for(where: str, name: str, pairs, scratches: Scratches) -> None:
+def check_binned_for(where: str, name: str, pairs, scratches: Scratches, board: Board) -> None:
     """`InputError` (one line) when a concrete shared list that records the grooves it binned
-    (`bin_pairs`, `grid.build_pairs`) was binned for another number of scratches, or may miss a
-    pair of these (`needs_rebin`, when the list was binned in the scratches' dtype: a groove
-    moved or grew beyond what was binned). Lists without that record, traced ones and per-view
-    lists (a leading view axis) pass; a list binned for another board shape is not detected."""
+    (`bin_pairs`, `grid.build_pairs`) was binned for another number of scratches, for another
+    board (a valid pair's pixel on `board` lies outside the box of the groove it binned), or may
+    miss a pair of these scratches (`needs_rebin`, when the list was binned in the scratches'
+    dtype: a groove moved or grew beyond what was binned). Lists without that record, traced
+    ones and per-view lists (a leading view axis) pass."""
     if (not isinstance(pairs, Pairs) or pairs.bin_p0 is None or jnp.ndim(pairs.pixel) != 1
             or jnp.ndim(pairs.bin_p0) != 2
             or any(isinstance(x, jax.core.Tracer) for x in (pairs.bin_p0, scratches.p0))):
@@ -389,6 +390,25 @@ def check_binned_for(where: str, name: str, pairs, scratches: Scratches) -> None
     if k != scratches.n:
         raise InputError(f"{where}: `{name}` was binned for {k} scratches, got {scratches.n}: "
                          "bin_pairs(scratches, board) again")
+    valid = np.asarray(pairs.valid, bool)
+    pix, scr = np.asarray(pairs.pixel)[valid], np.asarray(pairs.scratch)[valid]
+    if pix.size and np.all((scr >= 0) & (scr < k)):
+        # each pair's pixel on this board against the box of its binned groove (ends extended,
+        # half width inflated: `bin_*`)
+        p0, p1 = (np.asarray(x, np.float64)[scr] for x in (pairs.bin_p0, pairs.bin_p1))
+        pad = (np.asarray(pairs.bin_half_width, np.float64)[scr] + float(pairs.bin_extend)
+               + float(pairs.bin_tol))[:, None]
+        lo, hi = np.minimum(p0, p1) - pad, np.maximum(p0, p1) + pad
+        r, c = np.divmod(pix, board.W)
+        dx, dy = board.Sx / board.W, board.Sy / board.H
+        slack = 1e-6 * max(dx, dy)
+        top = board.Sy - r * dy
+        off = ((c + 1) * dx < lo[:, 0] - slack) | (c * dx > hi[:, 0] + slack) | (
+            top < lo[:, 1] - slack) | (top - dy > hi[:, 1] + slack)
+        if off.any():
+            raise InputError(f"{where}: `{name}` was binned for another board: {int(off.sum())} "
+                             f"of its {pix.size} pairs lie outside their grooves on this "
+                             f"{board.H}x{board.W} board; bin_pairs(scratches, board) again")
     # (the groove test's slack is the binning dtype's rounding: compared in that dtype only)
     same = pairs.bin_p0.dtype == scratches.p0.dtype
     if same and bool(needs_rebin(pairs, scratches.p0, scratches.p1, scratches.width,

@@ -605,7 +605,8 @@ def render_pairs(scratches: Scratches, views: Views, board: Board, pairs,
 
     Errors: non-finite or out-of-range scratch or view values, a camera or light below the board,
     an overflowed pair list, out-of-range pair indices, a pair list not laid out for the mesh;
-    called eagerly, also a list binned for other scratches (`bvh.check_binned_for`; a list from
+    called eagerly, also a list binned for other scratches or another board
+    (`bvh.check_binned_for`; a list from
     `bin_pairs` records what it binned). Called eagerly: `ValueError`. Under jit on one device:
     `eqx.error_if` (a runtime error).
     Under jit with a mesh: NaN radiance (a runtime error on one device of a multi-device program
@@ -622,7 +623,7 @@ def render_pairs(scratches: Scratches, views: Views, board: Board, pairs,
         check_scratches(scratches.p0, scratches.p1, scratches.width, scratches.depth,
                         scratches.alpha, board=(board.Sx, board.Sy), source="render_pairs")
         for name, p in (("pairs", pairs), ("coverage_pairs", coverage_pairs)):
-            check_binned_for("render_pairs", name, p, scratches)
+            check_binned_for("render_pairs", name, p, scratches, board)
     M, P, n = views.m, board.n_pixels, scratches.n
     axes = _mesh_axes(mesh, axis_names)
     shards = _n_shards(mesh, axes)

@@ -677,3 +677,11 @@ def test_render_pairs_refuses_a_list_binned_for_other_scratches():
         render_pairs(moved, views, board, pairs)
     with pytest.raises(InputError, match=r"^render_pairs: `coverage_pairs` may miss pairs"):
         render_pairs(s50, views, board, pairs, coverage_pairs=bin_pairs(moved, board))
+    big = Board(shape=(32, 32))  # the same scratches (in metres) on a finer image
+    with pytest.raises(InputError, match=r"^render_pairs: `pairs` was binned for another board: "
+                                         r"\d+ of its \d+ pairs lie outside their grooves on "
+                                         r"this 32x32 board"):
+        render_pairs(s50, views_on_circle(2, board=big), big, pairs)
+    np.testing.assert_allclose(render_pairs(s50, views_on_circle(2, board=big), big,
+                                            bin_pairs(s50, big)),
+                               render.render(s50, views_on_circle(2, board=big), big), rtol=1e-5)
