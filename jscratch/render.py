@@ -606,9 +606,8 @@ def render_pairs(scratches: Scratches, views: Views, board: Board, pairs,
     Errors: non-finite or out-of-range scratch or view values, a camera or light below the board,
     an overflowed pair list, out-of-range pair indices, a pair list not laid out for the mesh;
     called eagerly, also a list binned for other scratches or another board
-    (`bvh.check_binned_for`; a list from
-    `bin_pairs` records what it binned). Called eagerly: `ValueError`. Under jit on one device:
-    `eqx.error_if` (a runtime error).
+    (`bvh.check_binned_for`; a list from `bin_pairs` records what it binned). Called eagerly:
+    `ValueError`. Under jit on one device: `eqx.error_if` (a runtime error).
     Under jit with a mesh: NaN radiance (a runtime error on one device of a multi-device program
     would leave the others stuck in a collective; `render` checks the scene before it renders).
     Gradients: reverse mode only (a `jax.custom_vjp`; see the module docstring).
