@@ -46,7 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from jscratch.errors import InputError
+from jscratch.errors import InputError, whole_number
 from jscratch.scene import check_scratches, check_views
 from jscratch.shading import pixel_centres, pixel_edges
 
@@ -137,7 +137,7 @@ def _check(where: str, scratches, views, board, n, batch) -> None:
     scene by the rules `render` and `render_reference` check it by (`jscratch.scene`: values,
     endpoints on the board, views), each skipped where its arrays are traced."""
     for name, v in (("n", n), ("batch", batch)):
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+        if whole_number(v) is None or v < 1:
             raise InputError(f"{where}: `{name}` must be an int >= 1; got {v!r}")
     s = scratches
     if not any(isinstance(a, jax.core.Tracer) for a in (s.p0, s.p1, s.width, s.depth, s.alpha)):

@@ -44,7 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from jscratch.errors import InputError, real_number
+from jscratch.errors import InputError, real_number, whole_number
 from jscratch.cull import DEFAULT_EPS as DEFAULT_EPS
 from jscratch.cull import cull as cull
 from jscratch.cull import cull_coverage as cull_coverage
@@ -314,13 +314,13 @@ def pairs_of(pix, scr, val):
 
 def check_chunk(where: str, chunk) -> None:
     """`InputError` (one line) unless `chunk`, pairs evaluated per block, is an int >= 1."""
-    if isinstance(chunk, bool) or not isinstance(chunk, (int, np.integer)) or chunk < 1:
+    if whole_number(chunk) is None or chunk < 1:
         raise InputError(f"{where}: `chunk` (pairs per block) must be an int >= 1; got {chunk!r}")
 
 
 def check_shards(where: str, shards) -> None:
     """`InputError` (one line) unless `shards`, the pixel blocks of a mesh, is an int >= 1."""
-    if isinstance(shards, bool) or not isinstance(shards, (int, np.integer)) or shards < 1:
+    if whole_number(shards) is None or shards < 1:
         raise InputError(f"{where}: `shards` (pixel blocks of the mesh) must be an int >= 1; got "
                          f"{shards!r}")
 

@@ -29,6 +29,8 @@ __all__ = [
     "NonFiniteError",
     "error_line",
     "real_number",
+    "whole_number",
+    "count_arg",
     "exit_status",
     "report",
 ]
@@ -112,3 +114,23 @@ def real_number(value) -> float | None:
         return float(value) if np.ndim(value) == 0 else None
     except (TypeError, ValueError):  # (a tracer's concretization error is a TypeError)
         return None
+
+
+def whole_number(value) -> int | None:
+    """`value` as an int when it is a Python or numpy integer (not a bool); None otherwise. The
+    argument checks read counts with it, then test the range themselves."""
+    import numpy as np
+
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        return None
+    return int(value)
+
+
+def count_arg(where: str, name: str, value, low: int) -> int:
+    """`value` as an int ``>= low`` (`whole_number`); `InputError` naming `where` and `name`,
+    one line, otherwise."""
+    n = whole_number(value)
+    if n is None or n < low:
+        shown = " ".join(repr(value).split())[:60]
+        raise InputError(f"{where}: `{name}` must be an int >= {low}, got {shown}")
+    return n

@@ -28,7 +28,7 @@ import numpy as np
 
 from jscratch.options import OneLineParser, check_out_prefix
 from jscratch.errors import (EXIT_STATUS_HELP, DesignFileError, InputError, JscratchError,
-                             error_line, real_number, report)
+                             count_arg, error_line, real_number, report)
 
 __all__ = ["orbit_views", "render_orbit", "write_gif", "write_sheet", "main"]
 
@@ -48,13 +48,6 @@ def _load(path):
     return d, path
 
 
-def _count(where: str, name: str, v, low: int) -> int:
-    """`v` as an int ``>= low`` (not a bool); `InputError` naming `where` and `name` otherwise."""
-    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
-        raise InputError(f"{where}: `{name}` must be an int >= {low}, got {v!r}")
-    return int(v)
-
-
 def _check_orbit(where: str, design, frames) -> int:
     """`frames` as an int >= 1, and a design with views; `InputError` otherwise."""
     from jscratch.designfile import Design
@@ -64,7 +57,7 @@ def _check_orbit(where: str, design, frames) -> int:
                          f"{type(design).__name__}")
     if design.camera is None:
         raise InputError(f"{where}: {_NO_VIEWS}")
-    return _count(where, "frames", frames, 1)
+    return count_arg(where, "frames", frames, 1)
 
 
 def orbit_views(design, frames: int):
@@ -101,7 +94,7 @@ def render_orbit(design, *, frames: int = 36, size: int = 128, batch: int = 6,
     from jscratch.shading import display
 
     frames = _check_orbit("render_orbit", design, frames)
-    batch = _count("render_orbit", "batch", batch, 1)
+    batch = count_arg("render_orbit", "batch", batch, 1)
     cams, light, az, marks = orbit_views(design, frames)
     board = Board(shape=(size, size), Sx=float(design.board[0]), Sy=float(design.board[1]))
     inten = _default_intensity(design) if intensity is None else float(intensity)

@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from jscratch.errors import InputError, real_number
+from jscratch.errors import InputError, count_arg, real_number
 
 __all__ = [
     "ALPHA_RANGE",
@@ -338,13 +338,6 @@ def _is_tracer(x) -> bool:
     return isinstance(x, jax.core.Tracer)
 
 
-def _count(source: str, name: str, v, low: int) -> int:
-    """`v` as an int ``>= low`` (a Python or numpy int, not a bool); `InputError` otherwise."""
-    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
-        raise InputError(f"{source}: `{name}` must be an int >= {low}; got {_show(v)}")
-    return int(v)
-
-
 def _board_arg(source: str, board) -> "Board":
     """`board`, or `Board()` for None; `InputError` for anything that is no `Board`."""
     if board is None:
@@ -489,7 +482,7 @@ class Scratches(eqx.Module):
         **Returns:** `Scratches`. **Raises:** `InputError`, one line naming the argument.
         """
         where = "Scratches.random"
-        n = _count(where, "n", n, 0)
+        n = count_arg(where, "n", n, 0)
         key = _prng_key(where, key)
         board = _board_arg(where, board)
         try:

@@ -29,7 +29,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from jscratch.errors import InputError, real_number
+from jscratch.errors import InputError, real_number, whole_number
 
 __all__ = ["Ordering", "order_scratches", "path_travel", "greedy_order", "improve_order",
            "best_directions", "knn_grid"]
@@ -490,7 +490,7 @@ def order_scratches(p0, p1, start=(0.0, 0.0), *, improve: bool = True, k: int = 
         shown = " ".join(repr(start).split())[:60]
         raise InputError(f"order_scratches: `start` must be (x, y), two finite numbers; got "
                          f"{shown}")
-    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
+    if whole_number(k) is None or k < 1:
         raise InputError(f"order_scratches: `k` (neighbours per endpoint) must be an int >= 1, "
                          f"got {k!r}")
     if time_limit is not None:

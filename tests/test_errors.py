@@ -450,3 +450,18 @@ def test_real_number_reads_one_number_in_any_scalar_form():
     for v in (None, True, "1", b"1", [1.0], np.array([1.0]), np.zeros((2, 2)), object()):
         assert real_number(v) is None, v
     assert jax.jit(lambda x: x * (real_number(x) is None))(3.0) == 3.0  # a tracer is no number
+
+
+def test_whole_number_and_count_arg_read_counts_in_any_integer_form():
+    import numpy as np
+
+    from jscratch.errors import count_arg, whole_number
+
+    for v in (3, np.int32(3), np.int64(3)):
+        assert whole_number(v) == 3 and count_arg("f", "n", v, 1) == 3
+    for v in (True, 3.0, "3", None, np.array(3), [3]):
+        assert whole_number(v) is None, v
+        with pytest.raises(InputError, match=r"^f: `n` must be an int >= 1, got "):
+            count_arg("f", "n", v, 1)
+    with pytest.raises(InputError, match=r"^f: `n` must be an int >= 1, got 0$"):
+        count_arg("f", "n", 0, 1)

@@ -18,7 +18,7 @@ import numpy as np
 
 from jscratch import designfile
 from jscratch.designfile import DesignError
-from jscratch.errors import InputError, error_line, real_number
+from jscratch.errors import InputError, error_line, real_number, whole_number
 from jscratch.scene import Board, Views, check_views, flat_highlight
 from jscratch.design.config import DEFAULT_IMAGES, SceneConfig
 from jscratch.design.result import DesignResult
@@ -261,8 +261,7 @@ def save_result(result: DesignResult, out: str | os.PathLike, *, scene: SceneCon
     jscratch.design` writes its outputs with this call. Returns the metrics added (they are also
     added to `result.metrics`).
     """
-    if (isinstance(as_carved_samples, bool) or not isinstance(as_carved_samples, (int, np.integer))
-            or as_carved_samples < 0):
+    if whole_number(as_carved_samples) is None or as_carved_samples < 0:
         raise DesignError(f"as_carved_samples must be an int >= 0, got {as_carved_samples!r}")
     given, order_time = order_time, real_number(order_time)
     if order_time is None or not (math.isfinite(order_time) and order_time >= 0):

@@ -22,6 +22,7 @@ import jax
 import numpy as np
 
 from jscratch import designfile
+from jscratch.errors import whole_number
 from jscratch.machine import MachineProfile, carving_seconds
 from jscratch.metrics import image_metrics
 
@@ -64,7 +65,7 @@ def as_carved(design: designfile.Design, profile: MachineProfile, shape, design_
 
     if design.camera is None:
         raise designfile.DesignError("as carved: the design has no views (camera, light, intensity)")
-    if isinstance(samples, bool) or not isinstance(samples, (int, np.integer)) or samples < 1:
+    if whole_number(samples) is None or samples < 1:
         raise designfile.DesignError(f"as carved: samples must be an int >= 1 (strata per pixel "
                                      f"side), got {samples!r}")
     try:
