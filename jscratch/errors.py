@@ -30,6 +30,7 @@ __all__ = [
     "error_line",
     "real_number",
     "whole_number",
+    "shown",
     "count_arg",
     "exit_status",
     "report",
@@ -131,6 +132,11 @@ def count_arg(where: str, name: str, value, low: int) -> int:
     one line, otherwise."""
     n = whole_number(value)
     if n is None or n < low:
-        shown = " ".join(repr(value).split())[:60]
-        raise InputError(f"{where}: `{name}` must be an int >= {low}, got {shown}")
+        raise InputError(f"{where}: `{name}` must be an int >= {low}, got {shown(value)}")
     return n
+
+
+def shown(value, limit: int = 60) -> str:
+    """``repr(value)`` on one line and at most `limit` characters, for a one-line message."""
+    text = " ".join(repr(value).split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."

@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from jscratch.errors import InputError, count_arg, real_number
+from jscratch.errors import InputError, count_arg, real_number, shown
 
 __all__ = [
     "ALPHA_RANGE",
@@ -167,7 +167,7 @@ def check_views(camera, light, intensity, *, source: str = "views",
         try:
             arrays[name] = np.asarray(v, np.float64)
         except (TypeError, ValueError):
-            raise error(f"{source}: `{name}` is not a numeric array; got {_show(v)}") from None
+            raise error(f"{source}: `{name}` is not a numeric array; got {shown(v)}") from None
     cs, ls = arrays["camera"].shape, arrays["light"].shape
     if len(cs) != 2 or cs[1] != 3 or ls != cs:
         raise error(f"{source}: `camera` and `light` must have one shape (M, 3); got camera {cs},"
@@ -248,12 +248,6 @@ def scene_checks(scratches: "Scratches", views: "Views | None" = None, *,
 # --------------------------------------------------------------------------------------------
 
 
-def _show(v, limit: int = 60) -> str:
-    """``repr(v)`` on one line and at most `limit` characters, for a message."""
-    text = " ".join(repr(v).split())
-    return text if len(text) <= limit else text[: limit - 3] + "..."
-
-
 def _to_float(name: str):
     """The converter of `Board`'s field `name`: ``float``, refusing in one line what it cannot
     convert."""
@@ -264,7 +258,7 @@ def _to_float(name: str):
                 return float(v)
         except (TypeError, ValueError):
             pass
-        raise InputError(f"Board: `{name}` must be a real number; got {_show(v)}")
+        raise InputError(f"Board: `{name}` must be a real number; got {shown(v)}")
 
     return convert
 
@@ -344,7 +338,7 @@ def _board_arg(source: str, board) -> "Board":
         return Board()
     if not isinstance(board, Board):
         raise InputError(f"{source}: `board` must be a jscratch.Board or None; got "
-                         f"{type(board).__name__} {_show(board)}")
+                         f"{type(board).__name__} {shown(board)}")
     return board
 
 
@@ -357,8 +351,8 @@ def _scene_dtype(source: str, dtype):
     except TypeError:
         dt = None
     if dt is None or dt.name not in DTYPES:
-        shown = dt.name if dt is not None else _show(dtype)
-        raise InputError(f"{source}: `dtype` must be float32 or float64; got {shown}")
+        got = dt.name if dt is not None else shown(dtype)
+        raise InputError(f"{source}: `dtype` must be float32 or float64; got {got}")
     return dt
 
 
@@ -369,7 +363,7 @@ def _prng_key(source: str, key):
     typed = dt is not None and jax.dtypes.issubdtype(dt, jax.dtypes.prng_key)
     if not ((typed and ndim == 0) or (not typed and dt == np.uint32 and ndim == 1)):
         raise InputError(f"{source}: `key` must be one PRNG key (jax.random.key(seed) or "
-                         f"jax.random.PRNGKey(seed)); got {_show(key)}")
+                         f"jax.random.PRNGKey(seed)); got {shown(key)}")
     return key
 
 
@@ -491,7 +485,7 @@ class Scratches(eqx.Module):
             lo = hi = None
         if lo is None or hi is None or not (math.isfinite(hi) and 0 < lo <= hi):
             raise InputError(f"{where}: `length` must be (min, max) metres with 0 < min <= max; "
-                             f"got {_show(length)}")
+                             f"got {shown(length)}")
         p0, p1 = _random_endpoints(key, n, float(board.Sx), float(board.Sy), (lo, hi),
                                    _scene_dtype(where, dtype))
         return Scratches(p0, p1, width, depth, alpha)
@@ -627,7 +621,7 @@ def views_on_circle(M: int, theta: float = DEFAULT_THETA, distance: float = 1.0,
     except (TypeError, ValueError, OverflowError):
         whole = False
     if isinstance(M, (bool, str)) or not whole or M < 1:
-        raise InputError(f"views_on_circle: `M` must be a positive int; got {_show(M)}")
+        raise InputError(f"views_on_circle: `M` must be a positive int; got {shown(M)}")
     M = int(M)
     dtype = _scene_dtype(where, dtype)
     camera_theta = theta if camera_theta is None else camera_theta
@@ -636,7 +630,7 @@ def views_on_circle(M: int, theta: float = DEFAULT_THETA, distance: float = 1.0,
     for name, v in given.items():
         if (v is not None or name != "offset") and real_number(v) is None:
             raise InputError(f"views_on_circle: `{name}` must be a real number"
-                             f"{' (m)' if name == 'distance' else ' (rad)'}; got {_show(v)}")
+                             f"{' (m)' if name == 'distance' else ' (rad)'}; got {shown(v)}")
     theta, camera_theta, distance, light_azimuth = (
         real_number(given[k]) for k in ("theta", "camera_theta", "distance", "light_azimuth"))
     for name in ("light_azimuth", "offset"):

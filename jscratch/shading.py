@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from jscratch.errors import InputError, real_number
+from jscratch.errors import InputError, real_number, shown
 from jscratch.scene import Board, Views
 
 __all__ = [
@@ -176,8 +176,7 @@ def _positive(name: str, v) -> float:
         return float(v)
     x = real_number(v)
     if x is None or not (math.isfinite(x) and x > 0):
-        shown = " ".join(repr(v).split())
-        raise InputError(f"display: `{name}` must be a finite number > 0; got {shown[:60]}")
+        raise InputError(f"display: `{name}` must be a finite number > 0; got {shown(v)}")
     return x
 
 

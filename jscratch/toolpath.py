@@ -29,7 +29,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from jscratch.errors import InputError, real_number, whole_number
+from jscratch.errors import InputError, real_number, shown, whole_number
 
 __all__ = ["Ordering", "order_scratches", "path_travel", "greedy_order", "improve_order",
            "best_directions", "knn_grid"]
@@ -487,9 +487,8 @@ def order_scratches(p0, p1, start=(0.0, 0.0), *, improve: bool = True, k: int = 
     except (TypeError, ValueError):
         start_xy = np.full(0, np.nan)
     if start_xy.shape != (2,) or not np.isfinite(start_xy).all():
-        shown = " ".join(repr(start).split())[:60]
         raise InputError(f"order_scratches: `start` must be (x, y), two finite numbers; got "
-                         f"{shown}")
+                         f"{shown(start)}")
     if whole_number(k) is None or k < 1:
         raise InputError(f"order_scratches: `k` (neighbours per endpoint) must be an int >= 1, "
                          f"got {k!r}")

@@ -223,6 +223,7 @@ def test_renderers_check_what_they_are_given(tmp_path):
     (dict(key=0), r"`key` must be one PRNG key .*; got 0"),
     (dict(board=[0.3, 0.3]), r"`board` must be a jscratch.Board or None; got list"),
     (dict(dtype=jnp.int32), r"`dtype` must be float32 or float64; got int32"),
+    (dict(dtype="foo"), r"`dtype` must be float32 or float64; got 'foo'"),
 ])
 def test_random_refuses_bad_arguments_in_one_line(kw, match):
     args = dict(key=jax.random.PRNGKey(0), n=5) | kw

@@ -96,7 +96,7 @@ import jax.numpy as jnp
 import jaxlib
 import numpy as np
 
-from jscratch.errors import InputError, error_line
+from jscratch.errors import InputError, error_line, shown
 
 __all__ = ["PROFILES", "NativeKernelWarning", "available", "bin_cells", "building", "enabled",
            "keep_freed_memory", "lit",
@@ -533,7 +533,7 @@ def status(dtype=jnp.float32) -> dict:
         dt = jnp.dtype(dtype)
     except TypeError:
         raise InputError(f"native.status: `dtype` must be a dtype (float32 or float64), got "
-                         f"{' '.join(repr(dtype).split())[:60]}") from None
+                         f"{shown(dtype)}") from None
     on, backend = enabled(), jax.default_backend()
     st = {"kernel": "jnp", "why": "", "enabled": on, "backend": backend, "library": None,
           "key": None, "covers": None, "compiler": None, "jaxlib": jaxlib.__version__,
