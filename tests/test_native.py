@@ -139,20 +139,21 @@ def _python(code: str, **env) -> dict:
 
 #: In a fresh process: `available` twice and a gradient through `ndf` with every warning recorded,
 #: the fallback warnings, `status()`, whether changing the environment later changes anything,
-#: and what ``python -m jscratch.native --json`` (`native.main`) returns.
+#: and what ``python -m jscratch.native --json`` (`jscratch.native.__main__.main`) returns.
 _FALLBACK = """
 import contextlib, io, json, os, warnings
 import jax, jax.numpy as jnp, numpy as np
 with warnings.catch_warnings(record=True) as seen:
     warnings.simplefilter("always")
     from jscratch import native, ndf
+    from jscratch.native.__main__ import main as native_main
     ok = [native.available(jnp.float32), native.available(jnp.float64)]
     g = jax.grad(lambda w: ndf.pair_integral(jnp.array([0.1, 0.0, 1.0]),
         jnp.array([[0., 0.], [1e-3, 0.], [1e-3, 1e-3], [0., 1e-3]]), jnp.array([5e-4, -1e-3]),
         jnp.array([5e-4, 2e-3]), w, 1e-4, 0.04)[0])(2.5e-4)
 os.environ["JSCRATCH_NATIVE"] = "0" if native.enabled() else "1"
 with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
-    rc = native.main(["--json"])
+    rc = native_main(["--json"])
 print(json.dumps({"ok": ok, "g": float(g), "status": native.status(), "enabled": native.enabled(),
     "rc": rc, "warnings": [str(w.message) for w in seen
                            if issubclass(w.category, native.NativeKernelWarning)]}))
@@ -168,7 +169,7 @@ def test_without_a_compiler_jscratch_falls_back_to_jnp_and_warns_once(tmp_path):
     assert r["ok"] == [False, False] and np.isfinite(r["g"]) and r["g"] != 0.0, r
     assert len(r["warnings"]) == 1, r["warnings"]
     assert "native kernel is off" in r["warnings"][0] and "no-such-compiler" in r["warnings"][0]
-    assert native._COST in r["warnings"][0] and "16x slower" in native._COST
+    assert native.FALLBACK_COST in r["warnings"][0] and "16x slower" in native.FALLBACK_COST
     st = r["status"]
     assert st["kernel"] == "jnp" and "no-such-compiler" in st["why"], st
     assert st["enabled"] is True and st["library"] is None and st["jaxlib"] == jaxlib.__version__
@@ -431,7 +432,8 @@ def test_status_and_cli_describe_the_kernel(capsys):
     assert st["covers"]["jaxlib"] == jaxlib.__version__ and st["compiler"]
     assert isinstance(st["threads"], int) and st["threads"] >= 1
     assert json.loads(json.dumps(st)) == st
-    assert native.main([]) == 0
+    from jscratch.native.__main__ import main as native_main
+    assert native_main([]) == 0
     text = capsys.readouterr().out
     assert text.startswith("jscratch native kernel: native") and st["key"] in text
     out = subprocess.run([sys.executable, "-m", "jscratch.native", "--json"], capture_output=True,
@@ -1022,9 +1024,12 @@ def test_keep_freed_memory_keeps_a_freed_block_and_can_be_turned_off():
     assert bad.returncode != 0 and "JSCRATCH_KEEP_MEMORY='2'" in bad.stderr
 
 
-def test_status_refuses_what_is_no_dtype():
-    for bad, shown in (("foo", "'foo'"), (1.5, "1.5")):
-        with pytest.raises(InputError, match=rf"^native.status: `dtype` must be a dtype \(float32 "
-                                             rf"or float64\), got {re.escape(shown)}$"):
-            native.status(bad)
+def test_status_available_and_building_refuse_what_is_no_dtype():
+    for who, call in (("status", native.status), ("available", native.available),
+                      ("building", native.building)):
+        for bad, shown in (("foo", "'foo'"), (1.5, "1.5")):
+            want = rf"^native.{who}: `dtype` must be a dtype \(float32 or float64\), got "
+            with pytest.raises(InputError, match=want + re.escape(shown) + "$"):
+                call(bad)
     assert native.status(jnp.int32)["kernel"] == "jnp"  # a dtype without a kernel: says why
+    assert native.available(jnp.int32) is False and native.building(jnp.int32) is False

@@ -84,7 +84,6 @@ import os
 import platform
 import shutil
 import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -133,7 +132,7 @@ _FLAGS = ("-O3", "-march=native", "-fno-math-errno", "-ffp-contract=off", "-std=
 #: The dtypes the kernels run for, one library each -> the library's name (its symbols' suffix).
 _DTYPES = {jnp.dtype(jnp.float32): "f32", jnp.dtype(jnp.float64): "f64"}
 #: What the jnp path costs, in the fallback warning (`benchmarks/RESULTS.md`).
-_COST = ("the jnp path runs instead: a design step about 16x slower with the default arc "
+FALLBACK_COST = ("the jnp path runs instead: a design step about 16x slower with the default arc "
          "grooves, 5x with groove_fit = \"height\"")
 
 # The settings, read once (module docstring); validated on first use by `_settings`.
@@ -366,6 +365,16 @@ def _on_cpu() -> bool:
     return jax.default_backend() == "cpu"
 
 
+def _dtype_arg(dtype, who: str) -> jnp.dtype:
+    """`dtype` as a dtype; `InputError` (one line, naming `who`) for what is not one (`available`,
+    `building`, `status`)."""
+    try:
+        return jnp.dtype(dtype)
+    except TypeError:
+        raise InputError(f"native.{who}: `dtype` must be a dtype (float32 or float64), got "
+                         f"{shown(dtype)}") from None
+
+
 def prepare(dtype=jnp.float32) -> None:
     """Start building the kernels for `dtype` (float32 or float64) on a background thread (the
     compiler runs as a subprocess, so the caller's setup goes on meanwhile); `available` waits
@@ -383,7 +392,7 @@ def prepare(dtype=jnp.float32) -> None:
 def building(dtype=jnp.float32) -> bool:
     """Whether the compiler is running now for `dtype`'s library (a first run; a library found
     in the cache is not a build). For progress messages; starts nothing."""
-    build = _build.get(_DTYPES.get(jnp.dtype(dtype)))
+    build = _build.get(_DTYPES.get(_dtype_arg(dtype, "building")))
     return bool(build and build.get("compiling") and build["thread"].is_alive())
 
 
@@ -481,9 +490,9 @@ def _load_once(name: str) -> bool:
         _loaded[name] = {"ok": False, "why": why}
         if not _warned:
             _warned.append(why)
-            warnings.warn(f"jscratch's native kernel is off: {why}; {_COST} (JSCRATCH_NATIVE=0 "
-                          "chooses the jnp path without this warning)", NativeKernelWarning,
-                          stacklevel=4)
+            warnings.warn(f"jscratch's native kernel is off: {why}; {FALLBACK_COST} "
+                          "(JSCRATCH_NATIVE=0 chooses the jnp path without this warning)",
+                          NativeKernelWarning, stacklevel=4)
         return False
     info = build["info"]
     how = (f"compiled ({info['seconds']} s)" if info["built"] else "found in the cache")
@@ -512,7 +521,7 @@ def available(dtype) -> bool:
     """Whether `lit_partials` runs for `dtype` arrays (float32 or float64) here: `enabled`, CPU
     backend, and the kernel built and loaded (building it the first time; warns once if that
     fails)."""
-    name = _DTYPES.get(jnp.dtype(dtype))
+    name = _DTYPES.get(_dtype_arg(dtype, "available"))
     if name is None or not enabled() or not _on_cpu():
         return False
     return _load(name)
@@ -527,13 +536,8 @@ def status(dtype=jnp.float32) -> dict:
          "memory": `keep_freed_memory`'s outcome or None}
 
     ``library``: that dtype's; ``covers``: the key's inputs (`_key_parts`). Starts nothing; waits
-    for a build in progress. ``"jnp"`` also where nothing in this process has asked for the
-    kernel of that dtype yet. `InputError` (one line) for what is not a dtype."""
-    try:
-        dt = jnp.dtype(dtype)
-    except TypeError:
-        raise InputError(f"native.status: `dtype` must be a dtype (float32 or float64), got "
-                         f"{shown(dtype)}") from None
+    for a build. ``"jnp"`` also where nothing here has asked for that dtype's kernel yet."""
+    dt = _dtype_arg(dtype, "status")
     on, backend = enabled(), jax.default_backend()
     st = {"kernel": "jnp", "why": "", "enabled": on, "backend": backend, "library": None,
           "key": None, "covers": None, "compiler": None, "jaxlib": jaxlib.__version__,
@@ -751,48 +755,3 @@ def bin_cells(fl, ints, *, shape, strip_capacity: int, rows: int, pair_capacity:
         tolg=f64(tolg), csx=f64(csx), csy=f64(csy), hx=f64(hx), hy=f64(hy), sy=f64(sy))
 
 #: How the CLI names the key's inputs.
-_COVERS = {"source": "native_lit.cc, native_arc.h, native_bin.cc and native_simd.h sha256",
-           "compiler": "compiler",
-           "compiler_version": "its --version", "flags": "flags", "cpu": "CPU",
-           "cpu_features": "CPU features sha256", "jaxlib": "jaxlib",
-           "ffi_headers": "XLA FFI headers sha256"}
-
-
-def main(argv=None) -> int:
-    """``python -m jscratch.native [--json]``: build the kernel if needed and say what runs the
-    per-view stage. Exit 0, or 1 (one line on stderr) where it was wanted and is unavailable."""
-    from jscratch.options import OneLineParser  # only the command line needs it
-
-    ap = OneLineParser(prog="python -m jscratch.native",
-                       description="Build (if needed) and describe jscratch's native CPU kernel.",
-                       epilog="exit status: 0 described (in use or not, as asked); 1 the kernel "
-                              "was wanted and is unavailable (one line on stderr); 2 a refused "
-                              "option or setting (JSCRATCH_NATIVE, ...).")
-    ap.add_argument("--json", action="store_true", help="print status() as JSON")
-    a = ap.parse_args(argv)
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", NativeKernelWarning)  # said below, in one line
-            available(jnp.float32)
-        st = status()
-    except InputError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    if a.json:
-        print(json.dumps(st, indent=2))
-    else:
-        what = ("native_lit.cc as an XLA FFI custom call (CPU, float32/float64, "
-                f"up to {st['threads']} threads)" if st["kernel"] == "native"
-                else "the jnp path (jscratch.ndf)")
-        print(f"jscratch native kernel: {st['kernel']}: {what}")
-        print(f"library (float32; float64's is built when first asked for): {st['library']}")
-        covers = ", ".join(f"{_COVERS.get(k, k)} {v}" for k, v in (st["covers"] or {}).items()
-                           if k != "compiler_version")
-        print(f"key: {st['key']}" + (f" (covers {covers}, compiler version)" if covers else ""))
-        print(f"compiler: {st['compiler']}")
-        print(f"in use: {'yes' if st['kernel'] == 'native' else 'no'}: {st['why']}")
-        print(f"jaxlib: {st['jaxlib']}; backend: {st['backend']}")
-    if st["kernel"] != "native" and st["enabled"] and st["backend"] == "cpu":
-        print(f"error: the native kernel is unavailable: {st['why']} ({_COST})", file=sys.stderr)
-        return 1
-    return 0
