@@ -28,7 +28,7 @@ import numpy as np
 
 from jscratch.options import OneLineParser, check_out_prefix
 from jscratch.errors import (EXIT_STATUS_HELP, DesignFileError, InputError, JscratchError,
-                             count_arg, error_line, real_number, report)
+                             count_arg, error_line, real_number, report, shown)
 
 __all__ = ["orbit_views", "render_orbit", "write_gif", "write_sheet", "main"]
 
@@ -137,15 +137,16 @@ def _frame_rgb(img, mark):
 
 def write_gif(path, frames, marks, az, *, fps: float = 8.0):
     """Animated GIF (Pillow), looping; design views framed in orange and labelled.
-    `InputError` for no frames or an `fps` that is not a finite number > 0."""
+    `InputError` for no frames or an `fps` outside `FPS_RANGE` (a GIF's frame time is in
+    hundredths of a second, and viewers slow down frames shorter than two of them)."""
     from PIL import Image, ImageDraw
 
     if len(frames) == 0:
         raise InputError("write_gif: `frames` is empty: there is no frame to write")
     given, fps = fps, real_number(fps)
-    if fps is None or not (math.isfinite(fps) and fps > 0):
-        raise InputError(f"write_gif: `fps` must be a finite number > 0 (frames per second), "
-                         f"got {given!r}")
+    if fps is None or not (math.isfinite(fps) and FPS_RANGE[0] <= fps <= FPS_RANGE[1]):
+        raise InputError(f"write_gif: `fps` must be a number in [{FPS_RANGE[0]:g}, "
+                         f"{FPS_RANGE[1]:g}] (frames per second), got {shown(given)}")
     ims = []
     for img, m, a in zip(frames, marks, az):
         im = Image.fromarray(_frame_rgb(img, m))
@@ -153,7 +154,8 @@ def write_gif(path, frames, marks, az, *, fps: float = 8.0):
         label = f"{round(math.degrees(a), 1) % 360:5.1f} deg" + (f"  view {m}" if m >= 0 else "")
         d.text((4, 2), label, fill=(255, 140, 0) if m >= 0 else (80, 160, 255))
         ims.append(im)
-    ims[0].save(os.fspath(path), save_all=True, append_images=ims[1:], duration=int(1000 / fps), loop=0)
+    ims[0].save(os.fspath(path), save_all=True, append_images=ims[1:],
+                duration=round(1000 / fps), loop=0)
 
 
 def write_sheet(path, frames, marks, az, title=""):

@@ -103,8 +103,8 @@ def test_orbit_and_writers_refuse_bad_arguments_in_one_line(tmp_path):
         with pytest.raises(InputError, match=f"^render_orbit: {match}$"):
             render_orbit(d, size=8, progress=False, **kw)
     frames, marks, az = np.zeros((2, 8, 8)), np.array([0, -1]), np.array([0.0, 1.0])
-    for fps in (0, -1.0, float("nan")):
-        with pytest.raises(InputError, match=r"^write_gif: `fps` must be a finite number > 0 "
+    for fps in (0, -1.0, float("nan"), 0.09, 51.0, 2000.0):  # 2000: a GIF frame time of 0
+        with pytest.raises(InputError, match=r"^write_gif: `fps` must be a number in \[0.1, 50\] "
                                              rf"\(frames per second\), got {fps}$"):
             write_gif(tmp_path / "a.gif", frames, marks, az, fps=fps)
     with pytest.raises(InputError, match=r"^write_gif: `frames` is empty"):
@@ -117,3 +117,8 @@ def test_orbit_and_writers_refuse_bad_arguments_in_one_line(tmp_path):
             render_orbit(bad, frames=2, size=8, progress=False)
     write_gif(tmp_path / "b.gif", frames, marks, az, fps=np.array(8.0))  # a 0-d array is a number
     assert (tmp_path / "b.gif").exists()
+    from PIL import Image
+    for fps, ms in ((50, 20), (0.1, 10000), (3, 330)):  # frame times as the GIF stores them
+        write_gif(tmp_path / "c.gif", frames, marks, az, fps=fps)
+        with Image.open(tmp_path / "c.gif") as im:
+            assert im.info["duration"] == ms, (fps, im.info)
