@@ -208,8 +208,17 @@ def carve(gcode_path, port: str, *, baud: int = 115200, resume: bool = False, co
                 "power-cycled its position is lost: re-home it (--home) or re-zero the board (G10 L20 P1, then "
                 "--rezeroed); then run again with --resume (the scratch in progress will be cut again)") from None
         except KeyboardInterrupt:
-            msg = "interrupted" + retract().replace(";", ":", 1)
-            journal.event("interrupt", done=journal.done)
+            journal.event("interrupt", done=journal.done)  # first: a second Ctrl-C keeps it
+            try:
+                msg = "interrupted" + retract().replace(";", ":", 1)
+            except KeyboardInterrupt:  # a second Ctrl-C during the hold: stop now
+                try:
+                    grbl.realtime(b"\x18")  # soft reset: motion and spindle stop at once
+                except Exception:  # noqa: BLE001 (the port may be gone: nothing more to send)
+                    pass
+                journal.event("reset", done=journal.done)
+                msg = ("interrupted twice: soft reset sent, no retract (the position may be lost: "
+                       "re-home (--home) or re-zero (--rezeroed) before --resume)")
             say(f"{msg}. {journal.done} of {n} scratches are journalled; run again with --resume")
             raise
         journal.event("finished", done=journal.done)
@@ -236,7 +245,12 @@ def _check_work_zero(grbl, coord: str, journalled: dict | None, rezeroed: bool, 
     if coord not in grbl.offsets:
         raise CarveError(f"the controller did not report the {coord} offset ($#) {untouched()}")
     zero = [float(v) for v in grbl.offsets[coord]]
-    if not grbl.homed and any(abs(v) > 5e-4 for v in zero):
+    # With homing on ($22=1) GRBL starts locked in Alarm (unless built without that lock: `L`
+    # among `$I`'s options): found unlocked and not unlocked now, it was homed since it started,
+    # and a machine position of 0, 0, 0 is its home (HOMING_FORCE_SET_ORIGIN), not a restart.
+    homed_before = (grbl.settings.get(22) == 1 and "L" not in grbl.options
+                    and not grbl.state_at_connect.startswith("Alarm") and not grbl.unlocked)
+    if not (grbl.homed or homed_before) and any(abs(v) > 5e-4 for v in zero):
         # Started without homing (on opening the port, or before it): GRBL then counts machine
         # positions from wherever the tool stood, so a machine position of exactly 0, 0, 0 says
         # it has just started, and the zero stored in EEPROM no longer points at the board.

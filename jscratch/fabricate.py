@@ -16,8 +16,9 @@ progress survives crashes.
 - ``python -m jscratch.fabricate --help``: the command line.
 
 G-code layout (three comment lines, the last the limits the program was checked against,
-``(limits X..:.. Y..:.. Z..:.. mm)``; preamble ``G21 G90 G94 G17 G54``, then, with a spindle,
-``M3 S..`` and a spin-up dwell ``G4 P..``; one block per scratch, at most 79 characters a line;
+``(limits X..:.. Y..:.. Z..:.. mm)``; preamble ``G21 G90 G94 G17 G54`` and ``G0 Z<safe>`` (the
+tool off the board), then, with a spindle, ``M3 S..`` and a spin-up dwell ``G4 P..``; one block
+per scratch, at most 79 characters a line;
 last, after ``M2``, a comment with the SHA-256 of every other line, ``(sha256 ..)``)::
 
     G0 X.. Y..        travel, at safe Z          (role "travel")
@@ -333,14 +334,19 @@ def make_program(design: Design, cfg: MachineConfig, *, improve: bool = True, ti
         plunge = 1000.0 * design.plunge[idx]
         fit = None
         design_fit = _design_fit(design, idx, cfg)
-        deep = np.flatnonzero(plunge > cfg.plunge_max_mm * (1 + 1e-6))
-        if len(deep):
-            j = int(deep[0])
-            raise DesignError(
-                f"scratch {int(idx[j])} has a recorded plunge of {plunge[j]:.4g} mm, deeper than "
-                f"machine.plunge_max_mm = {cfg.plunge_max_mm:g} mm ({len(deep)} such scratches): "
-                "refusing to cut deeper than the profile allows; fabricate with the design's own "
-                "profile, or pass --plunge")
+        # A plunge shallower than the profile's range would be written as (about) Z0.000: the
+        # scratch would not be cut; one deeper than it, deeper than the profile allows.
+        for out, what, bound, key in (
+                (plunge > cfg.plunge_max_mm * (1 + 1e-6), "deeper", cfg.plunge_max_mm, "max"),
+                (plunge < cfg.plunge_min_mm * (1 - 1e-6), "shallower", cfg.plunge_min_mm, "min")):
+            bad = np.flatnonzero(out)
+            if len(bad):
+                j = int(bad[0])
+                raise DesignError(
+                    f"scratch {int(idx[j])} has a recorded plunge of {plunge[j]:.4g} mm, {what} "
+                    f"than machine.plunge_{key}_mm = {bound:g} mm ({len(bad)} such scratches): "
+                    "refusing to cut outside the profile's plunge range; fabricate with the "
+                    "design's own profile, or pass --plunge")
     else:
         fit = fit_plunge(design.width[idx], design.depth[idx], cfg.cutter_radius_mm / 1000.0, mode=cfg.fit)
         # A fitted plunge is cut within the profile's range (and so never written as Z0.000).
@@ -365,10 +371,10 @@ def make_program(design: Design, cfg: MachineConfig, *, improve: bool = True, ti
     hi = (ox + board_mm[0] + cfg.margin_mm, oy + board_mm[1] + cfg.margin_mm, safe)
     emit(limits_comment(lo, hi), role="comment")
     emit("G21 G90 G94 G17 G54")
+    emit(f"G0 {g('Z', safe)}")  # first: the tool may stand on the board, where it was zeroed
     if cfg.spindle_rpm > 0:
         emit(f"M3 {g('S', cfg.spindle_rpm)}")
         emit(f"G4 {g('P', cfg.spinup_s)}")  # spin-up: GRBL starts cutting as soon as M3 is parsed
-    emit(f"G0 {g('Z', safe)}")
     for k, j in enumerate(ordering.order.tolist()):
         a, b = (p1[j], p0[j]) if ordering.flipped[j] else (p0[j], p1[j])
         s = int(idx[j])
@@ -574,7 +580,7 @@ def _refuse_overwrite(gcode: str):
     from jscratch.journal import Journal
 
     jp = gcode + ".journal"
-    if not os.path.exists(jp):
+    if not os.path.exists(jp) or Journal.torn_header(jp):  # (torn: nothing was carved)
         return
     try:
         header, done = Journal.read(jp)
@@ -594,16 +600,26 @@ def _attach_as_carved(info: dict, design_path: str):
     mpath = os.path.join(os.path.dirname(os.path.abspath(design_path)), "metrics.json")
     try:
         with open(mpath) as f:
-            ac = json.load(f).get("as_carved")
-    except (OSError, ValueError):
+            metrics = json.load(f)
+    except (OSError, ValueError):  # (UnicodeDecodeError is a ValueError)
         return
-    # (None: a design run's metrics without it; the summary says how to get it)
-    info["as_carved"] = {"ssim": ac["ssim"], "source": mpath} if ac and "ssim" in ac else None
+    ac = metrics.get("as_carved") if isinstance(metrics, dict) else None
+    # (None: a design run's metrics without it, or not in the design run's form: the summary says
+    # how to get it)
+    ssim = ac.get("ssim") if isinstance(ac, dict) else None
+    good = (isinstance(ssim, list) and ssim
+            and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in ssim))
+    info["as_carved"] = {"ssim": ssim, "source": mpath} if good else None
 
 
 def _check_options(args) -> None:
     """Refuse option values and combinations before any work (`InputError`, one line). A design
     run's folder given as the design stands for its ``design.npz``."""
+    for opt, value in (("the design", args.design), ("--gcode", args.gcode),
+                       ("--machine", args.machine), ("--out", args.out), ("--port", args.port)):
+        if value is not None and not value.strip():
+            raise InputError(f"{opt} is an empty path ({value!r}; an unset shell variable?): "
+                             "give a file, or leave the option out")
     if args.design and os.path.isdir(args.design):
         inside = os.path.join(args.design, "design.npz")
         if not os.path.isfile(inside):
@@ -639,10 +655,14 @@ def _check_options(args) -> None:
         check_out_prefix("--out", args.out, "DIR/job")
 
 
-#: Machine options whose value a program writes: the role of the line and the word's letter.
+#: Machine options whose value a program writes: the role of the line and the word's letter
+#: (the board offset: the last return to the board corner, ``G0 X.. Y..``).
 _WRITTEN = {"feed_mm_min": ("cut", "F"), "plunge_mm_min": ("plunge", "F"),
             "safe_z_mm": ("retract", "Z"), "plunge_mm": ("plunge", "Z"),
-            "spindle_rpm": ("pre", "S")}
+            "spindle_rpm": ("pre", "S"), "spinup_s": ("pre", "P"),
+            "board_offset_mm": ("post", "XY")}
+#: Machine options that only change the time estimate, not the program: never "not applied".
+_ESTIMATE_ONLY = ("rapid_mm_min", "overhead_s")
 
 
 def _warn_unused_options(gcode: str, over: dict, args) -> None:
@@ -652,11 +672,18 @@ def _warn_unused_options(gcode: str, over: dict, args) -> None:
     prog = read_program(gcode)
     out = []
     for key, value in over.items():
-        role, letter = _WRITTEN.get(key, (None, None))
-        lines = [t for t, r in zip(prog.lines, prog.role) if r == role and f" {letter}" in t]
-        word = next((w for w in lines[0].split() if w[0] == letter), None) if lines else None
-        if word is not None and word == gword(letter, -value if key == "plunge_mm" else value):
+        if key in _ESTIMATE_ONLY:
+            continue
+        role, letters = _WRITTEN.get(key, (None, ""))
+        values = value if key == "board_offset_mm" else [-value if key == "plunge_mm" else value]
+        lines = [t for t, r in zip(prog.lines, prog.role)
+                 if r == role and all(f" {a}" in t for a in letters)]
+        words = [w for w in lines[-1].split() if w[0] in letters] if letters and lines else []
+        word = " ".join(words) or None
+        if words and words == [gword(a, v) for a, v in zip(letters, values)]:
             continue  # the program already has this value
+        if key == "spindle_rpm" and value == 0 and not lines:
+            continue  # no spindle, as the program has none
         out.append(f"{key} = {value!r}" + (f" (the program has {word})" if word else ""))
     out += [f"--machine {args.machine}"] * bool(args.machine) + ["--no-improve"] * args.no_improve
     if out and not args.quiet:

@@ -253,6 +253,7 @@ class Grbl:
         self.modes: list[str] = []  # from `$G`: the parser state, e.g. ["G0", "G54", "G17", ...]
         self.reset_sent = False  # connect sent a soft reset
         self.homed = False  # connect ran the homing cycle `$H` (the machine moved)
+        self.state_at_connect = ""  # the state connect found (after its reset, if it sent one)
         self.unlocked = False  # connect cleared an Alarm with `$X` (the position was not restored)
         self._acks: queue.Queue = queue.Queue()
         self._banner_event = threading.Event()
@@ -495,6 +496,7 @@ class Grbl:
             raise NotGrblError(f"device on {self.port} is GRBL {clip(self.version, 30)}; this streamer speaks GRBL 1.1")
         self._polling.set()
         st = self.query_status()
+        self.state_at_connect = st["state"]
         if home:  # in any state: the caller asks for a known machine position
             self.homed = True
             r = self.command("$H", timeout=120.0)
@@ -569,6 +571,7 @@ class Grbl:
         pending: deque = deque()  # (index, bytes, dwell seconds)
         used = 0
         i = 0
+        settled = 0  # the first line sent since every earlier line was answered
         n = len(items)
         progress = time.monotonic()  # last send or answer
         while i < n or pending:
@@ -591,6 +594,7 @@ class Grbl:
             if r.kind == "ok":
                 _, size, _ = pending.popleft()
                 used -= size
+                settled = settled if pending else i
                 progress = time.monotonic()
                 if on_ok is not None:
                     on_ok(idx)
@@ -601,9 +605,19 @@ class Grbl:
                                r.text)
             elif r.kind == "alarm":
                 raise JobFault(f"ALARM:{r.code} ({ALARM_TEXT.get(r.code, 'see GRBL alarm codes')})", idx, r.text)
+            elif r.kind == "stall" and counting and pending[-1][0] > settled:
+                # The 'ok's answer lines in order, so a lost one is taken for the next line's:
+                # any of the lines since the stream last settled may be the one not answered.
+                last = pending[-1][0]
+                what = (f"one of the {last - settled + 1} lines from "
+                        f"{clip(items[settled], 40)!r} to {clip(items[last], 40)!r}")
+                raise Stalled(f"controller on {self.port} reports Idle but has not answered {what} "
+                              f"for {limit:g} s (a lost 'ok'; character counting cannot tell "
+                              "which)", settled, r.text)
             elif r.kind == "stall":
-                raise Stalled(f"controller on {self.port} reports Idle but has not answered {clip(items[idx], 40)!r} "
-                              f"for {limit:g} s (a lost 'ok')", idx, r.text)
+                raise Stalled(f"controller on {self.port} reports Idle but has not answered "
+                              f"{clip(items[idx], 40)!r} for {limit:g} s (a lost 'ok')", idx,
+                              r.text)
             else:
                 raise JobFault("controller reset unexpectedly (banner mid-job)", idx, r.text)
 

@@ -39,8 +39,9 @@ class Journal:
     creates a journal only once motion is about to be sent.
 
     **Arguments:** `path`; `gcode_sha256`; `n_scratches`; `resume`: continue an existing journal
-    (it must exist and match); otherwise there must be no journal, or only a header (a leftover
-    of a session that never started: it is replaced); `header`: extra header fields.
+    (it must exist and match); otherwise there must be no journal, or only a header, whole or
+    torn (a leftover of a session that never started: it is replaced); `header`: extra header
+    fields.
     """
 
     def __init__(self, path, gcode_sha256: str, n_scratches: int, *, resume: bool, header: dict | None = None):
@@ -64,6 +65,13 @@ class Journal:
         """
         path = os.fspath(path)
         exists = os.path.exists(path) and os.path.getsize(path) > 0
+        if exists and cls.torn_header(path):
+            if resume:
+                raise JournalError(
+                    f"--resume: journal {path!r} holds only a torn header (the power was lost as "
+                    "the job started, before any scratch was carved): run the same command "
+                    "without --resume to start the job; it replaces the journal")
+            exists = False  # nothing was carved: replaced, as a header-only journal is
         if not exists:
             if resume:
                 raise JournalError(f"--resume: journal {path!r} does not exist; nothing to resume")
@@ -96,11 +104,31 @@ class Journal:
                 return "a lost device"
             if r.get("event") == "alarm":
                 return "an alarm"
+            if r.get("event") == "reset":
+                return "a soft reset on a second interrupt"
             if r.get("event") == "fault" and reply.startswith("ALARM"):
                 return reply
             if r.get("event") == "fault" and reply.startswith("Grbl"):
                 return "a reset of the controller"
         return None
+
+    @staticmethod
+    def torn_header(path) -> bool:
+        """Whether the journal holds nothing but a torn header record (the power was lost while
+        the carver wrote it, just before the first motion): nothing was carved."""
+        try:
+            with open(path, "rb") as f:
+                data = f.read(1 << 16)
+        except OSError:
+            return False
+        start = b'{"type": "header"'  # how the carver's header begins (`json.dumps`)
+        if b"\n" in data or not (data.startswith(start) or start.startswith(data)):
+            return False  # a whole record ends with its newline
+        try:
+            json.loads(data)
+        except ValueError:  # json.JSONDecodeError, UnicodeDecodeError
+            return True
+        return False
 
     @staticmethod
     def records(path) -> list:

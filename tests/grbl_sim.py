@@ -22,7 +22,8 @@ simulator models what a host can get wrong:
   stops motion, the position kept;
 - faults: ``error:N`` on the n-th G-code line, ``ALARM:N`` in the n-th block, the device vanishing
   in the n-th block, the n-th line's ``ok`` lost, garbage lines, a slow device, a non-GRBL device
-  (optionally spewing given bytes), start in Alarm, cutting before the spindle is up to speed.
+  (optionally spewing given bytes), start in Alarm, cutting before the spindle is up to speed,
+  starting the spindle with the tool on the board.
 
 Every executed move is recorded in a :class:`Workpiece` (shared across simulator instances so a
 "power cycle" keeps the board). :func:`check_line` is a strict GRBL 1.1 grammar checker.
@@ -500,6 +501,11 @@ class GrblSim:
         if 92.1 in g:
             self.g92 = [0.0, 0.0, 0.0]
         if 3 in mc:
+            z_work = pos[2] - self.work_offset()[2]
+            if self.spindle_on is None and z_work <= 1e-6:  # a spinning cutter marks the board
+                with self.wp.lock:
+                    self.wp.faults.append(f"spindle started with the tool on the board (work Z "
+                                          f"{z_work:.3f})")
             self.spindle_on = time.monotonic()
         if 5 in mc or 2 in mc:
             self.spindle_on = None

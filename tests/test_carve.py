@@ -253,6 +253,7 @@ def test_a_controller_that_just_started_without_homing_is_refused(job):
 
     class Restarted:  # what `Grbl.connect` leaves after a restart on opening: status by $10
         port, banner, homed = "/dev/ttyUSB0", "Grbl 1.1h ['$' for help]", False
+        settings, options, state_at_connect, unlocked = {}, "V", "Idle", False
         offsets = {"G54": (50.0, 40.0, -20.0), "G92": (0.0, 0.0, 0.0), "TLO": (0.0,)}
         status = {"state": "Idle", "MPos": "0.000,0.000,0.000"}
 
@@ -277,6 +278,26 @@ def test_a_controller_that_just_started_without_homing_is_refused(job):
         g = Restarted()
         g.__dict__.update(change)
         carve_mod._check_work_zero(g, "G54", None, False, untouched)
+    # With homing on ($22=1) GRBL starts locked in Alarm: found Idle, it was homed since, and
+    # 0, 0, 0 is its home on firmware built with HOMING_FORCE_SET_ORIGIN (`Z`): not refused.
+    # Refused still: built without the lock (`L`), found in Alarm, or unlocked ($X) now.
+    homed = dict(settings={22: 1.0}, options="VZ")
+    carve_mod._check_work_zero(type("Homed", (Restarted,), homed)(), "G54", None, False, untouched)
+    for change in (dict(options="VZL"), dict(state_at_connect="Alarm"), dict(unlocked=True),
+                   dict(settings={22: 0.0})):
+        g = type("NotHomed", (Restarted,), {**homed, **change})()
+        with pytest.raises(CarveError, match=started):
+            carve_mod._check_work_zero(g, "G54", None, False, untouched)
+    wp = Workpiece()
+    wp.wcs[54] = [50.0, 40.0, -20.0]
+    sim = GrblSim(wp, options="VZ", settings={22: 1, 23: 7})  # homed earlier, parked at home
+    sim.pos = [0.0, 0.0, 0.0]
+    try:
+        os.remove(path + ".journal")
+        assert carve(path, sim.port, **FAST)["done"] == 24
+    finally:
+        sim.close()
+    assert wp.faults == [] and len(wp.moves) > 24
 
 
 def test_device_vanishes_then_resume_after_power_cycle(job):
@@ -327,6 +348,87 @@ def test_ctrl_c_holds_retracts_and_resumes(job):
     assert r["done"] == 24
     _verify(prog, wp)
 
+
+
+def test_a_second_ctrl_c_during_the_hold_resets_and_journals(job, monkeypatch):
+    """Ctrl-C holds and retracts; a second one while the hold settles sends a soft reset at once
+    (motion and spindle stop), and the journal keeps the interrupt and the reset, so a resume
+    asks for the position to be restored first."""
+    path, prog = job
+    wp = Workpiece()
+    sim = GrblSim(wp)
+
+    def stop(k, s):
+        if k == 6:
+            raise KeyboardInterrupt
+
+    def second_ctrl_c(self, accept, timeout):
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as m:
+        m.setattr(Grbl, "wait_state", second_ctrl_c)
+        with pytest.raises(KeyboardInterrupt):
+            carve(path, sim.port, on_scratch=stop, **FAST)
+    recs = Journal.records(path + ".journal")
+    assert [r["event"] for r in recs if r["type"] == "event"][-2:] == ["interrupt", "reset"]
+    assert Journal.read(path + ".journal")[1] == 7
+    time.sleep(0.2)
+    assert sim.state.startswith("Alarm") or sim.state == "Idle"
+    assert sim.spindle_on is None and sim.planner == type(sim.planner)()  # stopped, flushed
+    with pytest.raises(CarveError, match=r"position may be lost \(a soft reset on a second "
+                                         r"interrupt since the job last ran\)"):
+        _resume(path, sim, unlock=True)
+    r = _resume(path, sim, home=True)
+    sim.close()
+    assert r["done"] == 24
+    _verify(prog, wp, in_progress={7})
+
+
+def test_the_spindle_starts_with_the_tool_off_the_board(tmp_path, small):
+    """Zeroed by touching the tool to the board, a job with a spindle lifts to safe Z before
+    ``M3``: a spinning cutter on the surface would mark the corner (the simulator records it)."""
+    d, _ = small
+    prog = make_program(d, MachineConfig(plunge_mm=0.1, spindle_rpm=12000, spinup_s=0.1),
+                        time_limit=2)
+    assert prog.lines.index("G0 Z1.000") < prog.lines.index("M3 S12000")
+    path = tmp_path / "spin.gcode"
+    write_program(prog, path)
+    wp = Workpiece()
+    sim = GrblSim(wp, spinup_s=0.05)
+    sim.pos = [0.0, 0.0, 0.0]  # the tool on the board's corner, the work zero there
+    try:
+        assert carve(str(path), sim.port, **FAST)["done"] == 24
+    finally:
+        sim.close()
+    _verify(prog, wp)
+
+
+def test_a_journal_torn_in_its_header_blocks_nothing(job):
+    """Power lost while the header was written (before any motion): a fresh run replaces it;
+    a resume says so and what to do, in one line."""
+    path, prog = job
+    with open(path + ".journal", "w") as f:
+        f.write('{"type": "header", "gcode_sha')
+    sim = GrblSim()
+    try:
+        with pytest.raises(CarveError, match=r"^--resume: journal .* holds only a torn header .*"
+                                             r"without --resume") as e:
+            carve(path, sim.port, resume=True, **FAST)
+        assert "\n" not in str(e.value) and sim.wp.moves == []
+        assert carve(path, sim.port, **FAST)["done"] == 24
+    finally:
+        sim.close()
+    _verify(prog, sim.wp)
+    assert Journal.read(path + ".journal")[1] == 24
+    assert Journal.torn_header(path + ".journal") is False
+    for text, torn in (('{"type": "header", "n_scratches": 24}', False),  # whole, no newline
+                       ('{"type": "header", "n_scr', True),
+                       ('{"type": "header"}\n{"type": "do', False),  # a torn later record
+                       ('{"type": "head', True), ("{", True),
+                       ('{"kind": "header"', False)):  # not the header as the carver writes it
+        with open(path + ".journal", "w") as f:
+            f.write(text)
+        assert Journal.torn_header(path + ".journal") is torn, text
 
 
 def test_garbage_and_slow_device(job):
@@ -558,7 +660,7 @@ def test_plain_rerun_keeps_the_program_of_an_unfinished_job(tmp_path, capsys):
     assert main(loud) == 0
     err = capsys.readouterr().err
     assert ("not applied: feed_mm_min = 600.0 (the program has F900.0), board_offset_mm = "
-            "[1.0, 2.0], spindle_rpm = 1000.0") in err
+            "[1.0, 2.0] (the program has X0.000 Y0.000), spindle_rpm = 1000.0") in err
     assert "using the given values" not in err and "plunge_mm" not in err  # (the program's own)
     sim.close()
     _verify(read_program(gcode), wp, in_progress={4})
@@ -597,6 +699,21 @@ def test_lost_ok_while_idle_stops_with_resume_advice(job):
     assert _resume(path, sim)["done"] == 24
     sim.close()
     _verify(prog, wp, in_progress={4})
+    # Character counting: the 'ok's that follow answer the lines after it, so the stall can only
+    # name the lines in flight since every earlier one was answered (from the plunge on).
+    os.remove(path + ".journal")
+    wp = Workpiece()
+    sim = GrblSim(wp, drop_ok_at=2 + 5 * 4 + 2)
+    try:
+        with pytest.raises(CarveError) as e:
+            carve(path, sim.port, idle_timeout=0.5, counting=True, **FAST)
+    finally:
+        sim.close()
+    assert re.fullmatch(r"controller on \S+ reports Idle but has not answered one of the 4 lines "
+                        r"from 'G1 Z-0\.100 F300\.0' to 'G4 P0\.000' for 0\.5 s \(a lost 'ok'; "
+                        r"character counting cannot tell which\) at G-code line 27 .*scratch "
+                        r"position 4 .*4 of 24 scratches are journalled; .*--resume",
+                        str(e.value)), str(e.value)
 
 
 

@@ -348,7 +348,7 @@ def test_fabricate_with_a_nonsense_port_exits_4(program, tmp_path, capsys, monke
     # So are a relative name that is not there (typed without its /dev/), an empty name and a
     # path that is not a serial device.
     for port, words in (("ttyUSB9", "--port 'ttyUSB9' does not exist"),
-                        ("", "--port '' does not exist"), (".", "is not a serial device")):
+                        ("", "--port is an empty path"), (".", "is not a serial device")):
         with monkeypatch.context() as m:
             m.chdir(tmp_path)
             assert fabricate.main(["--demo-n", "5", "--port", port, "--quiet"]) == 2

@@ -88,6 +88,11 @@ def test_no_plunge_deeper_than_the_profile_allows():
     assert fitted.info["fit"]["clamped"] == n_out and fitted.info["fit"]["unreachable"] >= n_out
     assert fitted.info["limits_mm"]["z"][0] == -cfg.plunge_max_mm
     assert "cut at its nearest end" in summarize(fitted.info)
+    shallow = d._replace(plunge=np.where(np.arange(12) % 5 == 1, 1e-10, 0.05e-3))
+    with pytest.raises(DesignError, match=r"^scratch 1 has a recorded plunge of 1e-07 mm, "
+                                          r"shallower than machine.plunge_min_mm = 0.005 mm "
+                                          r"\(3 such.*outside the profile's plunge range"):
+        make_program(shallow, cfg, time_limit=0.5)  # (written as Z0.000: not cut at all)
 
 
 def test_a_design_is_not_carved_with_another_cutter_than_it_records():
@@ -174,6 +179,69 @@ def test_cli_takes_a_design_runs_folder(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "is a folder without a design.npz" in err
     assert os.listdir(tmp_path / "empty") == []
+
+
+def test_cli_refuses_an_empty_path_instead_of_carving_the_demo(tmp_path, capsys, monkeypatch):
+    """``--gcode "$JOB"`` with JOB unset is an empty path, not "no option": refused in one line,
+    nothing written (it used to stream the built-in demo design)."""
+    monkeypatch.chdir(tmp_path)
+    for argv, opt in ((["--gcode", ""], "--gcode"), ([""], "the design"),
+                      (["--machine", " "], "--machine"), (["--out", ""], "--out"),
+                      (["--port", ""], "--port")):
+        assert main(argv + ["--dry-run", "--quiet", "--demo-n", "5"]) == 2, argv
+        err = capsys.readouterr().err
+        assert re.fullmatch(rf"error: {opt} is an empty path .*\n", err), err
+    assert os.listdir(tmp_path) == []
+
+
+def test_a_malformed_metrics_json_beside_the_design_is_ignored(tmp_path, capsys):
+    """The design run's ``metrics.json`` only adds the as-carved SSIM to the summary: one not in
+    the design run's form is passed over (the summary says how to get the figure)."""
+    d = demo_design(12, seed=1)
+    save_design(tmp_path / "design.npz", d.p0, d.p1, d.width, d.depth, d.alpha, d.board)
+    for bad in ('{"as_carved": {"ssim": 0.93}}', '{"as_carved": "ssim"}', '[1, 2]',
+                '{"as_carved": {"ssim": ["a"]}}', '\u00ff'):
+        (tmp_path / "metrics.json").write_text(bad)
+        for f in tmp_path.glob("design.*"):
+            if f.suffix != ".npz":
+                f.unlink()
+        assert main([str(tmp_path), "--dry-run", "--order-time", "0.5"]) == 0, bad
+        out = capsys.readouterr().out
+        if bad.startswith("{"):  # a design run's metrics without the figure
+            assert "as carved        not computed" in out, (bad, out)
+        summary = json.loads((tmp_path / "design.summary.json").read_text())
+        assert summary.get("as_carved") is None, bad
+    (tmp_path / "metrics.json").write_text('{"as_carved": {"ssim": [0.9, 0.8]}}')
+    for f in tmp_path.glob("design.*"):
+        if f.suffix != ".npz":
+            f.unlink()
+    assert main([str(tmp_path), "--dry-run", "--order-time", "0.5"]) == 0
+    assert "SSIM vs the design render per view [0.9, 0.8]" in capsys.readouterr().out
+
+
+def test_streaming_a_program_warns_only_of_options_it_does_not_have(tmp_path, capsys):
+    """``--gcode`` (or ``--resume``) streams a program as written: the options given with it
+    that the program has (its feed, offset, spindle, spin-up) pass silently, the others are
+    named, and those that only change the time estimate never are."""
+    prefix = str(tmp_path / "job")
+    made = ["--dry-run", "--quiet", "--demo-n", "6", "--order-time", "0.5", "--out", prefix,
+            "--offset", "5", "5", "--spindle", "12000", "--spinup", "0.5", "--feed", "600"]
+    assert main(made) == 0
+    same = ["--offset", "5", "5", "--spindle", "12000", "--spinup", "0.5", "--feed", "600",
+            "--rapid", "2000"]
+    assert main(["--gcode", prefix + ".gcode"] + same) == 0
+    assert "not applied" not in capsys.readouterr().err
+    assert main(["--gcode", prefix + ".gcode", "--offset", "5", "6", "--spinup", "1",
+                 "--spindle", "0", "--fit", "global"]) == 0
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and ("not applied: fit = 'global', board_offset_mm = [5.0, 6.0] "
+                                      "(the program has X5.000 Y5.000), spindle_rpm = 0.0 (the "
+                                      "program has S12000), spinup_s = 1.0 (the program has "
+                                      "P0.500)") in err, err
+    assert main(["--dry-run", "--quiet", "--demo-n", "6", "--order-time", "0.5", "--out",
+                 prefix + "2"]) == 0
+    assert main(["--gcode", prefix + "2.gcode", "--spindle", "0"]) == 0  # none, as it has none
+    assert "not applied" not in capsys.readouterr().err
 
 
 def test_cli_dry_run_demo(tmp_path, capsys, monkeypatch):
