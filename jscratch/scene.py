@@ -42,7 +42,9 @@ __all__ = [
     "ALPHA_RANGE",
     "MAX_DISTANCE",
     "MAX_IRRADIANCE",
+    "MIN_BOARD",
     "MIN_HEIGHT",
+    "MIN_WIDTH",
     "ON_BOARD_RTOL",
     "PROFILES",
     "SCRATCH_RULES",
@@ -78,6 +80,11 @@ MIN_HEIGHT, MAX_DISTANCE = 1e-6, 1e9
 #: needs about 2e2, a light at `MAX_DISTANCE` about 1e2).
 MAX_IRRADIANCE = 1e20
 
+#: The narrowest groove (m; narrower, the float32 width derivative of the pair integral is NaN
+#: from about 1e-19 m) and the smallest board side (m; smaller, a pixel's area underflows
+#: float32 on fine grids): a picometre and a micrometre, far below anything carved.
+MIN_WIDTH, MIN_BOARD = 1e-12, 1e-6
+
 #: The array dtypes a scene may hold.
 DTYPES = ("float32", "float64")
 
@@ -87,7 +94,7 @@ _LOW, _HIGH = 1 - 1e-6, 1 + 1e-6
 #: The range rule of each per-scratch value: ``name -> (predicate, text)``; the predicate works
 #: elementwise on numpy and jax arrays alike.
 SCRATCH_RULES = {
-    "width": (lambda v: v > 0, "must be > 0 m"),
+    "width": (lambda v: v >= _LOW * MIN_WIDTH, f"must be >= {MIN_WIDTH:g} m"),
     "depth": (lambda v: v > 0, "must be > 0 m"),
     "alpha": (lambda v: (v >= _LOW * ALPHA_RANGE[0]) & (v <= _HIGH * ALPHA_RANGE[1]),
               f"must lie in [{ALPHA_RANGE[0]:g}, {ALPHA_RANGE[1]:g}]"),
@@ -301,8 +308,9 @@ class Board(eqx.Module):
             raise InputError(f"Board: `shape` must be positive (H, W); got {self.shape}")
         for name in ("Sx", "Sy"):
             v = getattr(self, name)
-            if not (math.isfinite(v) and v > 0):
-                raise InputError(f"Board: `{name}` must be a positive finite length (m); got {v}")
+            if not (math.isfinite(v) and v >= MIN_BOARD):
+                raise InputError(f"Board: `{name}` must be a finite length >= {MIN_BOARD:g} m; "
+                                 f"got {v}")
         if not 0.0 <= self.F0 <= 1.0:
             raise InputError(f"Board: `F0` must lie in [0, 1]; got {self.F0}")
         for name in ("a_G", "a_S"):

@@ -39,7 +39,9 @@ def test_random_scratches_lie_on_the_board_with_lengths_in_range():
 @pytest.mark.parametrize(
     "kw, match",
     [
-        (dict(width=np.float32([1e-4, 0.0])), r"Scratches: scratch 1: width = 0.0 must be > 0 m"),
+        (dict(width=np.float32([1e-4, 0.0])),
+         r"Scratches: scratch 1: width = 0.0 must be >= 1e-12 m"),
+        (dict(width=np.float32([1e-4, 1e-13])), r"scratch 1: width = \S+ must be >= 1e-12 m"),
         (dict(depth=np.float32([1e-4, -1.0])), r"scratch 1: depth = -1.0 must be > 0 m"),
         (dict(alpha=np.float32([0.1, 1.0])),
          r"scratch 1: alpha = 1.0 must lie in \[0.0001, 0.99\]"),
@@ -58,8 +60,9 @@ def test_shapes_board_and_views_errors():
         Scratches(jnp.zeros((3, 2)), jnp.ones((3, 2)), width=jnp.ones(2))
     with pytest.raises(ValueError, match="`shape` must be positive"):
         Board(shape=(0, 4))
-    with pytest.raises(ValueError, match="`Sx` must be a positive finite length"):
-        Board(Sx=-1.0)
+    for bad in (-1.0, 3e-19, 9e-7):
+        with pytest.raises(ValueError, match=rf"`Sx` must be a finite length >= 1e-06 m; got {bad}"):
+            Board(Sx=bad)
     with pytest.raises(ValueError, match=r"`a_S` must lie in \(0, 1\]"):
         Board(a_S=0.0)
     with pytest.raises(ValueError, match="view 0: camera is at z = -1.0"):
@@ -262,3 +265,33 @@ def test_check_views_refuses_wrong_shapes():
     with pytest.raises(InputError, match=r"`intensity` must have shape \(M,\) = \(1,\)"):
         scene.check_views([[0, 0, 1.0]], [[0, 0, 1.0]], [1.0, 2.0])
     scene.check_views([[0, 0, 1.0]], [[0, 0, 1.0]], 1.0)  # a scalar intensity is every view's
+
+
+@pytest.mark.parametrize("profile", ["paper", "arc"])
+def test_values_and_gradients_stay_finite_at_the_smallest_width_and_board(profile):
+    """At `scene.MIN_WIDTH` (a groove) and `scene.MIN_BOARD` (a board side) the float32 render
+    and its gradient with respect to every scratch value are finite (below them, the width
+    derivative and a pixel's area underflow: refused by the rules above)."""
+    from jscratch import render
+
+    rng = np.random.default_rng(3)
+    for side, width in ((0.01, scene.MIN_WIDTH), (scene.MIN_BOARD, 1e-8)):
+        board = Board(shape=(16, 16), Sx=side, Sy=side)
+        n = 24
+        p0 = rng.uniform(0.1, 0.9, (n, 2)) * side
+        p1 = rng.uniform(0.1, 0.9, (n, 2)) * side
+        views = scene.views_on_circle(2, board=board, distance=10 * side)
+        w = np.full(n, width, np.float32)
+
+        def loss(p0, p1, w, d, a):
+            s = Scratches(p0, p1, w, d, a, profile=profile)
+            return jnp.sum(render.render_pairs(s, views, board, pairs)[0] ** 2)
+
+        s0 = Scratches(jnp.asarray(p0, jnp.float32), jnp.asarray(p1, jnp.float32), w,
+                       np.full(n, width, np.float32), np.full(n, 0.04, np.float32), profile=profile)
+        pairs = render.bin_pairs(s0, board)
+        val, grads = jax.value_and_grad(loss, argnums=(0, 1, 2, 3, 4))(
+            s0.p0, s0.p1, s0.width, s0.depth, s0.alpha)
+        assert np.isfinite(float(val)), (side, width)
+        for g in grads:
+            assert np.all(np.isfinite(np.asarray(g))), (side, width)
