@@ -150,6 +150,8 @@ def read_program(gcode_path) -> Program:
     gcode_path = os.fspath(gcode_path)
     map_path = gcode_path + ".map.csv"
     for path, what in ((gcode_path, "G-code file"), (map_path, "line map")):
+        if os.path.isdir(path):
+            raise DesignFileError(f"{what} {path!r} is a folder, not a file")
         if not os.path.isfile(path):
             hint = " (write it with the G-code: python -m jscratch.fabricate)" if path == map_path else ""
             raise DesignFileError(f"{what} {path!r} does not exist{hint}")

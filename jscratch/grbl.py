@@ -79,7 +79,9 @@ def gword(letter: str, value: float) -> str:
     if float(text) == 0.0:
         text = text.lstrip("-")
     if not lo <= float(text) <= hi:
-        raise InputError(f"G-code word {letter}{text} is outside GRBL's range [{lo:.{dec}f}, {hi:.{dec}f}]")
+        shown = text if len(text) <= 16 else f"{v:.6g}"  # (1e300 in fixed point: 300 digits)
+        raise InputError(f"G-code word {letter}{shown} is outside GRBL's range "
+                         f"[{lo:.{dec}f}, {hi:.{dec}f}]")
     return letter + text
 
 

@@ -62,7 +62,8 @@ class MachineProfile:
     - `plunge_mm`: fixed plunge depth for every scratch of a free design, or None to fit it (`fit`).
     - `fit`: ``"per-scratch"`` or ``"global"`` plunge fit for free designs.
     - `board_offset_mm`: work coordinates of the board corner ``(0, 0)``.
-    - `margin_mm`: how far outside the board a coordinate may be (design endpoints are clamped).
+    - `margin_mm`: how far outside the board a coordinate may be, at most 1e4 mm (design endpoints
+      are clamped).
     - `min_length_mm`: shorter scratches are an error (or dropped with `drop_short`).
     - `spindle_rpm`: 0 for no spindle commands, else ``M3 S..`` / ``M5``.
     - `spinup_s`: dwell after ``M3`` for the spindle to reach speed (also sent on resume).
@@ -144,6 +145,8 @@ class MachineProfile:
             off = tuple(float(v) for v in self.board_offset_mm)
         except (TypeError, ValueError):
             off = ()
+        if self.margin_mm > 1e4:  # (the limits comment and every coordinate stay short)
+            bad("margin_mm", "a finite number in [0, 1e4] mm")
         if len(off) != 2 or not all(math.isfinite(v) and abs(v) <= 1e5 for v in off):
             bad("board_offset_mm", "two finite numbers [x, y] within +-1e5 mm")
         self.board_offset_mm = off

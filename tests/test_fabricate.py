@@ -194,6 +194,18 @@ def test_cli_refuses_an_empty_path_instead_of_carving_the_demo(tmp_path, capsys,
     assert os.listdir(tmp_path) == []
 
 
+def test_cli_refuses_a_huge_feed_a_huge_margin_and_a_folder_in_short_lines(tmp_path, capsys):
+    for argv, want in ((["--feed", "1e300"], r"word F1e\+300 is outside GRBL's range"),
+                       (["--margin", "1e12"], r"machine.margin_mm must be a finite number in "
+                                              r"\[0, 1e4\] mm"),
+                       (["--gcode", str(tmp_path)], r"G-code file .* is a folder, not a file")):
+        out = [] if "--gcode" in argv else ["--out", str(tmp_path / "a")]
+        assert main(argv + out + ["--dry-run", "--quiet", "--demo-n", "5"]) == 2, argv
+        err = capsys.readouterr().err
+        assert re.search(want, err) and err.count("\n") == 1 and len(err) < 200, err
+    assert os.listdir(tmp_path) == []
+
+
 def test_a_malformed_metrics_json_beside_the_design_is_ignored(tmp_path, capsys):
     """The design run's ``metrics.json`` only adds the as-carved SSIM to the summary: one not in
     the design run's form is passed over (the summary says how to get the figure)."""
