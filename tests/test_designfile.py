@@ -39,7 +39,7 @@ def test_round_trip_float32_and_views(tmp_path):
         ("p1", 3, np.nan, r"scratch 3: p1 .* not finite"),
         ("p0", 2, 0.31, r"scratch 2: p0 = .* lies off the board"),
         ("p0", 1, -1e-3, r"scratch 1: p0 = .* lies off the board"),
-        ("width", 4, 0.0, r"scratch 4: width .* must be > 0"),
+        ("width", 4, 0.0, r"scratch 4: width .* must be >= 1e-12 m"),
         ("alpha", 0, 1.5, r"scratch 0: alpha .* must lie in \[0.0001, 0.99\]"),
         ("alpha", 3, 1.0, r"scratch 3: alpha = 1.0 must lie in \[0.0001, 0.99\]"),
         ("depth", 2, np.inf, r"scratch 2: depth .* not finite"),
