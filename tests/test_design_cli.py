@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from jscratch.design import cli
-from jscratch.design.io import RESULT_FILES, load_result
+from jscratch.design.io import (RESULT_FILES, load_result, remove_partial_writes, save_result,
+                               settle_earlier)
 from jscratch.design.config import DesignConfig, SceneConfig
 from jscratch.designfile import DesignError
 from jscratch.errors import DesignFileError
@@ -444,3 +445,105 @@ def test_an_as_carved_render_out_of_memory_keeps_the_design(tmp_path, monkeypatc
     monkeypatch.setattr(maker, "as_carved", broken)
     with pytest.raises(jax.errors.JaxRuntimeError, match="something else"):
         cli.main([*TINY, "--as-carved-samples", "4", "--out", str(tmp_path / "o2"), "--quiet"])
+
+
+def _files(folder):
+    return {p.name: p.read_bytes() for p in folder.iterdir() if p.is_file()}
+
+
+_SIGTERM_RUN = """
+import os, signal, sys, time
+from jscratch.design import cli
+def terminated(*args, **kwargs):
+    os.kill(os.getpid(), signal.SIGTERM)  # as `kill`, `timeout` or a scheduler sends it
+    time.sleep(30)
+cli.design = terminated
+sys.exit(cli.main(sys.argv[1:]))
+"""
+
+
+def test_sigterm_and_a_kill_before_the_first_checkpoint_leave_the_earlier_result(cli_run,
+                                                                                 tmp_path):
+    """SIGTERM stops a new run as Ctrl-C does: the earlier result's files as they were. A kill
+    (SIGKILL: nothing runs) between the moves aside and the first checkpoint leaves the earlier
+    files as ``*.earlier``: `load_result` reads the earlier result, and the next run puts them
+    back first (`settle_earlier`); a kill after the first checkpoint leaves them stale, removed."""
+    out = tmp_path / "run"
+    shutil.copytree(cli_run, out)
+    before = _files(out)
+    proc = _run(["-c", _SIGTERM_RUN, *TINY, "--seed", "7", "--out", str(out), "--quiet"])
+    assert proc.returncode == 130, proc.stderr[-2000:]
+    assert "before the first checkpoint (the folder is as it was)" in proc.stderr
+    assert _files(out) == before
+    seed = load_result(out).config.seed
+    # What a kill leaves at each point of the moves (checkpoint aside, config aside, new config):
+    for moved in (1, 2, 3):
+        shutil.rmtree(out)
+        shutil.copytree(cli_run, out)
+        os.replace(out / "checkpoint.npz", out / "checkpoint.npz.earlier")
+        if moved >= 2:
+            os.replace(out / "config.json", out / "config.json.earlier")
+        if moved == 3:
+            (out / "config.json").write_text(json.dumps({"design": {"seed": 7}, "run_id": "x"}))
+        (out / ".ckpt-abc.npz.tmp").write_bytes(b"torn")  # a checkpoint write killed part-way
+        (out / ".jscratch-save-abc").mkdir()
+        if moved >= 2:
+            assert load_result(out).config.seed == seed  # the earlier result, read as it was
+        settle_earlier(str(out))
+        remove_partial_writes(str(out))
+        assert _files(out) == before and sorted(os.listdir(out)) == sorted(before), moved
+    # Killed after its first checkpoint: the earlier files are stale, removed by the next run.
+    for name in ("config.json", "checkpoint.npz"):
+        shutil.copy(out / name, out / (name + ".earlier"))
+    assert cli.main(["--resume", "--out", str(out), "--quiet"]) == 0
+    assert not list(out.glob("*.earlier"))
+
+
+def test_a_save_stopped_part_way_is_refused_not_loaded_as_one_run(cli_run, tmp_path,
+                                                                  monkeypatch):
+    """`save_result` moves config.json first and metrics.json last, so a folder left by a save
+    stopped after any move holds a config and metrics of different runs: refused, whatever
+    order the file system lists the staged files in."""
+    result = load_result(cli_run)
+    real_replace, real_listdir = os.replace, os.listdir
+
+    def listdir(path):  # the order that would put the run-id pair first
+        names = real_listdir(path)
+        first = [n for n in ("config.json", "metrics.json") if n in names]
+        return first + [n for n in names if n not in first]
+
+    monkeypatch.setattr(os, "listdir", listdir)
+    for stop_at in range(1, 6):
+        out = tmp_path / f"save{stop_at}"
+        shutil.copytree(cli_run, out)
+        calls = []
+
+        def replace(src, dst):  # the moves from the staging folder into `out`, counted
+            if os.path.dirname(os.fspath(dst)) == str(out):
+                calls.append(dst)
+                if len(calls) == stop_at + 1:
+                    raise KeyboardInterrupt
+            return real_replace(src, dst)
+
+        monkeypatch.setattr(os, "replace", replace)
+        with pytest.raises(KeyboardInterrupt):
+            save_result(result, out)
+        monkeypatch.setattr(os, "replace", real_replace)
+        assert len(calls) == stop_at + 1  # stopped with `stop_at` files moved
+        with pytest.raises(DesignFileError, match="not all of one run"):
+            load_result(out)
+
+
+def test_checkpoint_and_result_files_are_as_readable_as_the_others(tmp_path):
+    """`checkpoint.save_npz` writes through a temporary file, with the mode `open` would give
+    (0644 under umask 022), not the owner-only mode of `tempfile.mkstemp`."""
+    from jscratch.design.checkpoint import save_npz
+
+    old = os.umask(0o022)
+    try:
+        save_npz(str(tmp_path / "a.npz"), {"x": np.zeros(3)})
+        (tmp_path / "b.txt").write_text("x")
+    finally:
+        os.umask(old)
+    assert (tmp_path / "a.npz").stat().st_mode & 0o777 == 0o644
+    assert (tmp_path / "b.txt").stat().st_mode & 0o777 == 0o644

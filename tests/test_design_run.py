@@ -43,6 +43,10 @@ def test_design_refuses_bad_inputs(tmp_path):
         design(targets[:1], views, board, CFG)
     with pytest.raises(DesignError, match="resume=True needs a checkpoint path"):
         design(targets, views, board, CFG, resume=True)
+    for name, bad in (("resume", "no"), ("progress", 1)):  # ("no" is true: it resumed)
+        with pytest.raises(DesignError, match=rf"^design: `{name}` must be True or False, got "
+                                              rf"{bad!r}$"):
+            design(targets, views, board, CFG, checkpoint=str(tmp_path / "c.npz"), **{name: bad})
     # the default float32 setting: a float64 design is refused, saying how to enable it
     assert not jax.config.jax_enable_x64
     with pytest.raises(DesignError, match="dtype float64 needs jax_enable_x64"):

@@ -20,11 +20,27 @@ from jscratch.design.config import DesignConfig
 from jscratch.design.params import DesignParams
 
 
+def _umask() -> int:
+    """The process's umask, read without changing it where Linux says it (another thread may be
+    creating files meanwhile)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def save_npz(path: str, arrays: dict[str, np.ndarray]) -> None:
     directory = os.path.dirname(os.path.abspath(path))
     os.makedirs(directory, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=".ckpt-", suffix=".npz.tmp", dir=directory)
     try:
+        os.fchmod(fd, 0o666 & ~_umask())  # as `open` makes files (mkstemp's: the owner's alone)
         with os.fdopen(fd, "wb") as f:
             np.savez(f, **arrays)
         os.replace(tmp, path)

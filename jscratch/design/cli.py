@@ -17,10 +17,13 @@ the last good state kept; 1 a file that could not be written).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import os
+import signal
 import sys
+import threading
 import uuid
 from collections.abc import Sequence
 
@@ -33,7 +36,8 @@ from jscratch.options import OneLineParser, add_arguments, flags, given, option,
 from jscratch.designfile import DesignError
 from jscratch.design.config import DEFAULT_IMAGES, DesignConfig, SceneConfig
 from jscratch.design import mesh as mesh_mod
-from jscratch.design.io import load_scene, save_result, targets_hash
+from jscratch.design.io import (EARLIER, load_scene, remove_partial_writes, save_result,
+                                settle_earlier, targets_hash)
 from jscratch.design.run import check_inputs, design
 
 __all__ = ["RunOptions", "main", "parser", "configs"]
@@ -214,6 +218,9 @@ def _run(argv) -> int:
         jax.config.update("jax_enable_x64", True)
     checkpoint = os.path.join(run.out, "checkpoint.npz")
     writer = mesh_mod.is_writer()
+    if writer and os.path.isdir(run.out):  # what a run stopped by a kill left
+        settle_earlier(run.out)  # (the folder as it was before it)
+        remove_partial_writes(run.out)
 
     def checks():  # every refusal before any work (with several processes: all refuse together)
         targets, names, views, board = load_scene(scene)
@@ -238,30 +245,26 @@ def _run(argv) -> int:
     # ---
     made = _missing_folders(run.out)  # removed again if the run stops before its checkpoint
     os.makedirs(run.out, exist_ok=True)
-    config_path, earlier = os.path.join(run.out, "config.json"), checkpoint + ".earlier"
-    earlier_config = None
-    if not run.resume:  # the settings first, so that an interrupted run can be resumed
+    config_path = os.path.join(run.out, "config.json")
+    if not run.resume:  # the settings first, so that an interrupted run can be resumed; an
+        # earlier run's checkpoint and config are moved aside until this run's first checkpoint
+        # (`settle_earlier` puts them back if it stops before, whatever stops it)
+        if os.path.exists(checkpoint):
+            os.replace(checkpoint, checkpoint + EARLIER)
         if os.path.isfile(config_path):
-            with open(config_path, "rb") as f:
-                earlier_config = f.read()
+            os.replace(config_path, config_path + EARLIER)
+        else:
+            open(config_path + EARLIER, "wb").close()  # (empty: there was none)
         with open(config_path, "w") as f:  # (its run_id: no result is this run's yet)
             json.dump({"design": config.to_dict(), "scene": scene.to_dict(), "targets": names,
                        "run_id": uuid.uuid4().hex}, f, indent=2)
-        if os.path.exists(checkpoint):  # an earlier run's, which these settings do not describe:
-            os.replace(checkpoint, earlier)  # put back if this run is refused, else removed
     try:
         result = design(targets, views, board, config, checkpoint=checkpoint, resume=run.resume,
                         progress=not run.quiet, mesh=mesh)
     except BaseException as e:
         own = os.path.exists(checkpoint)  # (a resumed run's, or one this run wrote)
-        if not run.resume and not own:  # nothing of this run to keep: the folder as it was
-            if earlier_config is None:
-                os.remove(config_path)
-            else:
-                with open(config_path, "wb") as f:
-                    f.write(earlier_config)
-            if os.path.exists(earlier):
-                os.replace(earlier, checkpoint)
+        settle_earlier(run.out)
+        if not own:  # nothing of this run to keep: the folders it made go too
             for folder in made:
                 if not os.listdir(folder):
                     os.rmdir(folder)
@@ -272,12 +275,14 @@ def _run(argv) -> int:
             "before the first checkpoint (the folder is as it was): run again to start over"),
             file=sys.stderr)
         return 130
-    finally:
-        if not run.resume and os.path.exists(earlier):
-            os.remove(earlier)
+    settle_earlier(run.out)
     try:
         save_result(result, run.out, scene=scene, names=names,
                     as_carved_samples=run.as_carved_samples)
+    except KeyboardInterrupt:
+        print("error: interrupted while writing the outputs (the checkpoint holds the design: "
+              "--resume writes them)", file=sys.stderr)
+        return 130
     except (MemoryError, jax.errors.JaxRuntimeError) as e:
         if not (run.as_carved_samples and _out_of_memory(e)):
             raise
@@ -290,6 +295,28 @@ def _run(argv) -> int:
     if not run.quiet:
         _summary(result, run.out)
     return 0
+
+
+@contextlib.contextmanager
+def _signals_interrupt():
+    """Within the block, SIGTERM and SIGHUP (``kill``, ``timeout``, a closed terminal, a job
+    scheduler) stop the run as Ctrl-C does, so it leaves its folder as Ctrl-C would. Main thread
+    only (elsewhere Python cannot set handlers: unchanged)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(signum, frame):
+        raise KeyboardInterrupt(signal.Signals(signum).name)
+
+    wanted = [sig for sig in (getattr(signal, "SIGTERM", None), getattr(signal, "SIGHUP", None))
+              if sig is not None]
+    before = {sig: signal.signal(sig, stop) for sig in wanted}
+    try:
+        yield
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
 
 
 def _out_of_memory(e: BaseException) -> bool:
@@ -328,7 +355,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Command-line entry point; returns the exit status (`jscratch.errors.exit_status`),
     printing a refusal as one line (`jscratch.errors.report`)."""
     try:
-        return _run(argv)
+        with _signals_interrupt():
+            return _run(argv)
     except SystemExit as e:  # argparse: --help (0) or a refused option, already printed (2)
         return e.code if isinstance(e.code, int) else 2
     except (JscratchError, OSError) as e:

@@ -295,7 +295,10 @@ def save_result(result: DesignResult, out: str | os.PathLike, *, scene: SceneCon
         if blocked:
             raise DesignError(f"save_result: {os.path.join(out, blocked[0])!r} is a folder; the "
                               "result's file of that name cannot be written")
-        for name in new:
+        # config.json first and metrics.json last: until the last move their run_ids differ,
+        # so a folder left half-moved (Ctrl-C, a kill) is refused by `load_result`.
+        last = [n for n in ("config.json", "metrics.json") if n in new]
+        for name in last[:1] + [n for n in new if n not in last] + last[1:]:
             os.replace(os.path.join(stage, name), os.path.join(out, name))
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
@@ -311,6 +314,47 @@ def save_result(result: DesignResult, out: str | os.PathLike, *, scene: SceneCon
         result.metrics.pop("as_carved", None)
     result.metrics.update(add)
     return add
+
+
+#: What a new command-line run moves aside until its own first checkpoint (`settle_earlier`).
+EARLIER = ".earlier"
+
+
+def settle_earlier(out: str) -> None:
+    """A new command-line run in folder `out` moves an earlier run's ``checkpoint.npz`` and then
+    its ``config.json`` aside (``*.earlier``; an empty ``config.json.earlier`` says there was
+    none) before writing its own config, until its first checkpoint. Settle what a run stopped
+    in between left, whatever stopped it (a kill too): with this run's checkpoint written, the
+    earlier files are removed; without it, they are put back (the config first), so the folder
+    is as it was."""
+    cfg, ckpt = os.path.join(out, "config.json"), os.path.join(out, "checkpoint.npz")
+    e_cfg, e_ckpt = cfg + EARLIER, ckpt + EARLIER
+    if os.path.exists(ckpt):
+        for path in (e_cfg, e_ckpt):
+            if os.path.exists(path):
+                os.remove(path)
+        return
+    if os.path.exists(e_cfg):
+        if os.path.getsize(e_cfg):
+            os.replace(e_cfg, cfg)
+        else:
+            if os.path.exists(cfg):
+                os.remove(cfg)
+            os.remove(e_cfg)
+    if os.path.exists(e_ckpt):
+        os.replace(e_ckpt, ckpt)
+
+
+def remove_partial_writes(out: str) -> None:
+    """Remove what a write killed part-way left in folder `out`: a checkpoint's temporary file
+    (``.ckpt-*.npz.tmp``, `checkpoint.save_npz`) and `save_result`'s staging folders
+    (``.jscratch-save-*``). For the start of a run (none of its own are being written)."""
+    for name in os.listdir(out):
+        path = os.path.join(out, name)
+        if name.startswith(".ckpt-") and name.endswith(".npz.tmp") and os.path.isfile(path):
+            os.remove(path)
+        elif name.startswith(".jscratch-save-") and os.path.isdir(path):
+            shutil.rmtree(path, ignore_errors=True)
 
 
 def _folder(who: str, out) -> str:
@@ -405,7 +449,14 @@ def load_result(out: str | os.PathLike) -> DesignResult:
     out = os.fspath(out)
     if not os.path.isdir(out):
         raise DesignFileError(f"{out!r} is not a result folder (save_result writes one)")
-    for name in ("design.npz", "result.npz", "metrics.json", "config.json"):
+    # A new run stopped before its first checkpoint (`settle_earlier` not yet run): the result
+    # in the folder is the earlier run's, its config moved aside.
+    config_name = "config.json"
+    e_cfg = os.path.join(out, config_name + EARLIER)
+    if (os.path.isfile(e_cfg) and os.path.getsize(e_cfg)
+            and not os.path.exists(os.path.join(out, "checkpoint.npz"))):
+        config_name += EARLIER
+    for name in ("design.npz", "result.npz", "metrics.json", config_name):
         if not os.path.isfile(os.path.join(out, name)):
             raise DesignFileError(f"{out!r} lacks {name}: not a complete result folder")
 
@@ -417,20 +468,20 @@ def load_result(out: str | os.PathLike) -> DesignResult:
             raise DesignFileError(f"{os.path.join(out, name)!r}: not readable JSON "
                                   f"({error_line(e)})") from None
 
-    cfg, metrics = read_json("config.json"), read_json("metrics.json")
+    cfg, metrics = read_json(config_name), read_json("metrics.json")
     if not isinstance(cfg, dict) or "design" not in cfg:
-        raise DesignFileError(f"{os.path.join(out, 'config.json')!r}: no 'design' config")
+        raise DesignFileError(f"{os.path.join(out, config_name)!r}: no 'design' config")
     if not isinstance(metrics, dict):
         raise DesignFileError(f"{os.path.join(out, 'metrics.json')!r}: not a JSON object")
     if "run_id" in cfg and metrics.get("run_id") != cfg["run_id"]:
         raise DesignFileError(
             f"{out!r}: config.json is a later run's, which has not finished (python -m "
-            f"jscratch.design --resume --out {out} finishes it); the result files are an earlier "
-            "run's")
+            f"jscratch.design --resume --out {out} finishes it), or a save stopped part-way; "
+            "the result files are not all of one run")
     try:
         config = DesignConfig.from_dict(cfg["design"])
     except InputError as e:
-        raise DesignFileError(f"{os.path.join(out, 'config.json')!r}: {e}") from None
+        raise DesignFileError(f"{os.path.join(out, config_name)!r}: {e}") from None
     d = designfile.load_design(os.path.join(out, "design.npz"))
     try:
         return _result_from(out, cfg, metrics, config, d)

@@ -89,6 +89,9 @@ def design(
     # the native kernel builds (first run only) during the setup
     native.prepare(getattr(config, "dtype", "float32"))
     native.keep_freed_memory()  # the steps reuse their large buffers (`native.keep_freed_memory`)
+    for name, flag in (("resume", resume), ("progress", progress)):
+        if not isinstance(flag, (bool, np.bool_)):  # ("no" would be true)
+            raise DesignError(f"design: `{name}` must be True or False, got {flag!r}")
     tnp, views, board = check_inputs(targets, views, board, config, checkpoint, resume)
     mesh_mod.all_or_none(memory_check_on)  # a bad JSCRATCH_MEMORY_CHECK: refused before any work
     if stop_after is not None and not (isinstance(stop_after, (int, np.integer))
