@@ -87,8 +87,9 @@ def exit_status(exc: BaseException) -> int:
     return 1
 
 
-def report(exc: BaseException, stream=None) -> int:
-    """Print ``error: <message>`` as one line to `stream` (default stderr); return `exit_status`.
+def report(exc: BaseException, stream=None, *, then: str = "") -> int:
+    """Print ``error: <message>`` as one line to `stream` (default stderr), `then` appended;
+    return `exit_status`.
 
     An `OSError` is reported by its reason and file name (``error: Permission denied: 'out/x'``)."""
     import sys
@@ -98,7 +99,7 @@ def report(exc: BaseException, stream=None) -> int:
     else:
         text = str(exc)
     text = " ".join(text.split()) or type(exc).__name__
-    print(f"error: {text}", file=sys.stderr if stream is None else stream)
+    print(f"error: {text}{then}", file=sys.stderr if stream is None else stream)
     return exit_status(exc)
 
 

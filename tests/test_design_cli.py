@@ -547,3 +547,30 @@ def test_checkpoint_and_result_files_are_as_readable_as_the_others(tmp_path):
         os.umask(old)
     assert (tmp_path / "a.npz").stat().st_mode & 0o777 == 0o644
     assert (tmp_path / "b.txt").stat().st_mode & 0o777 == 0o644
+
+
+def test_a_full_disk_mid_run_names_the_checkpoint_kept(tmp_path, monkeypatch, capsys):
+    """A write that fails mid-run (a full disk) after a checkpoint: one line naming the file
+    meant (not its temporary) and saying the checkpoint holds the last saved state."""
+    import errno
+
+    from jscratch.design import checkpoint as ckpt_mod
+
+    out = tmp_path / "out"
+
+    def full_disk(*args, checkpoint, **kwargs):
+        ckpt_mod.save_npz(checkpoint, {"x": np.zeros(2)})  # the first checkpoint
+
+        def no_space(*a, **k):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        monkeypatch.setattr(np, "savez", no_space)
+        ckpt_mod.save_npz(checkpoint, {"x": np.zeros(2)})
+
+    monkeypatch.setattr(cli, "design", full_disk)
+    assert cli.main([*TINY, "--out", str(out), "--quiet"]) == 1
+    err = capsys.readouterr().err
+    ck = str(out / "checkpoint.npz")
+    assert err == (f"error: No space left on device: {ck!r} (the checkpoint {ck!r} holds the "
+                   "last saved state: --resume once the cause is fixed)\n"), err
+    assert not [p for p in os.listdir(out) if p.startswith(".ckpt-")]

@@ -36,17 +36,22 @@ def _umask() -> int:
 
 
 def save_npz(path: str, arrays: dict[str, np.ndarray]) -> None:
+    """Write `arrays` to `path` through a temporary file beside it (a kill part-way leaves the
+    file as it was); an `OSError` names `path`."""
     directory = os.path.dirname(os.path.abspath(path))
     os.makedirs(directory, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".ckpt-", suffix=".npz.tmp", dir=directory)
+    tmp = None
     try:
+        fd, tmp = tempfile.mkstemp(prefix=".ckpt-", suffix=".npz.tmp", dir=directory)
         os.fchmod(fd, 0o666 & ~_umask())  # as `open` makes files (mkstemp's: the owner's alone)
         with os.fdopen(fd, "wb") as f:
             np.savez(f, **arrays)
         os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
+    except BaseException as e:
+        if tmp is not None and os.path.exists(tmp):
             os.unlink(tmp)
+        if isinstance(e, OSError) and e.strerror:  # named by the file meant, not the temporary
+            raise OSError(e.errno, e.strerror, path) from None
         raise
 
 

@@ -268,6 +268,9 @@ def _run(argv) -> int:
             for folder in made:
                 if not os.listdir(folder):
                     os.rmdir(folder)
+        if isinstance(e, OSError) and own:  # (a full disk, a folder made read-only)
+            return report(e, then=f" (the checkpoint {checkpoint!r} holds the last saved "
+                                  "state: --resume once the cause is fixed)")
         if not isinstance(e, KeyboardInterrupt):
             raise
         print("error: interrupted " + (
