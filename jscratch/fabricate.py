@@ -61,7 +61,7 @@ import numpy as np
 from jscratch.designfile import Design, DesignError, demo_design, groove_half_width, load_design
 from jscratch.options import OneLineParser, check_out_prefix
 from jscratch.errors import EXIT_STATUS_HELP, InputError, JscratchError, real_number, report
-from jscratch.grbl import clip, gword
+from jscratch.grbl import WORD_FORMAT, clip, gword
 from jscratch.carve import CarveError, carve
 from jscratch.gcode import (Program, check_program_lines, digest_comment, limits_comment,
                             read_program, write_program)
@@ -369,6 +369,12 @@ def make_program(design: Design, cfg: MachineConfig, *, improve: bool = True, ti
     # The bounds checked below, in the file: reading the program back (`--gcode`) checks them again.
     lo = (ox - cfg.margin_mm, oy - cfg.margin_mm, -cfg.plunge_max_mm)
     hi = (ox + board_mm[0] + cfg.margin_mm, oy + board_mm[1] + cfg.margin_mm, safe)
+    for axis, a, b in zip("XY", lo, hi):
+        w_lo, w_hi = WORD_FORMAT[axis][1:]
+        if a < w_lo or b > w_hi:
+            raise InputError(f"make_program: the board at board_offset_mm (--offset) = "
+                             f"{list(cfg.board_offset_mm)}, plus margin_mm = {cfg.margin_mm:g}, "
+                             f"spans {axis} {a:.3f} to {b:.3f} mm, beyond GRBL's [{w_lo}, {w_hi}]")
     emit(limits_comment(lo, hi), role="comment")
     emit("G21 G90 G94 G17 G54")
     emit(f"G0 {g('Z', safe)}")  # first: the tool may stand on the board, where it was zeroed

@@ -198,7 +198,10 @@ def test_cli_refuses_a_huge_feed_a_huge_margin_and_a_folder_in_short_lines(tmp_p
     for argv, want in ((["--feed", "1e300"], r"word F1e\+300 is outside GRBL's range"),
                        (["--margin", "1e12"], r"machine.margin_mm must be a finite number in "
                                               r"\[0, 1e4\] mm"),
-                       (["--gcode", str(tmp_path)], r"G-code file .* is a folder, not a file")):
+                       (["--gcode", str(tmp_path)], r"G-code file .* is a folder, not a file"),
+                       (["--offset", "99900", "0"], r"board_offset_mm \(--offset\) = \[99900.0, "
+                                                    r"0.0\], plus margin_mm = 0, spans X 99900.000 "
+                                                    r"to 10\d{4}.\d{3} mm, beyond GRBL's")):
         out = [] if "--gcode" in argv else ["--out", str(tmp_path / "a")]
         assert main(argv + out + ["--dry-run", "--quiet", "--demo-n", "5"]) == 2, argv
         err = capsys.readouterr().err
