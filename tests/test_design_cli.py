@@ -574,3 +574,21 @@ def test_a_full_disk_mid_run_names_the_checkpoint_kept(tmp_path, monkeypatch, ca
     assert err == (f"error: No space left on device: {ck!r} (the checkpoint {ck!r} holds the "
                    "last saved state: --resume once the cause is fixed)\n"), err
     assert not [p for p in os.listdir(out) if p.startswith(".ckpt-")]
+
+
+def test_nohup_still_ignores_sighup(tmp_path):
+    """Under ``nohup`` (SIGHUP ignored) a closed terminal does not stop the run: the command line
+    turns SIGTERM and SIGHUP into an interrupt only where they would kill the process."""
+    script = ("import os, signal, sys, time\n"
+              "signal.signal(signal.SIGHUP, signal.SIG_IGN)  # what nohup does\n"
+              "from jscratch.design import cli\n"
+              "real = cli.design\n"
+              "def hup(*a, **k):\n"
+              "    os.kill(os.getpid(), signal.SIGHUP)\n"
+              "    time.sleep(0.2)\n"
+              "    return real(*a, **k)\n"
+              "cli.design = hup\n"
+              "sys.exit(cli.main(sys.argv[1:]))\n")
+    proc = _run(["-c", script, *TINY, "--out", str(tmp_path / "o"), "--quiet"])
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert (tmp_path / "o" / "design.npz").exists()

@@ -303,8 +303,9 @@ def _run(argv) -> int:
 @contextlib.contextmanager
 def _signals_interrupt():
     """Within the block, SIGTERM and SIGHUP (``kill``, ``timeout``, a closed terminal, a job
-    scheduler) stop the run as Ctrl-C does, so it leaves its folder as Ctrl-C would. Main thread
-    only (elsewhere Python cannot set handlers: unchanged)."""
+    scheduler) stop the run as Ctrl-C does, so it leaves its folder as Ctrl-C would; a signal
+    ignored (``nohup``) or handled by the caller stays so. Main thread only (elsewhere Python
+    cannot set handlers: unchanged)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -312,8 +313,9 @@ def _signals_interrupt():
     def stop(signum, frame):
         raise KeyboardInterrupt(signal.Signals(signum).name)
 
+    # (only where the default would kill the process: `nohup` ignores SIGHUP, and so do we)
     wanted = [sig for sig in (getattr(signal, "SIGTERM", None), getattr(signal, "SIGHUP", None))
-              if sig is not None]
+              if sig is not None and signal.getsignal(sig) is signal.SIG_DFL]
     before = {sig: signal.signal(sig, stop) for sig in wanted}
     try:
         yield
