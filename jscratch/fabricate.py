@@ -59,7 +59,7 @@ from typing import NamedTuple
 import numpy as np
 
 from jscratch.designfile import Design, DesignError, demo_design, groove_half_width, load_design
-from jscratch.options import OneLineParser, check_out_prefix
+from jscratch.options import OneLineParser, check_out_prefix, signals_interrupt
 from jscratch.errors import EXIT_STATUS_HELP, InputError, JscratchError, real_number, report
 from jscratch.grbl import WORD_FORMAT, clip, gword
 from jscratch.carve import CarveError, carve
@@ -700,7 +700,15 @@ def _warn_unused_options(gcode: str, over: dict, args) -> None:
 def main(argv=None) -> int:
     """Command line entry point; returns the exit status (`jscratch.errors.EXIT_STATUS_HELP`: 0 ok,
     1 a file could not be written, 2 refused input, 4 carving or the device stopped, 130
-    interrupted)."""
+    interrupted: Ctrl-C, or SIGTERM / SIGHUP, `jscratch.options.signals_interrupt`)."""
+    try:
+        with signals_interrupt():
+            return _main(argv)
+    except KeyboardInterrupt:
+        return 130
+
+
+def _main(argv) -> int:
     args = _parser().parse_args(argv)
     names = [f.name for f in dataclasses.fields(MachineConfig)]
     over = {k: getattr(args, k) for k in names if hasattr(args, k) and getattr(args, k) is not None}

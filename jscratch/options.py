@@ -8,7 +8,8 @@ command line is generated from the dataclass.
   ones as dicts), to lay over defaults or a config file (`overlay`).
 - `flags(cls)`: field path -> flag, e.g. ``{"n_scratches": "--scratches", "loss.kind": "--loss"}``.
 - `OneLineParser`: the argparse parser of every jscratch command (a refusal is one line);
-  `check_out_prefix` refuses an output prefix no file can be written at.
+  `check_out_prefix` refuses an output prefix no file can be written at; `signals_interrupt`:
+  SIGTERM and SIGHUP stop a command's run as Ctrl-C does.
 
 Types come from the annotations: ``int``, ``float``, ``str``, ``bool`` (``--x`` / ``--no-x``),
 ``X | None``, ``tuple[float, float]`` (two values) and ``tuple[str, ...]``; a field may instead name
@@ -21,9 +22,12 @@ Imports: `jscratch.errors` only.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import os
 import re
+import signal
+import threading
 import types
 import typing
 from collections.abc import Callable
@@ -32,7 +36,7 @@ from typing import Any
 from jscratch.errors import InputError
 
 __all__ = ["option", "add_arguments", "given", "flags", "overlay", "field_help", "check_out_prefix",
-           "OneLineParser", "KnownFields"]
+           "OneLineParser", "KnownFields", "signals_interrupt"]
 
 _NESTED = "nested"
 
@@ -237,3 +241,27 @@ class OneLineParser(argparse.ArgumentParser):
 
     def error(self, message):
         self.exit(2, f"error: {message} (see --help)\n")
+
+
+@contextlib.contextmanager
+def signals_interrupt():
+    """Within the block, SIGTERM and SIGHUP (``kill``, ``timeout``, a closed terminal, a job
+    scheduler) stop a command as Ctrl-C does (a design run leaves its folder as Ctrl-C would, a
+    carving job holds and retracts); a signal ignored (``nohup``) or handled by the caller stays
+    so. Main thread only (elsewhere Python cannot set handlers: unchanged)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(signum, frame):
+        raise KeyboardInterrupt(signal.Signals(signum).name)
+
+    # (only where the default would kill the process: `nohup` ignores SIGHUP, and so do we)
+    wanted = [sig for sig in (getattr(signal, "SIGTERM", None), getattr(signal, "SIGHUP", None))
+              if sig is not None and signal.getsignal(sig) is signal.SIG_DFL]
+    before = {sig: signal.signal(sig, stop) for sig in wanted}
+    try:
+        yield
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)

@@ -350,6 +350,40 @@ def test_ctrl_c_holds_retracts_and_resumes(job):
 
 
 
+def test_sigterm_holds_and_retracts_as_ctrl_c_does(job):
+    """``kill`` (SIGTERM) of a carving job stops it as Ctrl-C does: held, lifted to safe Z, the
+    interrupt journalled, exit 130; the resume finishes the job."""
+    import signal
+    import subprocess
+
+    path, prog = job
+    wp = Workpiece()
+    sim = GrblSim(wp, block_time=0.004)  # slow enough to be stopped part-way
+    child = subprocess.Popen([sys.executable, "-m", "jscratch.fabricate", "--gcode", path,
+                              "--port", sim.port, "--banner-timeout", "2"],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        t_end = time.monotonic() + 60
+        while time.monotonic() < t_end and (not os.path.exists(path + ".journal")
+                                            or Journal.read(path + ".journal")[1] < 3):
+            time.sleep(0.02)
+        child.send_signal(signal.SIGTERM)
+        out, err = child.communicate(timeout=60)
+    finally:
+        if child.poll() is None:
+            child.kill()
+    assert child.returncode == 130, err[-2000:]
+    recs = Journal.records(path + ".journal")
+    assert [r["event"] for r in recs if r["type"] == "event"][-1] == "interrupt", recs[-3:]
+    assert "interrupted: held, reset and retracted to Z1.000" in err, err
+    assert sim.pos[2] == 1.0
+    done = Journal.read(path + ".journal")[1]
+    assert 3 <= done < 24
+    assert _resume(path, sim)["done"] == 24
+    sim.close()
+    _verify(prog, wp, in_progress={done})
+
+
 def test_a_second_ctrl_c_during_the_hold_resets_and_journals(job, monkeypatch):
     """Ctrl-C holds and retracts; a second one while the hold settles sends a soft reset at once
     (motion and spindle stop), and the journal keeps the interrupt and the reset, so a resume

@@ -17,13 +17,10 @@ the last good state kept; 1 a file that could not be written).
 from __future__ import annotations
 
 import argparse
-import contextlib
 import dataclasses
 import json
 import os
-import signal
 import sys
-import threading
 import uuid
 from collections.abc import Sequence
 
@@ -32,7 +29,8 @@ import jax
 from jscratch import native
 from jscratch.errors import (EXIT_STATUS_HELP, DesignFileError, InputError, JscratchError,
                              error_line, report)
-from jscratch.options import OneLineParser, add_arguments, flags, given, option, overlay
+from jscratch.options import (OneLineParser, add_arguments, flags, given, option, overlay,
+                              signals_interrupt)
 from jscratch.designfile import DesignError
 from jscratch.design.config import DEFAULT_IMAGES, DesignConfig, SceneConfig
 from jscratch.design import mesh as mesh_mod
@@ -300,30 +298,6 @@ def _run(argv) -> int:
     return 0
 
 
-@contextlib.contextmanager
-def _signals_interrupt():
-    """Within the block, SIGTERM and SIGHUP (``kill``, ``timeout``, a closed terminal, a job
-    scheduler) stop the run as Ctrl-C does, so it leaves its folder as Ctrl-C would; a signal
-    ignored (``nohup``) or handled by the caller stays so. Main thread only (elsewhere Python
-    cannot set handlers: unchanged)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def stop(signum, frame):
-        raise KeyboardInterrupt(signal.Signals(signum).name)
-
-    # (only where the default would kill the process: `nohup` ignores SIGHUP, and so do we)
-    wanted = [sig for sig in (getattr(signal, "SIGTERM", None), getattr(signal, "SIGHUP", None))
-              if sig is not None and signal.getsignal(sig) is signal.SIG_DFL]
-    before = {sig: signal.signal(sig, stop) for sig in wanted}
-    try:
-        yield
-    finally:
-        for sig, handler in before.items():
-            signal.signal(sig, handler)
-
-
 def _out_of_memory(e: BaseException) -> bool:
     """Whether `e` is an allocation failure (Python's, or XLA's on the host or a device)."""
     return isinstance(e, MemoryError) or any(
@@ -360,7 +334,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Command-line entry point; returns the exit status (`jscratch.errors.exit_status`),
     printing a refusal as one line (`jscratch.errors.report`)."""
     try:
-        with _signals_interrupt():
+        with signals_interrupt():
             return _run(argv)
     except SystemExit as e:  # argparse: --help (0) or a refused option, already printed (2)
         return e.code if isinstance(e.code, int) else 2
