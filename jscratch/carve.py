@@ -246,9 +246,12 @@ def _check_work_zero(grbl, coord: str, journalled: dict | None, rezeroed: bool, 
         raise CarveError(f"the controller did not report the {coord} offset ($#) {untouched()}")
     zero = [float(v) for v in grbl.offsets[coord]]
     # With homing on ($22=1) GRBL starts locked in Alarm (unless built without that lock: `L`
-    # among `$I`'s options): found unlocked and not unlocked now, it was homed since it started,
-    # and a machine position of 0, 0, 0 is its home (HOMING_FORCE_SET_ORIGIN), not a restart.
+    # among `$I`'s options): found unlocked and not unlocked now, it was homed since it started
+    # (or unlocked by another sender), and a machine position of 0, 0, 0 is where homing leaves
+    # it on firmware built with HOMING_FORCE_SET_ORIGIN (`Z`), or with no pull-off ($27=0);
+    # elsewhere homing leaves it at -$27, and 0, 0, 0 says a restart.
     homed_before = (grbl.settings.get(22) == 1 and "L" not in grbl.options
+                    and ("Z" in grbl.options or grbl.settings.get(27) == 0)
                     and not grbl.state_at_connect.startswith("Alarm") and not grbl.unlocked)
     if not (grbl.homed or homed_before) and any(abs(v) > 5e-4 for v in zero):
         # Started without homing (on opening the port, or before it): GRBL then counts machine

@@ -122,6 +122,7 @@ class Journal:
         except OSError:
             return False
         start = b'{"type": "header"'  # how the carver's header begins (`json.dumps`)
+        data = data.rstrip(b"\0")  # (a power cut can leave a file's last block as zeros)
         if b"\n" in data or not (data.startswith(start) or start.startswith(data)):
             return False  # a whole record ends with its newline
         try:

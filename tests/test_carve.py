@@ -283,8 +283,13 @@ def test_a_controller_that_just_started_without_homing_is_refused(job):
     # Refused still: built without the lock (`L`), found in Alarm, or unlocked ($X) now.
     homed = dict(settings={22: 1.0}, options="VZ")
     carve_mod._check_work_zero(type("Homed", (Restarted,), homed)(), "G54", None, False, untouched)
+    carve_mod._check_work_zero(type("Homed", (Restarted,), dict(settings={22: 1.0, 27: 0.0}))(),
+                               "G54", None, False, untouched)  # no pull-off: home is 0, 0, 0
+    # Refused: without `Z` homing leaves the machine at -$27 (pull-off), so 0, 0, 0 is a restart
+    # (unlocked by another sender).
     for change in (dict(options="VZL"), dict(state_at_connect="Alarm"), dict(unlocked=True),
-                   dict(settings={22: 0.0})):
+                   dict(settings={22: 0.0}), dict(options="V"),
+                   dict(options="V", settings={22: 1.0, 27: 1.0})):
         g = type("NotHomed", (Restarted,), {**homed, **change})()
         with pytest.raises(CarveError, match=started):
             carve_mod._check_work_zero(g, "G54", None, False, untouched)
@@ -458,7 +463,8 @@ def test_a_journal_torn_in_its_header_blocks_nothing(job):
     for text, torn in (('{"type": "header", "n_scratches": 24}', False),  # whole, no newline
                        ('{"type": "header", "n_scr', True),
                        ('{"type": "header"}\n{"type": "do', False),  # a torn later record
-                       ('{"type": "head', True), ("{", True),
+                       ('{"type": "head', True), ("{", True), ("\0" * 4096, True),
+                       ('{"type": "header", "gc' + "\0" * 100, True),  # zeros of a power cut
                        ('{"kind": "header"', False)):  # not the header as the carver writes it
         with open(path + ".journal", "w") as f:
             f.write(text)

@@ -592,3 +592,59 @@ def test_nohup_still_ignores_sighup(tmp_path):
     proc = _run(["-c", script, *TINY, "--out", str(tmp_path / "o"), "--quiet"])
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert (tmp_path / "o" / "design.npz").exists()
+
+
+def _killed_before_its_checkpoint(src, out):
+    """The folder a new run killed (SIGKILL) after moving the earlier files aside leaves."""
+    shutil.copytree(src, out)
+    os.replace(out / "checkpoint.npz", out / "checkpoint.npz.earlier")
+    os.replace(out / "config.json", out / "config.json.earlier")
+    (out / "config.json").write_text(json.dumps({"design": {"seed": 7}, "run_id": "killed"}))
+
+
+def test_after_a_killed_run_resume_save_and_load_see_the_earlier_result(cli_run, tmp_path):
+    """A run killed before its first checkpoint: `--resume` settles the folder before it reads
+    the run's config (the earlier run's, resumed); a Python `save_result` into the folder
+    settles it too, so its own config is not shadowed by the one set aside."""
+    out = tmp_path / "run"
+    _killed_before_its_checkpoint(cli_run, out)
+    assert cli.main(["--resume", "--out", str(out), "--quiet"]) == 0
+    assert not list(out.glob("*.earlier")) and load_result(out).config.seed == 0
+    shutil.rmtree(out)
+    _killed_before_its_checkpoint(cli_run, out)
+    result = load_result(out)  # the earlier result, its config read where it was set aside
+    save_result(result, out)
+    assert not list(out.glob("*.earlier"))
+    assert load_result(out).config.seed == 0 and (out / "checkpoint.npz").exists()
+
+
+def test_a_second_run_in_a_folder_being_written_is_refused_and_changes_nothing(cli_run,
+                                                                               tmp_path, capsys):
+    """The writing process holds its folder (`io.lock_folder`, flock) for the run: a second
+    command there is refused in one line before it settles or cleans anything; a folder named
+    config.json is refused before anything is moved."""
+    from jscratch.design.io import lock_folder
+
+    out = tmp_path / "run"
+    _killed_before_its_checkpoint(cli_run, out)  # what only the holder may settle
+    (out / ".ckpt-x.npz.tmp").write_bytes(b"being written")
+    before = _files(out)
+    held = lock_folder(str(out))
+    try:
+        for argv in ([*TINY, "--out", str(out), "--quiet"], ["--resume", "--out", str(out)]):
+            assert cli.main(argv) == 2
+            err = capsys.readouterr().err
+            assert err == (f"error: another design run is writing in {str(out)!r}: wait for it "
+                           "to end, or give another --out\n"), err
+            assert _files(out) == before
+    finally:
+        del held
+    assert lock_folder(str(out)) is not None  # released with its holder
+    shutil.rmtree(out)
+    shutil.copytree(cli_run, out)
+    os.remove(out / "config.json")
+    (out / "config.json").mkdir()
+    before = _files(out)
+    assert cli.main([*TINY, "--out", str(out), "--quiet"]) == 2
+    assert "config.json' is a folder" in capsys.readouterr().err
+    assert _files(out) == before

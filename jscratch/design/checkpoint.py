@@ -48,8 +48,11 @@ def save_npz(path: str, arrays: dict[str, np.ndarray]) -> None:
             np.savez(f, **arrays)
         os.replace(tmp, path)
     except BaseException as e:
-        if tmp is not None and os.path.exists(tmp):
-            os.unlink(tmp)
+        try:
+            if tmp is not None and os.path.exists(tmp):
+                os.unlink(tmp)
+        except OSError:  # (a folder made read-only: the error below says why)
+            pass
         if isinstance(e, OSError) and e.strerror:  # named by the file meant, not the temporary
             raise OSError(e.errno, e.strerror, path) from None
         raise

@@ -34,8 +34,8 @@ from jscratch.options import (OneLineParser, add_arguments, flags, given, option
 from jscratch.designfile import DesignError
 from jscratch.design.config import DEFAULT_IMAGES, DesignConfig, SceneConfig
 from jscratch.design import mesh as mesh_mod
-from jscratch.design.io import (EARLIER, load_scene, remove_partial_writes, save_result,
-                                settle_earlier, targets_hash)
+from jscratch.design.io import (EARLIER, load_scene, lock_folder, remove_partial_writes,
+                                save_result, settle_earlier, targets_hash)
 from jscratch.design.run import check_inputs, design
 
 __all__ = ["RunOptions", "main", "parser", "configs"]
@@ -207,20 +207,33 @@ def _show(value) -> str:
 
 
 def _run(argv) -> int:
+    early = RunOptions(**given(parser().parse_args(argv), RunOptions))
+    lock = None
+    if not early.process_id:  # process 0 (or the only one) writes the folder: held for the run
+        lock = lock_folder(early.out)
+        if lock is not None:  # what a run stopped by a kill left, before its config is read
+            settle_earlier(early.out)  # (the folder as it was before that run)
+            remove_partial_writes(early.out)
     run, scene, config = configs(argv)
     # --- several processes: joined before any JAX work (jax.distributed)
     mesh_mod.initialize(run.coordinator, run.num_processes, run.process_id, run.join_timeout)
-    # ---
+    # --- from here SIGTERM and SIGHUP stop the run as Ctrl-C does (not while blocked in the join)
+    with signals_interrupt():
+        return _run_joined(run, scene, config, lock)
+
+
+def _run_joined(run, scene, config, lock) -> int:
     native.prepare(config.dtype)  # the native kernel builds (first run only) as inputs load
     if config.dtype == "float64":
         jax.config.update("jax_enable_x64", True)
     checkpoint = os.path.join(run.out, "checkpoint.npz")
     writer = mesh_mod.is_writer()
-    if writer and os.path.isdir(run.out):  # what a run stopped by a kill left
-        settle_earlier(run.out)  # (the folder as it was before it)
-        remove_partial_writes(run.out)
+    config_path = os.path.join(run.out, "config.json")
 
     def checks():  # every refusal before any work (with several processes: all refuse together)
+        if writer and os.path.isdir(config_path):
+            raise DesignFileError(f"{config_path!r} is a folder: the run's config.json cannot be "
+                                  "written")
         targets, names, views, board = load_scene(scene)
         if run.resume and writer and not os.path.isfile(checkpoint):
             raise DesignFileError(f"--resume: no checkpoint {checkpoint!r} (run without --resume "
@@ -243,29 +256,32 @@ def _run(argv) -> int:
     # ---
     made = _missing_folders(run.out)  # removed again if the run stops before its checkpoint
     os.makedirs(run.out, exist_ok=True)
-    config_path = os.path.join(run.out, "config.json")
-    if not run.resume:  # the settings first, so that an interrupted run can be resumed; an
-        # earlier run's checkpoint and config are moved aside until this run's first checkpoint
-        # (`settle_earlier` puts them back if it stops before, whatever stops it)
-        if os.path.exists(checkpoint):
-            os.replace(checkpoint, checkpoint + EARLIER)
-        if os.path.isfile(config_path):
-            os.replace(config_path, config_path + EARLIER)
-        else:
-            open(config_path + EARLIER, "wb").close()  # (empty: there was none)
-        with open(config_path, "w") as f:  # (its run_id: no result is this run's yet)
-            json.dump({"design": config.to_dict(), "scene": scene.to_dict(), "targets": names,
-                       "run_id": uuid.uuid4().hex}, f, indent=2)
+    lock = lock or lock_folder(run.out)  # (a folder made now: held from here)
     try:
+        if not run.resume:  # the settings first, so that an interrupted run can be resumed; an
+            # earlier run's checkpoint and config are moved aside until this run's first
+            # checkpoint (`settle_earlier` puts them back if it stops before, whatever stops it)
+            if os.path.exists(checkpoint):
+                os.replace(checkpoint, checkpoint + EARLIER)
+            if os.path.isfile(config_path):
+                os.replace(config_path, config_path + EARLIER)
+            else:
+                open(config_path + EARLIER, "wb").close()  # (empty: there was none)
+            with open(config_path, "w") as f:  # (its run_id: no result is this run's yet)
+                json.dump({"design": config.to_dict(), "scene": scene.to_dict(),
+                           "targets": names, "run_id": uuid.uuid4().hex}, f, indent=2)
         result = design(targets, views, board, config, checkpoint=checkpoint, resume=run.resume,
                         progress=not run.quiet, mesh=mesh)
     except BaseException as e:
         own = os.path.exists(checkpoint)  # (a resumed run's, or one this run wrote)
-        settle_earlier(run.out)
-        if not own:  # nothing of this run to keep: the folders it made go too
-            for folder in made:
-                if not os.listdir(folder):
-                    os.rmdir(folder)
+        try:  # (a failing clean-up must not hide why the run stopped)
+            settle_earlier(run.out)
+            if not own:  # nothing of this run to keep: the folders it made go too
+                for folder in made:
+                    if not os.listdir(folder):
+                        os.rmdir(folder)
+        except OSError:
+            pass
         if isinstance(e, OSError) and own:  # (a full disk, a folder made read-only)
             return report(e, then=f" (the checkpoint {checkpoint!r} holds the last saved "
                                   "state: --resume once the cause is fixed)")
@@ -334,8 +350,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Command-line entry point; returns the exit status (`jscratch.errors.exit_status`),
     printing a refusal as one line (`jscratch.errors.report`)."""
     try:
-        with signals_interrupt():
-            return _run(argv)
+        return _run(argv)
     except SystemExit as e:  # argparse: --help (0) or a refused option, already printed (2)
         return e.code if isinstance(e.code, int) else 2
     except (JscratchError, OSError) as e:

@@ -285,6 +285,7 @@ def save_result(result: DesignResult, out: str | os.PathLike, *, scene: SceneCon
                           f"{names!r}")
     made = not os.path.isdir(out)
     os.makedirs(out, exist_ok=True)
+    settle_earlier(out)  # a stopped command-line run's files: settled before a config is written
     # Everything is written into a staging folder and moved into `out` once complete: a failure
     # part-way leaves `out` as it was, not half of a new result beside half of an old one.
     stage = tempfile.mkdtemp(prefix=".jscratch-save-", dir=out)
@@ -343,6 +344,41 @@ def settle_earlier(out: str) -> None:
             os.remove(e_cfg)
     if os.path.exists(e_ckpt):
         os.replace(e_ckpt, ckpt)
+
+
+def lock_folder(out: str):
+    """Hold folder `out` for one command-line run: an exclusive `fcntl.flock` on the folder itself
+    (nothing is written; the lock goes with the process, however it ends). Returns the open
+    folder (keep it while the run lasts), or None where there is no folder yet or no flock.
+    `DesignError` (one line) while another run holds it."""
+    try:
+        import fcntl
+    except ImportError:  # (not POSIX: runs are not locked)
+        return None
+    try:
+        fd = os.open(out, os.O_RDONLY)
+    except OSError:  # none yet (the run locks it once made), or not a folder: refused later
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        raise DesignError(f"another design run is writing in {out!r}: wait for it to end, or "
+                          "give another --out") from None
+    return _Held(fd)
+
+
+class _Held:
+    """An open folder held by `lock_folder` (closed, and so released, when collected)."""
+
+    def __init__(self, fd: int):
+        self.fd = fd
+
+    def __del__(self):
+        try:
+            os.close(self.fd)
+        except OSError:
+            pass
 
 
 def remove_partial_writes(out: str) -> None:
@@ -449,13 +485,13 @@ def load_result(out: str | os.PathLike) -> DesignResult:
     out = os.fspath(out)
     if not os.path.isdir(out):
         raise DesignFileError(f"{out!r} is not a result folder (save_result writes one)")
-    # A new run stopped before its first checkpoint (`settle_earlier` not yet run): the result
-    # in the folder is the earlier run's, its config moved aside.
-    config_name = "config.json"
-    e_cfg = os.path.join(out, config_name + EARLIER)
-    if (os.path.isfile(e_cfg) and os.path.getsize(e_cfg)
-            and not os.path.exists(os.path.join(out, "checkpoint.npz"))):
-        config_name += EARLIER
+    # A new command-line run stopped before its first checkpoint (`settle_earlier` not run since)
+    # moved the result's config aside: the config of the metrics' run is read there.
+    e_cfg = os.path.join(out, "config.json" + EARLIER)
+    earlier = os.path.isfile(e_cfg) and os.path.getsize(e_cfg) > 0
+    config_name = ("config.json" + EARLIER
+                   if earlier and not os.path.exists(os.path.join(out, "config.json"))
+                   else "config.json")
     for name in ("design.npz", "result.npz", "metrics.json", config_name):
         if not os.path.isfile(os.path.join(out, name)):
             raise DesignFileError(f"{out!r} lacks {name}: not a complete result folder")
@@ -469,6 +505,12 @@ def load_result(out: str | os.PathLike) -> DesignResult:
                                   f"({error_line(e)})") from None
 
     cfg, metrics = read_json(config_name), read_json("metrics.json")
+    if (earlier and config_name == "config.json" and isinstance(cfg, dict)
+            and isinstance(metrics, dict) and "run_id" in cfg
+            and metrics.get("run_id") != cfg["run_id"]):
+        aside = read_json("config.json" + EARLIER)
+        if isinstance(aside, dict) and aside.get("run_id") == metrics.get("run_id"):
+            config_name, cfg = "config.json" + EARLIER, aside
     if not isinstance(cfg, dict) or "design" not in cfg:
         raise DesignFileError(f"{os.path.join(out, config_name)!r}: no 'design' config")
     if not isinstance(metrics, dict):

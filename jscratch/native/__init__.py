@@ -753,5 +753,3 @@ def bin_cells(fl, ints, *, shape, strip_capacity: int, rows: int, pair_capacity:
         fl, ints.astype(jnp.int32), h_px=int(shape[0]), w_px=int(shape[1]),
         strip_capacity=int(strip_capacity), rows=int(rows), pair_capacity=L, tol=f64(tol),
         tolg=f64(tolg), csx=f64(csx), csy=f64(csy), hx=f64(hx), hy=f64(hy), sy=f64(sy))
-
-#: How the CLI names the key's inputs.
