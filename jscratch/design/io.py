@@ -361,10 +361,13 @@ def lock_folder(out: str):
         return None
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
+    except BlockingIOError:  # (EWOULDBLOCK: held by another process)
         os.close(fd)
         raise DesignError(f"another design run is writing in {out!r}: wait for it to end, or "
                           "give another --out") from None
+    except OSError:  # a file system without flock (some network ones): runs are not locked
+        os.close(fd)
+        return None
     return _Held(fd)
 
 
