@@ -336,17 +336,20 @@ def test_device_vanishes_then_resume_after_power_cycle(job):
 
 
 
+def _ctrl_c_at(position):
+    """An `on_scratch` that raises KeyboardInterrupt once scratch `position` is journalled."""
+    def stop(k, s):
+        if k == position:
+            raise KeyboardInterrupt
+    return stop
+
+
 def test_ctrl_c_holds_retracts_and_resumes(job):
     path, prog = job
     wp = Workpiece()
     sim = GrblSim(wp)
-
-    def stop(k, s):
-        if k == 6:
-            raise KeyboardInterrupt
-
     with pytest.raises(KeyboardInterrupt):
-        carve(path, sim.port, on_scratch=stop, **FAST)
+        carve(path, sim.port, on_scratch=_ctrl_c_at(6), **FAST)
     assert Journal.read(path + ".journal")[1] == 7 and sim.pos[2] == 1.0 and sim.state == "Idle"
     r = _resume(path, sim, counting=True)
     sim.close()
@@ -397,17 +400,13 @@ def test_a_second_ctrl_c_during_the_hold_resets_and_journals(job, monkeypatch):
     wp = Workpiece()
     sim = GrblSim(wp)
 
-    def stop(k, s):
-        if k == 6:
-            raise KeyboardInterrupt
-
     def second_ctrl_c(self, accept, timeout):
         raise KeyboardInterrupt
 
     with monkeypatch.context() as m:
         m.setattr(Grbl, "wait_state", second_ctrl_c)
         with pytest.raises(KeyboardInterrupt):
-            carve(path, sim.port, on_scratch=stop, **FAST)
+            carve(path, sim.port, on_scratch=_ctrl_c_at(6), **FAST)
     recs = Journal.records(path + ".journal")
     assert [r["event"] for r in recs if r["type"] == "event"][-2:] == ["interrupt", "reset"]
     assert Journal.read(path + ".journal")[1] == 7
