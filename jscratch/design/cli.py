@@ -208,21 +208,27 @@ def _show(value) -> str:
 
 def _run(argv) -> int:
     early = RunOptions(**given(parser().parse_args(argv), RunOptions))
-    lock = None
-    if not early.process_id:  # process 0 (or the only one) writes the folder: held for the run
-        lock = lock_folder(early.out)
-        if lock is not None:  # what a run stopped by a kill left, before its config is read
-            settle_earlier(early.out)  # (the folder as it was before that run)
-            remove_partial_writes(early.out)
-    run, scene, config = configs(argv)
-    # --- several processes: joined before any JAX work (jax.distributed)
-    mesh_mod.initialize(run.coordinator, run.num_processes, run.process_id, run.join_timeout)
-    # --- from here SIGTERM and SIGHUP stop the run as Ctrl-C does (not while blocked in the join)
-    with signals_interrupt():
-        return _run_joined(run, scene, config, lock)
+    held = []  # the folder's lock (`lock_folder`), released when the run ends
+    try:
+        if not early.process_id:  # process 0 (or the only one) writes the folder: held
+            held.append(lock_folder(early.out))
+            if held[0] is not None:  # what a run stopped by a kill left, before its config is
+                settle_earlier(early.out)  # read (the folder as it was before that run)
+                remove_partial_writes(early.out)
+        run, scene, config = configs(argv)
+        # --- several processes: joined before any JAX work (jax.distributed)
+        mesh_mod.initialize(run.coordinator, run.num_processes, run.process_id, run.join_timeout)
+        # --- from here SIGTERM and SIGHUP stop the run as Ctrl-C does (not while blocked in
+        # the join)
+        with signals_interrupt():
+            return _run_joined(run, scene, config, held)
+    finally:
+        for lock in held:
+            if lock is not None:
+                lock.release()
 
 
-def _run_joined(run, scene, config, lock) -> int:
+def _run_joined(run, scene, config, held: list) -> int:
     native.prepare(config.dtype)  # the native kernel builds (first run only) as inputs load
     if config.dtype == "float64":
         jax.config.update("jax_enable_x64", True)
@@ -256,7 +262,8 @@ def _run_joined(run, scene, config, lock) -> int:
     # ---
     made = _missing_folders(run.out)  # removed again if the run stops before its checkpoint
     os.makedirs(run.out, exist_ok=True)
-    lock = lock or lock_folder(run.out)  # (a folder made now: held from here)
+    if not any(held):  # (a folder made now: held from here)
+        held.append(lock_folder(run.out))
     try:
         if not run.resume:  # the settings first, so that an interrupted run can be resumed; an
             # earlier run's checkpoint and config are moved aside until this run's first

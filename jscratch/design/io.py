@@ -349,7 +349,8 @@ def settle_earlier(out: str) -> None:
 def lock_folder(out: str):
     """Hold folder `out` for one command-line run: an exclusive `fcntl.flock` on the folder itself
     (nothing is written; the lock goes with the process, however it ends). Returns the open
-    folder (keep it while the run lasts), or None where there is no folder yet or no flock.
+    folder (``.release()`` it when the run ends), or None where there is no folder yet or no
+    flock.
     `DesignError` (one line) while another run holds it."""
     try:
         import fcntl
@@ -372,16 +373,18 @@ def lock_folder(out: str):
 
 
 class _Held:
-    """An open folder held by `lock_folder` (closed, and so released, when collected)."""
+    """An open folder held by `lock_folder`: `release` closes it, and so releases the lock (as
+    does the end of the process)."""
 
     def __init__(self, fd: int):
         self.fd = fd
 
-    def __del__(self):
-        try:
-            os.close(self.fd)
-        except OSError:
-            pass
+    def release(self) -> None:
+        fd, self.fd = self.fd, None
+        if fd is not None:
+            os.close(fd)
+
+    __del__ = release
 
 
 def remove_partial_writes(out: str) -> None:
