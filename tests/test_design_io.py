@@ -5,6 +5,7 @@ targets, the PNG writer's rounding, the targets' hash, and `save_result` / `load
 hand-built result (its design file read back)."""
 
 import json
+import os
 import re
 
 import jax.numpy as jnp
@@ -301,3 +302,38 @@ def test_save_and_load_result_refuse_what_is_no_result_or_path_in_one_line(tmp_p
     assert not out.exists()
     with pytest.raises(DesignError, match="^load_scene: scene must be a SceneConfig"):
         io.load_scene({"size": 32})
+
+
+def test_save_result_is_refused_in_a_folder_another_process_holds(tmp_path):
+    """A folder a design run holds (`io.lock_folder`: a command-line run writing there, in
+    another process) is not written by a Python `save_result`: one line, nothing changed; once
+    the holder ends the save goes through. A folder this process holds (the command line's own
+    save) is written."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "held"
+    out.mkdir()
+    (out / "checkpoint.npz").write_bytes(b"the run's")
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import fcntl, os, sys; fd = os.open(sys.argv[1], os.O_RDONLY); "
+         "fcntl.flock(fd, fcntl.LOCK_EX); print('held', flush=True); sys.stdin.read()", str(out)],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline() == "held\n"
+        with pytest.raises(DesignError) as err:
+            io.save_result(_one_view_result({"ssim": [0.5], "ghosting": [0.1]}), out)
+        assert str(err.value) == (f"save_result: a design run is writing in {str(out)!r}: wait "
+                                  "for it to end, or save into another folder")
+        assert os.listdir(out) == ["checkpoint.npz"]
+    finally:
+        holder.communicate("")
+    io.save_result(_one_view_result({"ssim": [0.5], "ghosting": [0.1]}), out)
+    assert io.load_result(out).metrics["ssim"] == [0.5]
+    held = io.lock_folder(str(out))
+    try:
+        io.save_result(_one_view_result({"ssim": [0.25], "ghosting": [0.1]}), out)
+    finally:
+        held.release()
+    assert io.load_result(out).metrics["ssim"] == [0.25]
+    assert io.lock_folder(str(out)) is not None  # released

@@ -285,6 +285,20 @@ def save_result(result: DesignResult, out: str | os.PathLike, *, scene: SceneCon
                           f"{names!r}")
     made = not os.path.isdir(out)
     os.makedirs(out, exist_ok=True)
+    # A command-line run writing in `out` holds it (`lock_folder`); so does this save, unless this
+    # process is that run.
+    held = None if _held_here(out) else lock_folder(out, refusal=(
+        f"save_result: a design run is writing in {out!r}: wait for it to end, or save into "
+        "another folder"))
+    try:
+        return _save_held(out, made, result, scene, names, as_carved_samples, order_time, m)
+    finally:
+        if held is not None:
+            held.release()
+
+
+def _save_held(out, made, result, scene, names, as_carved_samples, order_time, m) -> dict:
+    """`save_result`'s writing, into folder `out` held by this process."""
     settle_earlier(out)  # a stopped command-line run's files: settled before a config is written
     # Everything is written into a staging folder and moved into `out` once complete: a failure
     # part-way leaves `out` as it was, not half of a new result beside half of an old one.
@@ -346,12 +360,12 @@ def settle_earlier(out: str) -> None:
         os.replace(e_ckpt, ckpt)
 
 
-def lock_folder(out: str):
+def lock_folder(out: str, *, refusal: str | None = None):
     """Hold folder `out` for one command-line run: an exclusive `fcntl.flock` on the folder itself
     (nothing is written; the lock goes with the process, however it ends). Returns the open
     folder (``.release()`` it when the run ends), or None where there is no folder yet or no
     flock.
-    `DesignError` (one line) while another run holds it."""
+    `DesignError` (one line; `refusal` if given) while another run holds it."""
     try:
         import fcntl
     except ImportError:  # (not POSIX: runs are not locked)
@@ -364,24 +378,41 @@ def lock_folder(out: str):
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:  # (EWOULDBLOCK: held by another process)
         os.close(fd)
-        raise DesignError(f"another design run is writing in {out!r}: wait for it to end, or "
-                          "give another --out") from None
+        raise DesignError(refusal or f"another design run is writing in {out!r}: wait for it to "
+                          "end, or give another --out") from None
     except OSError:  # a file system without flock (some network ones): runs are not locked
         os.close(fd)
         return None
     return _Held(fd)
 
 
+def _held_here(out: str) -> bool:
+    """Whether this process holds folder `out` (`lock_folder`): a second flock on it from here
+    would wait for ourselves."""
+    try:
+        st = os.stat(out)
+    except OSError:
+        return False
+    return (st.st_dev, st.st_ino) in _Held.folders
+
+
 class _Held:
     """An open folder held by `lock_folder`: `release` closes it, and so releases the lock (as
     does the end of the process)."""
 
+    #: (device, inode) of the folders this process holds.
+    folders: set = set()
+
     def __init__(self, fd: int):
         self.fd = fd
+        st = os.fstat(fd)
+        self.key = (st.st_dev, st.st_ino)
+        _Held.folders.add(self.key)
 
     def release(self) -> None:
         fd, self.fd = self.fd, None
         if fd is not None:
+            _Held.folders.discard(self.key)
             os.close(fd)
 
     __del__ = release
