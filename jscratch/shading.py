@@ -187,5 +187,7 @@ def _display(x, gamma: float, knee: float) -> Array:
     g = 1.0 / gamma
     P = knee ** (g - 1.0)
     low = (2.0 - g) * P * x + (g - 1.0) * (P / knee) * x * x
-    high = jnp.maximum(x, knee) ** g  # double-where: no inf slope of x**g at 0 in the dead branch
+    # double-where: no inf slope of x**g at 0 in the dead branch (not `maximum`, whose gradient
+    # at x = knee is split in half between its two arguments)
+    high = jnp.where(x < knee, knee, x) ** g
     return jnp.where(x < knee, low, high)

@@ -90,6 +90,8 @@ def test_display_is_c1_gamma_with_finite_slope():
     lo, hi = jnp.asarray([k * (1 - 1e-9)]), jnp.asarray([k * (1 + 1e-9)])
     np.testing.assert_allclose(np.asarray(shading.display(lo)), np.asarray(shading.display(hi)), rtol=1e-7)
     np.testing.assert_allclose(np.asarray(d(lo)), np.asarray(d(hi)), rtol=1e-6)
+    at = float(d(jnp.asarray([k]))[0])  # at the knee itself, too (both sides' slope: g k^(g-1))
+    assert abs(at - g * k ** (g - 1)) < 1e-9 * at, at
     s0 = float(d(jnp.zeros(1))[0])
     assert math.isfinite(s0) and abs(s0 - (2 - g) * k ** (g - 1)) < 1e-9 * s0
     xs = jnp.linspace(0, 3 * k, 301)
