@@ -28,12 +28,22 @@ def _mean(a):
     return jax.lax.reduce_window(a, 0.0, jax.lax.add, lead + (1, w), ones, "VALID") / _N
 
 
+def _centred(x):
+    """``(x - c, c)``, ``c``: the image mean of ``x`` (``(..., 1, 1)``, no gradient through it).
+    The second moments below are the same for any shift, and in float32 ``E[x^2] - E[x]^2`` of a
+    flat, bright image cancels to noise (a negative variance, an SSIM above 1) unless taken
+    about a value near ``x``."""
+    c = jax.lax.stop_gradient(jnp.mean(x, axis=(-2, -1), keepdims=True))
+    return x - c, c
+
+
 def ssim_moments(x: Float[Array, "... H W"]) -> tuple[Float[Array, "... h w"], Float[Array, "... h w"]]:
     """The local mean and sample variance of ``x`` over each 7x7 window inside the image
     (``h, w = H - 6, W - 6``): what `ssim_mean` needs of one image, to compute once for an image
     compared with several."""
-    mx = _mean(x)
-    return mx, _CN * (_mean(x * x) - mx * mx)
+    xc, c = _centred(x)
+    mc = _mean(xc)
+    return mc + c, _CN * (_mean(xc * xc) - mc * mc)
 
 
 def ssim_mean(x: Float[Array, "... H W"], y: Float[Array, "... H W"],
@@ -65,7 +75,8 @@ def ssim_mean(x: Float[Array, "... H W"], y: Float[Array, "... H W"],
                          f"window); got H, W = {sx[-2]}, {sx[-1]}")
     mx, vx = ssim_moments(x) if moments_x is None else moments_x
     my, vy = ssim_moments(y) if moments_y is None else moments_y
-    vxy = _CN * (_mean(x * y) - mx * my)
+    (xc, cx), (yc, cy) = _centred(x), _centred(y)  # the covariance about each image's mean
+    vxy = _CN * (_mean(xc * yc) - (mx - cx) * (my - cy))
     s = ((2 * mx * my + SSIM_C1) * (2 * vxy + SSIM_C2)) / (
         (mx * mx + my * my + SSIM_C1) * (vx + vy + SSIM_C2))
     return jnp.mean(s, axis=(-2, -1))
