@@ -353,7 +353,8 @@ class LossConfig(KnownFields):
     - `vgg_weights`: path of a local VGG-19 ``.npz`` (``load_vgg19``); ``None`` uses
       ``FilterBank``.
     - `lambda_x`: weight of the cross-view ghosting term ``E_x`` (``ghost_loss``), ``>= 0``;
-      added to any kind; default `LAMBDA_X`; 0 leaves it out.
+      added to any kind (for ``"l2"`` the weight rule reads the L2 term where it reads ``E_p``);
+      default `LAMBDA_X`; 0 leaves it out.
     - `ghost_scale`: ``"squared"`` (default), ``"relative"`` or ``"fixed"``: the rule for
       ``E_x``'s weight (`ghost_weight_factor`).
     - `ghost_baseline`: ``"zero"`` (default): ``E_x`` is the raw cross-view SSIM, the ghosting of
@@ -454,7 +455,8 @@ class Loss(eqx.Module):
         self, render: Float[Array, "M H W"], target: Float[Array, "M H W"]
     ) -> dict[str, Array]:
         """The loss and its unweighted terms: ``{"total", "l2"}`` for ``kind == "l2"``, else
-        ``{"total", "E_p"}`` plus ``"E_g"`` for ``"perceptual+gram"``."""
+        ``{"total", "E_p"}`` plus ``"E_g"`` for ``"perceptual+gram"``; plus ``"E_x"`` when
+        ``lambda_x > 0``."""
         return self._terms(render, target, None)
 
     def bind(self, target: Float[ArrayLike, "M H W"]) -> BoundLoss:
@@ -471,17 +473,18 @@ class Loss(eqx.Module):
         grams = ghost = None
         if self.kind == "perceptual+gram":
             grams = _target_grams(self.features, target)
-        if self.lambda_x > 0 and self.kind != "l2":
+        if self.lambda_x > 0:
             ghost = _bind_ghost(target, self.ghost_baseline == "zero")
         return BoundLoss(self, target, grams, ghost)
 
     def _terms(self, render, target, target_grams, target_ghost=None) -> dict[str, Array]:
         render, target = _check_images(render, target)
         if self.kind == "l2":
-            e = l2_loss(render, target)
-            return {"total": self.lambda_p * e, "l2": e}
-        ep = perceptual_loss(render, target)
-        out = {"total": self.lambda_p * ep, "E_p": ep}
+            ep = l2_loss(render, target)  # (the image error of E_x's weight rule, as E_p below)
+            out = {"total": self.lambda_p * ep, "l2": ep}
+        else:
+            ep = perceptual_loss(render, target)
+            out = {"total": self.lambda_p * ep, "E_p": ep}
         if self.kind == "perceptual+gram":
             if target_grams is None:
                 target_grams = _grams(self.features, target)

@@ -241,9 +241,19 @@ def test_float32_follows_input_and_agrees_with_float64():
 def test_make_loss_kinds_and_bind():
     t, i = jnp.asarray(_smooth(9)), jnp.asarray(_smooth(10))
     ep, eg, l2 = loss_mod.perceptual_loss(i, t), loss_mod.gram_loss(i, t), loss_mod.l2_loss(i, t)
-    loss_l2 = loss_mod.make_loss(loss_mod.LossConfig(kind="l2", lambda_p=2.0))
+    loss_l2 = loss_mod.make_loss(loss_mod.LossConfig(kind="l2", lambda_p=2.0, lambda_x=0.0))
     assert float(loss_l2(i, t)) == pytest.approx(2.0 * float(l2), rel=1e-14)
     assert float(loss_l2.terms(i, t)["l2"]) == pytest.approx(float(l2), rel=1e-14)
+    # E_x is added to the L2 loss too (its weight rule reading the L2 term where it reads E_p)
+    ex = float(loss_mod.ghost_loss(i, t, jnp.zeros((t.shape[0],) * 2)))
+    for scale, factor in (("fixed", 1.0), ("squared", min(1.0, float(l2) / (
+            t.shape[0] * loss_mod.GHOST_EP_REF)) ** 2 * 2 / (t.shape[0] - 1))):
+        with_x = loss_mod.make_loss(loss_mod.LossConfig(kind="l2", lambda_x=0.5,
+                                                        ghost_scale=scale))
+        assert set(with_x.terms(i, t)) == {"total", "l2", "E_x"}
+        want = float(l2) + 0.5 * factor * ex
+        assert float(with_x(i, t)) == pytest.approx(want, rel=1e-12)
+        assert float(with_x.bind(t)(i)) == pytest.approx(want, rel=1e-12)
     loss_p = loss_mod.make_loss(loss_mod.LossConfig(kind="perceptual", lambda_x=0.0))
     assert loss_p.features is None
     assert float(loss_p(i, t)) == pytest.approx(float(ep), rel=1e-14)
