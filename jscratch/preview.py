@@ -124,7 +124,11 @@ def render_orbit(design, *, frames: int = 36, size: int = 128, batch: int = 6,
 
 
 def _frame_rgb(img, mark):
-    """uint8 RGB frame; a design view gets an orange border."""
+    """uint8 RGB frame; a design view gets an orange border. `InputError` for non-finite values
+    (a cast would draw them as arbitrary greys)."""
+    img = np.asarray(img)
+    if not np.all(np.isfinite(img)):
+        raise InputError("preview: a frame holds non-finite display values")
     g = (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)
     rgb = np.repeat(g[..., None], 3, -1)
     if mark >= 0:
@@ -137,8 +141,11 @@ def _frame_rgb(img, mark):
 
 def write_gif(path, frames, marks, az, *, fps: float = 8.0):
     """Animated GIF (Pillow), looping; design views framed in orange and labelled.
-    `InputError` for no frames or an `fps` outside `FPS_RANGE` (a GIF's frame time is in
-    hundredths of a second, and viewers slow down frames shorter than two of them)."""
+    A GIF's frame time is in hundredths of a second: frame ``k`` ends at ``100 (k + 1) / fps``
+    of them rounded, so that the frames keep `fps` on average (8 fps: 12 and 13 alternately; a
+    frame equal to the one before is merged into it, its time added).
+    `InputError` for no frames or an `fps` outside `FPS_RANGE` (viewers slow down frames
+    shorter than two hundredths)."""
     from PIL import Image, ImageDraw
 
     if len(frames) == 0:
@@ -154,8 +161,9 @@ def write_gif(path, frames, marks, az, *, fps: float = 8.0):
         label = f"{round(math.degrees(a), 1) % 360:5.1f} deg" + (f"  view {m}" if m >= 0 else "")
         d.text((4, 2), label, fill=(255, 140, 0) if m >= 0 else (80, 160, 255))
         ims.append(im)
-    ims[0].save(os.fspath(path), save_all=True, append_images=ims[1:],
-                duration=round(1000 / fps), loop=0)
+    ends = [round(100 * (k + 1) / fps) for k in range(len(ims))]
+    times = [10 * (e - b) for b, e in zip([0] + ends[:-1], ends)]  # ms, whole hundredths
+    ims[0].save(os.fspath(path), save_all=True, append_images=ims[1:], duration=times, loop=0)
 
 
 def write_sheet(path, frames, marks, az, title=""):

@@ -106,6 +106,20 @@ def test_write_png_rounds_to_8_bits(tmp_path):
     back = skio.imread(tmp_path / "x.png")
     assert back.dtype == np.uint8
     np.testing.assert_array_equal(back, [[0, 128, 255, 255], [0, 64, 1, 254]])
+    img[1, 1] = np.nan  # a cast would write some grey: refused, nothing written
+    with pytest.raises(DesignError, match=r"^write_png: .*y.png': the image holds non-finite"):
+        io.write_png(str(tmp_path / "y.png"), img)
+    assert not (tmp_path / "y.png").exists()
+
+
+def test_save_result_refuses_non_finite_images_load_result_would_refuse(tmp_path):
+    res = _one_view_result({"ssim": [0.5], "ghosting": [0.1]})
+    res.radiance = res.radiance.copy()
+    res.radiance[0, 3, 3] = np.inf
+    with pytest.raises(DesignError, match="^save_result: the result's radiance hold non-finite "
+                                          "values$"):
+        io.save_result(res, tmp_path / "r")
+    assert not (tmp_path / "r").exists()
 
 
 def test_save_and_load_a_hand_built_result(tmp_path):

@@ -118,7 +118,14 @@ def test_orbit_and_writers_refuse_bad_arguments_in_one_line(tmp_path):
     write_gif(tmp_path / "b.gif", frames, marks, az, fps=np.array(8.0))  # a 0-d array is a number
     assert (tmp_path / "b.gif").exists()
     from PIL import Image
-    for fps, ms in ((50, 20), (0.1, 10000), (3, 330)):  # frame times as the GIF stores them
-        write_gif(tmp_path / "c.gif", frames, marks, az, fps=fps)
+    from PIL import ImageSequence
+    many = np.linspace(0, 1, 8)[:, None, None] * np.ones((8, 8, 8))  # eight different frames
+    many_marks, many_az = -np.ones(8, int), np.linspace(0, 1, 8)
+    for fps in (50, 0.1, 3, 7, 8):  # frame times as the GIF stores them, fps kept on average
+        write_gif(tmp_path / "c.gif", many, many_marks, many_az, fps=fps)
         with Image.open(tmp_path / "c.gif") as im:
-            assert im.info["duration"] == ms, (fps, im.info)
+            times = [f.info["duration"] for f in ImageSequence.Iterator(im)]
+        assert len(times) == 8 and sum(times) == 10 * round(800 / fps), (fps, times)
+        assert all(abs(t - 1000 / fps) < 10 for t in times), (fps, times)
+    with pytest.raises(InputError, match="^preview: a frame holds non-finite display values$"):
+        write_gif(tmp_path / "d.gif", np.full((2, 8, 8), np.nan), marks, az)

@@ -226,6 +226,9 @@ def write_png(path: str, img: np.ndarray) -> None:
     """Display values ``(H, W)`` in [0, 1] as an 8-bit grayscale PNG."""
     from skimage import io
 
+    img = np.asarray(img)
+    if not np.all(np.isfinite(img)):  # (a cast would write them as arbitrary greys)
+        raise DesignError(f"write_png: {path!r}: the image holds non-finite values")
     io.imsave(path, (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8), check_contrast=False)
 
 
@@ -441,12 +444,15 @@ def _folder(who: str, out) -> str:
 def _check_result(result: DesignResult) -> None:
     """`DesignError` (one line) when a result's images or history do not have the form
     `design` gives them (e.g. a hand-edited result): targets, radiance and display ``(M, H,
-    W)`` alike, history ``{"total": [...], "terms": {name: [...]}}``."""
+    W)`` alike and finite, history ``{"total": [...], "terms": {name: [...]}}``."""
     shapes = {k: np.shape(getattr(result, k)) for k in ("targets", "radiance", "display")}
     if len(shapes["targets"]) != 3 or len(set(shapes.values())) != 1:
         got = ", ".join(f"{k} {v}" for k, v in shapes.items())
         raise DesignError("save_result: the result's targets, radiance and display must share one "
                           f"shape (M, H, W), got {got}")
+    bad = [k for k in shapes if not np.all(np.isfinite(np.asarray(getattr(result, k))))]
+    if bad:  # (`load_result` refuses them: a folder saved with them could not be read back)
+        raise DesignError(f"save_result: the result's {' and '.join(bad)} hold non-finite values")
     h = result.history
     if not (isinstance(h, dict) and isinstance(h.get("total"), (list, tuple))
             and isinstance(h.get("terms"), dict)):
