@@ -17,7 +17,7 @@ import numpy as np
 from skimage.filters import gaussian
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from jscratch.errors import InputError
+from jscratch.errors import InputError, real_number, shown
 
 __all__ = ["LBP_POINTS", "LBP_RADIUS", "METRIC_SIGMA", "image_metrics", "texture_distance"]
 
@@ -42,6 +42,25 @@ def _as_stack(x, name: str) -> np.ndarray:
             f"= {x[j, r, c]})"
         )
     return x.astype(np.float64)
+
+
+def _as_pair(display_images, targets) -> tuple[np.ndarray, np.ndarray]:
+    """Renders and targets as float64 ``(M, H, W)`` stacks of one shape, at least 7x7 px, the
+    targets in ``[0, 1]``; `InputError` (one line) otherwise."""
+    imgs = _as_stack(display_images, "display_images")
+    tgts = _as_stack(targets, "targets")
+    if imgs.shape != tgts.shape:
+        raise InputError(
+            f"display_images {imgs.shape} and targets {tgts.shape} must have the same shape"
+        )
+    if tgts.min() < 0.0 or tgts.max() > 1.0:
+        raise InputError(
+            f"targets must be display values in [0, 1], got range [{tgts.min()}, {tgts.max()}]"
+        )
+    h, w = imgs.shape[1:]
+    if min(h, w) < _SSIM_WIN:
+        raise InputError(f"images must be at least {_SSIM_WIN}x{_SSIM_WIN} px, got {h}x{w}")
+    return imgs, tgts
 
 
 def image_metrics(
@@ -69,24 +88,14 @@ def image_metrics(
 
     **Raises:**
 
-    ``ValueError`` for shape mismatches, non-finite values, targets outside ``[0, 1]``, images
-    smaller than 7x7 or a bad ``sigma``; ``TypeError`` for non-float arrays.
+    `InputError` (a ``ValueError``), one line, for shape mismatches, non-float or non-finite
+    values, targets outside ``[0, 1]``, images smaller than 7x7 or a bad ``sigma``.
     """
-    if not (isinstance(sigma, (int, float)) and np.isfinite(sigma) and sigma >= 0):
-        raise InputError(f"sigma must be a finite number >= 0 (pixels), got {sigma!r}")
-    imgs = _as_stack(display_images, "display_images")
-    tgts = _as_stack(targets, "targets")
-    if imgs.shape != tgts.shape:
-        raise InputError(
-            f"display_images {imgs.shape} and targets {tgts.shape} must have the same shape"
-        )
-    if tgts.min() < 0.0 or tgts.max() > 1.0:
-        raise InputError(
-            f"targets must be display values in [0, 1], got range [{tgts.min()}, {tgts.max()}]"
-        )
-    m, h, w = imgs.shape
-    if min(h, w) < _SSIM_WIN:
-        raise InputError(f"images must be at least {_SSIM_WIN}x{_SSIM_WIN} px for SSIM, got {h}x{w}")
+    given, sigma = sigma, real_number(sigma)
+    if sigma is None or not (np.isfinite(sigma) and sigma >= 0):
+        raise InputError(f"sigma must be a finite number >= 0 (pixels), got {shown(given)}")
+    imgs, tgts = _as_pair(display_images, targets)
+    m = imgs.shape[0]
     if clip:
         imgs = np.clip(imgs, 0.0, 1.0)
 
@@ -145,15 +154,12 @@ def texture_distance(display_images, targets, clip: bool = True) -> list[float]:
     **Arguments:** `display_images`, `targets`: ``(M, H, W)`` display values (as
     `image_metrics`); `clip`: clip the renders to ``[0, 1]`` first.
 
-    **Returns:** ``M`` floats (lower is better).
+    **Returns:** ``M`` floats (lower is better). **Raises:** `InputError`, one line, as
+    `image_metrics` (shapes, values, targets outside ``[0, 1]``, images below 7x7 px).
     """
     from skimage.feature import local_binary_pattern
 
-    imgs = _as_stack(display_images, "display_images")
-    tgts = _as_stack(targets, "targets")
-    if imgs.shape != tgts.shape:
-        raise InputError(
-            f"display_images {imgs.shape} and targets {tgts.shape} must have the same shape")
+    imgs, tgts = _as_pair(display_images, targets)
     if clip:
         imgs = np.clip(imgs, 0.0, 1.0)
     nb = LBP_POINTS + 2

@@ -109,11 +109,23 @@ def test_single_view_and_clipping():
         (np.zeros((1, 16, 16)), np.zeros((1, 16, 16), np.uint8), {}, ValueError, "targets must be floating"),
         (np.zeros((1, 5, 16)), np.zeros((1, 5, 16)), {}, ValueError, "at least 7x7"),
         (np.zeros((1, 16, 16)), np.zeros((1, 16, 16)), {"sigma": -1.0}, ValueError, "sigma"),
+        (np.zeros((1, 16, 16)), np.zeros((1, 16, 16)), {"sigma": True}, ValueError,
+         "sigma must be a finite number >= 0 .pixels., got True"),
     ],
 )
 def test_errors(images, targets, kw, err, match):
     with pytest.raises(err, match=match):
         image_metrics(images, targets, **kw)
+    if not kw:  # texture_distance checks its images as image_metrics does
+        with pytest.raises(err, match=match):
+            texture_distance(images, targets)
+
+
+def test_sigma_is_any_real_number():
+    t = _texture_images(2, 16, 16)
+    want = image_metrics(t, t[::-1], sigma=1.0)
+    assert image_metrics(t, t[::-1], sigma=np.float32(1.0)) == want
+    assert image_metrics(t, t[::-1], sigma=np.array(1.0)) == want
 
 
 def _texture_images(m=3, h=24, w=20, seed=0):
