@@ -464,12 +464,19 @@ class Loss(eqx.Module):
 
         **Arguments:**
 
-        - `target`: ``(M, H, W)`` floating display values; kept in their own dtype (cast to
-          the render's dtype when the loss is evaluated).
+        - `target`: ``(M, H, W)`` floating display values in ``[0, 1]``; kept in their own
+          dtype (cast to the render's dtype when the loss is evaluated). `InputError`, one line,
+          for other shapes or values.
 
         **Returns:** A ``BoundLoss``; ``bound(render) == loss(render, target)`` up to rounding.
         """
         target, _ = _check_images(target, target, name="target")
+        if not isinstance(target, jax.core.Tracer):  # (host side: concrete values checked)
+            t = np.asarray(target)
+            if not (np.all(np.isfinite(t)) and t.min() >= 0.0 and t.max() <= 1.0):
+                raise InputError(f"bind: target must be finite display values in [0, 1], got "
+                                 f"range [{np.nanmin(t):g}, {np.nanmax(t):g}]"
+                                 + ("" if np.all(np.isfinite(t)) else " with non-finite values"))
         grams = ghost = None
         if self.kind == "perceptual+gram":
             grams = _target_grams(self.features, target)

@@ -312,6 +312,13 @@ def test_bad_inputs():
         loss_mod.make_loss({"kind": "l2"})
     with pytest.raises(DesignFileError, match="not found"):
         loss_mod.make_loss(loss_mod.LossConfig(vgg_weights="/nonexistent/vgg.npz", lambda_g=1.0))
+    bound = loss_mod.make_loss()
+    for bad, says in ((jnp.full(SHAPE, 3.0), r"range \[3, 3\]$"),
+                      (t.at[0, 1, 2].set(jnp.inf), r"range \[0, inf\] with non-finite values$"),
+                      (t.at[1, 0, 0].set(-0.5), r"range \[-0.5, 0\]$")):
+        with pytest.raises(InputError, match=r"^bind: target must be finite display values in "
+                                             r"\[0, 1\], got " + says):
+            bound.bind(bad)
 
 
 # ----------------------------------------------------------------------------------------------
