@@ -21,6 +21,7 @@ the first bad scratch and field.
 
 from __future__ import annotations
 
+import hashlib
 import math
 import os
 import tempfile
@@ -96,6 +97,15 @@ class Design(NamedTuple):
     def length(self) -> np.ndarray:
         """`(N,)` scratch lengths, metres."""
         return np.hypot(*(self.p1 - self.p0).T)
+
+    def digest(self) -> str:
+        """The first 16 hex digits of a SHA-256 of what a carving program is made from (the
+        scratches, their plunges, the board and the profile): equal for the same design read
+        again, different for another (what `python -m jscratch.fabricate` records in a program)."""
+        h = hashlib.sha256(self.profile.encode())
+        for a in (self.p0, self.p1, self.width, self.depth, self.alpha, self.board, self.plunge):
+            h.update(b"-" if a is None else np.ascontiguousarray(a, np.float64).tobytes())
+        return h.hexdigest()[:16]
 
 
 def groove_half_width(width, depth):

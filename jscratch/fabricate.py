@@ -15,8 +15,9 @@ progress survives crashes.
 - `carve`: stream a G-code file to GRBL over a serial port with a journal and resume.
 - ``python -m jscratch.fabricate --help``: the command line.
 
-G-code layout (three comment lines, the last the limits the program was checked against,
-``(limits X..:.. Y..:.. Z..:.. mm)``; preamble ``G21 G90 G94 G17 G54`` and ``G0 Z<safe>`` (the
+G-code layout (four comment lines: what it carves, the cutter, the design's digest
+``(design ..)`` and the limits the program was checked against, ``(limits X..:.. Y..:.. Z..:..
+mm)``; preamble ``G21 G90 G94 G17 G54`` and ``G0 Z<safe>`` (the
 tool off the board), then, with a spindle, ``M3 S..`` and a spin-up dwell ``G4 P..``; one block
 per scratch, at most 79 characters a line;
 last, after ``M2``, a comment with the SHA-256 of every other line, ``(sha256 ..)``)::
@@ -63,8 +64,8 @@ from jscratch.options import OneLineParser, check_out_prefix, signals_interrupt
 from jscratch.errors import EXIT_STATUS_HELP, InputError, JscratchError, real_number, report
 from jscratch.grbl import WORD_FORMAT, clip, gword
 from jscratch.carve import CarveError, carve
-from jscratch.gcode import (Program, check_program_lines, digest_comment, limits_comment,
-                            read_program, write_program)
+from jscratch.gcode import (Program, check_program_lines, design_comment, digest_comment,
+                            limits_comment, program_design, read_program, write_program)
 from jscratch.machine import CUT_KEYS, MachineConfig, MachineProfile, carving_seconds
 from jscratch.toolpath import order_scratches
 
@@ -366,6 +367,7 @@ def make_program(design: Design, cfg: MachineConfig, *, improve: bool = True, ti
     g = gword
     emit(f"(jscratch: {n} scratches, board {board_mm[0]:.3f} x {board_mm[1]:.3f} mm, work zero G54)", role="comment")
     emit(f"(ball R {cfg.cutter_radius_mm:.3f} mm, feed {cfg.feed_mm_min:.1f} mm/min)", role="comment")
+    emit(design_comment(design), role="comment")  # (`--gcode` checks it against the design beside)
     # The bounds checked below, in the file: reading the program back (`--gcode`) checks them again.
     lo = (ox - cfg.margin_mm, oy - cfg.margin_mm, -cfg.plunge_max_mm)
     hi = (ox + board_mm[0] + cfg.margin_mm, oy + board_mm[1] + cfg.margin_mm, safe)
@@ -601,6 +603,23 @@ def _refuse_overwrite(gcode: str):
                      "--resume, or move the G-code and its journal away to start a new one; nothing was written")
 
 
+def _refuse_another_design(gcode: str):
+    """Refuse a program written from a design other than the one beside it now (``X.gcode`` is
+    written from ``X.npz`` by default): the design was made again since, and the program would
+    carve the old one."""
+    beside = os.path.splitext(gcode)[0] + ".npz"
+    try:
+        now = load_design(beside).digest() if os.path.isfile(beside) else None
+        with open(gcode, encoding="ascii") as f:
+            was = program_design(f.read().split("\n"))
+    except (JscratchError, OSError, UnicodeDecodeError):  # (no design there; read_program says)
+        return
+    if now is not None and was is not None and now != was:
+        raise InputError(f"{gcode!r} carves another design than {beside!r} beside it (made again "
+                         f"since?): write the program again with python -m jscratch.fabricate "
+                         f"{beside}, or move one of them away")
+
+
 def _attach_as_carved(info: dict, design_path: str):
     """Copy the design run's "as carved" SSIM (``metrics.json`` next to the design) into `info`."""
     mpath = os.path.join(os.path.dirname(os.path.abspath(design_path)), "metrics.json")
@@ -722,6 +741,8 @@ def _main(argv) -> int:
         if args.gcode:
             gcode = args.gcode
             _warn_unused_options(gcode, over, args)
+            if not args.resume:  # (a resumed job goes on with its program, whatever changed)
+                _refuse_another_design(gcode)
             if not args.port:
                 n = read_program(gcode).info["scratches"]  # check it, as the carver would
                 if not args.quiet:

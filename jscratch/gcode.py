@@ -17,8 +17,8 @@ import numpy as np
 from jscratch.errors import DesignFileError, InputError
 from jscratch.grbl import check_words, clip
 
-__all__ = ["MAX_LINE", "Program", "check_program_lines", "digest_comment", "limits_comment",
-           "read_program", "write_program"]
+__all__ = ["MAX_LINE", "Program", "check_program_lines", "design_comment", "digest_comment",
+           "limits_comment", "program_design", "read_program", "write_program"]
 
 MAX_LINE = 79  # characters, without the newline (GRBL's line buffer is 80 bytes)
 
@@ -83,6 +83,24 @@ def limits_comment(lo, hi) -> str:
     coordinate of the program against it."""
     ranges = (f"{a}{lo[i]:.3f}:{hi[i]:.3f}" for i, a in enumerate("XYZ"))
     return "(limits " + " ".join(ranges) + " mm)"
+
+
+_DESIGN_RE = re.compile(r"\(design ([0-9a-f]{16})\)")
+
+
+def design_comment(design) -> str:
+    """The comment line that records which design a program carves (`Design.digest`), e.g.
+    ``(design 0123456789abcdef)``."""
+    return f"(design {design.digest()})"
+
+
+def program_design(lines) -> str | None:
+    """The design digest a program's `design_comment` records, or None (a program without one)."""
+    for text in lines:
+        m = _DESIGN_RE.fullmatch(text)
+        if m:
+            return m.group(1)
+    return None
 
 
 _DIGEST_RE = re.compile(r"\(sha256 ([0-9a-f]{16})\)")

@@ -181,6 +181,33 @@ def test_cli_takes_a_design_runs_folder(tmp_path, capsys):
     assert os.listdir(tmp_path / "empty") == []
 
 
+def test_a_program_is_refused_beside_a_design_made_again_since(tmp_path, capsys):
+    """A program records the design it carves (``(design ..)``): `--gcode` refuses one whose
+    design file beside it (``X.npz`` for ``X.gcode``) is now another design (a design run made
+    again in the folder), and takes it beside the same design written again, or alone."""
+    run, gcode = tmp_path / "run", str(tmp_path / "run" / "design.gcode")
+    run.mkdir()
+    first, second = demo_design(12, seed=1), demo_design(14, seed=2)
+    for d in (first, second):
+        d.p0[0] += 1e-9 * (d is second)  # (another design, even by one coordinate)
+    save_design(run / "design.npz", first.p0, first.p1, first.width, first.depth, first.alpha,
+                first.board)
+    assert main([str(run), "--dry-run", "--quiet", "--order-time", "0"]) == 0
+    assert main(["--gcode", gcode, "--dry-run", "--quiet"]) == 0
+    save_design(run / "design.npz", second.p0, second.p1, second.width, second.depth,
+                second.alpha, second.board)
+    assert main(["--gcode", gcode, "--dry-run"]) == 2
+    err = capsys.readouterr().err
+    assert err == (f"error: {gcode!r} carves another design than {str(run / 'design.npz')!r} "
+                   "beside it (made again since?): write the program again with python -m "
+                   f"jscratch.fabricate {run / 'design.npz'}, or move one of them away\n"), err
+    save_design(run / "design.npz", first.p0, first.p1, first.width, first.depth, first.alpha,
+                first.board)  # the same design, written again
+    assert main(["--gcode", gcode, "--dry-run", "--quiet"]) == 0
+    os.remove(run / "design.npz")
+    assert main(["--gcode", gcode, "--dry-run", "--quiet"]) == 0
+
+
 def test_cli_refuses_an_empty_path_instead_of_carving_the_demo(tmp_path, capsys, monkeypatch):
     """``--gcode "$JOB"`` with JOB unset is an empty path, not "no option": refused in one line,
     nothing written (it used to stream the built-in demo design)."""
