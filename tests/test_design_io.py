@@ -138,10 +138,14 @@ def test_save_and_load_a_hand_built_result(tmp_path):
                        DesignConfig(n_scratches=2, groove="free"))
     (tmp_path / "out").mkdir()
     stale = ("view2_render.png", "view2_target.png", "view0_carved.png")  # an earlier 3-view run's
-    for f in (*stale, "notes.txt"):
+    (tmp_path / "out" / "metrics.json").write_text(json.dumps(
+        {"ssim": [0.1, 0.2, 0.3], "as_carved": {"ssim": [0.1, 0.2, 0.3]}}))
+    mine = ("notes.txt", "view5_render.png")  # not the earlier result's: left alone
+    for f in (*stale, *mine):
         (tmp_path / "out" / f).write_text("x")
     io.save_result(res, tmp_path / "out")
     assert not any((tmp_path / "out" / f).exists() for f in stale)
+    assert all((tmp_path / "out" / f).read_text() == "x" for f in mine)
     for kw, words in ((dict(names=np.array(["a", "b"])), "names must be None or 2 strings"),
                       (dict(names=["a"]), "names must be None or 2 strings"),
                       (dict(scene={"size": 24}), "scene must be None or a SceneConfig")):

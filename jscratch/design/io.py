@@ -300,9 +300,25 @@ def save_result(result: DesignResult, out: str | os.PathLike, *, scene: SceneCon
             held.release()
 
 
+def _pictures_of(out: str) -> list[str]:
+    """The ``view<j>_*.png`` that the result in folder `out` (its ``metrics.json``) wrote: one
+    render and target per view, an as-carved picture per view where it has as-carved figures;
+    none where there is no result."""
+    try:
+        with open(os.path.join(out, "metrics.json")) as f:
+            metrics = json.load(f)
+        m = len(metrics["ssim"])
+    except (OSError, ValueError, KeyError, TypeError):  # (no result there, or not one of ours)
+        return []
+    kinds = ("render", "target") + ("carved",) * isinstance(metrics.get("as_carved"), dict)
+    names = [f"view{j}_{k}.png" for j in range(m) for k in kinds]
+    return [n for n in names if os.path.isfile(os.path.join(out, n))]
+
+
 def _save_held(out, made, result, scene, names, as_carved_samples, order_time, m) -> dict:
     """`save_result`'s writing, into folder `out` held by this process."""
     settle_earlier(out)  # a stopped command-line run's files: settled before a config is written
+    wrote = _pictures_of(out)  # what the earlier result there wrote (no one else's files)
     # Everything is written into a staging folder and moved into `out` once complete: a failure
     # part-way leaves `out` as it was, not half of a new result beside half of an old one.
     stage = tempfile.mkdtemp(prefix=".jscratch-save-", dir=out)
@@ -324,10 +340,13 @@ def _save_held(out, made, result, scene, names, as_carved_samples, order_time, m
             os.rmdir(out)
         raise
     shutil.rmtree(stage, ignore_errors=True)
-    for name in os.listdir(out):  # an earlier result's pictures that this one did not replace
+    for name in wrote:  # an earlier result's pictures that this one did not replace
         old = re.fullmatch(r"view(\d+)_(render|target|carved)\.png", name)
-        if old and (int(old.group(1)) >= m or (old.group(2) == "carved" and not as_carved_samples)):
-            os.remove(os.path.join(out, name))
+        if int(old.group(1)) >= m or (old.group(2) == "carved" and not as_carved_samples):
+            try:
+                os.remove(os.path.join(out, name))
+            except FileNotFoundError:
+                pass
     if not as_carved_samples:  # an earlier save's as-carved figures no longer have pictures
         result.metrics.pop("as_carved", None)
     result.metrics.update(add)
