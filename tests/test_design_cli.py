@@ -365,11 +365,13 @@ def test_resume_compares_options_as_the_config_holds_them(tmp_path):
         skimage.io.imsave(tmp_path / name, np.zeros((8, 8), np.uint8), check_contrast=False)
     out = tmp_path / "out"
     out.mkdir()
-    run, scene, config = cli.configs(["t0.png", "t1.png", "--freeze", "width,alpha",
-                                      "--lr-endpoints", "0.001", "--out", str(out)])
+    monkeypatch = pytest.MonkeyPatch()
+    with monkeypatch.context() as m:
+        m.chdir(tmp_path)
+        run, scene, config = cli.configs(["t0.png", "t1.png", "--freeze", "width,alpha",
+                                          "--lr-endpoints", "0.001", "--out", str(out)])
     (out / "config.json").write_text(json.dumps({"design": config.to_dict(),
                                                  "scene": scene.to_dict()}))
-    monkeypatch = pytest.MonkeyPatch()
     with monkeypatch.context() as m:
         m.chdir(tmp_path)
         same = [str(tmp_path / "t0.png"), "t1.png", "--views", "2", "--freeze", "alpha,width",
@@ -380,6 +382,35 @@ def test_resume_compares_options_as_the_config_holds_them(tmp_path):
         machine.write_text("feed_mm_min = 123.0\n")
         with pytest.raises(DesignError, match=r"--machine: feed_mm_min 123\.0 \(the run's: "):
             cli.configs([*same, "--machine", str(machine)])
+
+
+def test_a_run_with_relative_target_paths_resumes_and_repeats_from_another_folder(
+        tmp_path, monkeypatch):
+    """Target paths are recorded absolute (as the files they name when the run started), so
+    ``--resume`` and ``--config`` work from any folder, with the paths given either way."""
+    import skimage.io
+
+    from jscratch.design.io import load_scene
+
+    (tmp_path / "img").mkdir()
+    for name in ("t0.png", "t1.png"):
+        skimage.io.imsave(tmp_path / "img" / name, np.zeros((24, 24), np.uint8),
+                          check_contrast=False)
+    out, elsewhere = tmp_path / "out", tmp_path / "elsewhere"
+    out.mkdir()
+    elsewhere.mkdir()
+    monkeypatch.chdir(tmp_path)
+    _, scene, config = cli.configs(["img/t0.png", "img/t1.png", "--out", str(out)])
+    (out / "config.json").write_text(json.dumps({"design": config.to_dict(),
+                                                 "scene": scene.to_dict()}))
+    monkeypatch.chdir(elsewhere)
+    for argv in (["--out", str(out), "--resume"],
+                 ["--out", str(out), "--resume", str(tmp_path / "img" / "t0.png"),
+                  "../img/t1.png"],
+                 ["--config", str(out / "config.json"), "--out", "again"]):
+        _, again, _ = cli.configs(argv)
+        assert again.targets == (str(tmp_path / "img" / "t0.png"), str(tmp_path / "img" / "t1.png"))
+        assert load_scene(again)[1] == list(again.targets)
 
 
 def test_a_run_too_large_for_the_free_memory_is_refused_and_leaves_no_folder(

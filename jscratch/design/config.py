@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from typing import Any
 
 import numpy as np
@@ -326,7 +327,8 @@ class SceneConfig(KnownFields):
             bad("targets", "a list of image file paths")
         if not all(isinstance(t, str) and t for t in targets):
             bad("targets", "a list of image file paths")
-        object.__setattr__(self, "targets", targets)
+        # Absolute: a config.json saved with them repeats (--config) or resumes from any folder.
+        object.__setattr__(self, "targets", tuple(os.path.abspath(t) for t in targets))
         if self.views is not None:
             if not (isinstance(self.views, (int, np.integer)) and not isinstance(self.views, bool)
                     and self.views >= 1):
