@@ -31,6 +31,22 @@ def _inputs():
     return targets, views, board
 
 
+def test_the_default_board_has_square_pixels():
+    """Without a board, `design` takes the command line's 0.3 m square board for square targets
+    and, for others, a board of square pixels whose longer side is 0.3 m (not the square board,
+    which would stretch the picture)."""
+    from jscratch.design.config import SceneConfig
+
+    rng = np.random.default_rng(0)
+    for h, w in ((24, 24), (32, 16), (16, 40)):
+        _, _, board = run_mod.check_inputs(rng.random((2, h, w)), None, None, CFG)
+        assert board.shape == (h, w)
+        assert board.Sx / w == pytest.approx(board.Sy / h, rel=1e-12)
+        assert max(board.Sx, board.Sy) == SceneConfig().board
+    _, _, square = run_mod.check_inputs(rng.random((2, 24, 24)), None, None, CFG)
+    assert (square.Sx, square.Sy) == (SceneConfig().board,) * 2
+
+
 def test_design_refuses_bad_inputs(tmp_path):
     targets, views, board = _inputs()
     with pytest.raises(DesignError, match="config must be a DesignConfig, got dict"):

@@ -60,7 +60,7 @@ def design(
       intensities are the starting values when ``config.init_intensity == "given"``. Default: the
       command line's, ``SceneConfig().make_views(M, board)`` (light and cameras at 50 degrees).
     - `board`: `jscratch.Board`; its ``shape`` must be ``(H, W)``. Default ``Board(shape=(H, W))``
-      (0.3 m square, as the command line's).
+      with square pixels, its longer side 0.3 m (for square targets the command line's board).
     - `config`: `DesignConfig` (default ``DesignConfig()``, the command line's defaults: the same
       inputs and configs give the same result bit for bit).
     - `checkpoint`: path of a checkpoint file, written every ``config.checkpoint_every``
@@ -180,7 +180,10 @@ def check_inputs(targets, views, board, config, checkpoint=None, resume=False):
     if board is not None and not isinstance(board, Board):
         raise DesignError(f"board must be a jscratch.Board, got {type(board).__name__}")
     scene = SceneConfig()  # the command line's defaults for what is not given
-    board = Board(shape=(h, w), Sx=scene.board, Sy=scene.board) if board is None else board
+    if board is None:  # square pixels, the longer side the command line's board side
+        side = scene.board / max(h, w)
+        board = Board(shape=(h, w), Sx=side * w if w < h else scene.board,
+                      Sy=side * h if h < w else scene.board)
     if views is None:
         views = scene.make_views(tnp.shape[0], board)
     if board.shape != (h, w):
