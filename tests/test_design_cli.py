@@ -109,6 +109,17 @@ def test_config_file_without_a_scene_needs_scene_options(cli_run, tmp_path, caps
     assert "has no scene" in capsys.readouterr().err and not (tmp_path / "o").exists()
     _, scene, config = cli.configs(["--config", str(path), "--size", "24", "--views", "2"])
     assert scene.size == 24 and config.n_scratches == 150
+    # the image size and board side come from the saved board where it is square, unless given
+    saved["board"] = {**saved["board"], "shape": [48, 48], "Sx": 0.2, "Sy": 0.2}
+    path.write_text(json.dumps(saved))
+    _, scene, _ = cli.configs(["--config", str(path), "--views", "2"])
+    assert (scene.size, scene.board) == (48, 0.2)
+    _, scene, _ = cli.configs(["--config", str(path), "--views", "2", "--size", "32"])
+    assert (scene.size, scene.board) == (32, 0.2)
+    saved["board"]["shape"] = [48, 24]  # not one the command line makes: its own defaults
+    path.write_text(json.dumps(saved))
+    _, scene, _ = cli.configs(["--config", str(path), "--views", "2"])
+    assert (scene.size, scene.board) == (SceneConfig().size, SceneConfig().board)
 
 
 def test_result_round_trip_and_rerender(cli_run):

@@ -153,7 +153,7 @@ def configs(argv: Sequence[str] | None = None) -> tuple[RunOptions, SceneConfig,
                 "save_result(..., scene=...)")
         try:
             config = DesignConfig.from_dict(saved["design"])
-            scene = SceneConfig.from_dict(saved.get("scene") or {})
+            scene = SceneConfig.from_dict(saved.get("scene") or _board_scene(saved))
         except InputError as e:
             raise DesignFileError(f"config file {source!r}: {e}") from None
     if run.resume:
@@ -164,6 +164,17 @@ def configs(argv: Sequence[str] | None = None) -> tuple[RunOptions, SceneConfig,
             raise DesignError(f"--resume continues the run in {run.out!r} with its own settings; "
                               f"only --iterations may change, got {'; '.join(changed)}")
     return run, overlay(scene, scene_given), overlay(config, design_given)
+
+
+def _board_scene(saved: dict) -> dict:
+    """What a config without a scene (a result saved from Python) says of the scene options: the
+    image size and board side of its board where it is square (its views are the options')."""
+    board = saved.get("board")
+    try:
+        (h, w), sx, sy = board["shape"], float(board["Sx"]), float(board["Sy"])
+    except (TypeError, KeyError, ValueError):
+        return {}
+    return {"size": h, "board": sx} if h == w and sx == sy else {}
 
 
 def _changed(saved, changes: dict, cls) -> list[str]:
