@@ -37,7 +37,8 @@ __all__ = [
 ]
 
 #: The exit statuses of the command-line tools, as their ``--help`` states them.
-EXIT_STATUS_HELP = ("exit status: 0 done; 1 a file could not be written (operating-system error); "
+EXIT_STATUS_HELP = ("exit status: 0 done; 1 a file could not be written or memory ran out "
+                    "(operating-system error); "
                     "2 refused input (option, file or design; nothing is written); 3 a non-finite "
                     "value; 4 carving or the device stopped; 130 interrupted (Ctrl-C).")
 

@@ -690,3 +690,17 @@ def test_a_second_run_in_a_folder_being_written_is_refused_and_changes_nothing(c
     assert cli.main([*TINY, "--out", str(out), "--quiet"]) == 2
     assert "config.json' is a folder" in capsys.readouterr().err
     assert _files(out) == before
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["--scratches", "0"], "--scratches must be an int >= 1, got 0"),
+    (["--size", "0"], "--size must be an int in [16, 46340] (pixels; pixel indices are 32-bit), "
+                      "got 0"),
+    (["--lambda-x", "-1"], "--lambda-x must be a finite number >= 0, got -1.0"),
+    (["--theta-deg", "100"], "--theta-deg must be in [0, 90) degrees (above the board), got 100.0"),
+])
+def test_a_refused_option_is_named_by_its_flag(argv, says, tmp_path, capsys):
+    """A value the configs refuse is named as the user typed it (the flag, not the field)."""
+    assert cli.main([*argv, "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    assert capsys.readouterr().err == f"error: {says}\n"
+    assert not (tmp_path / "o").exists()

@@ -279,3 +279,14 @@ def test_an_unknown_keyword_is_refused_in_one_line_as_an_unknown_key():
     assert dataclasses.replace(c, iterations=3).iterations == 3
     assert copy.deepcopy(c) == c == pickle.loads(pickle.dumps(c)) == DesignConfig.from_dict(
         c.to_dict())
+
+
+def test_scratch_count_and_image_side_are_bounded_by_their_32_bit_indices():
+    from jscratch.designfile import DesignError
+
+    assert DesignConfig(n_scratches=2**31 - 1).n_scratches == 2**31 - 1
+    with pytest.raises(DesignError, match=r"n_scratches must be an int in \[1, 2147483647\]"):
+        DesignConfig(n_scratches=2**31)
+    assert SceneConfig(size=46340).size == 46340 and 46340**2 < 2**31 <= 46341**2
+    with pytest.raises(DesignError, match=r"size must be an int in \[16, 46340\]"):
+        SceneConfig(size=46341)

@@ -11,7 +11,7 @@ options gives.
 
 Everything is checked before any work starts; a refusal prints one line ``error: ...`` and exits
 with `jscratch.errors.exit_status` (2 bad input, with nothing written; 3 non-finite optimisation,
-the last good state kept; 1 a file that could not be written).
+the last good state kept; 1 a file that could not be written, or memory that ran out).
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ import argparse
 import dataclasses
 import json
 import os
+import re
 import sys
 import uuid
 from collections.abc import Sequence
@@ -163,7 +164,27 @@ def configs(argv: Sequence[str] | None = None) -> tuple[RunOptions, SceneConfig,
         if changed:
             raise DesignError(f"--resume continues the run in {run.out!r} with its own settings; "
                               f"only --iterations may change, got {'; '.join(changed)}")
-    return run, overlay(scene, scene_given), overlay(config, design_given)
+    return run, _by_flag(overlay, scene, scene_given), _by_flag(overlay, config, design_given)
+
+
+#: How the configs' checks name a field: ``DesignConfig.n_scratches``, ``scene size``, ...
+_FIELD_RE = re.compile(r"(DesignConfig\.|LossConfig\.|scene )(\w+)( must be .*)")
+
+
+def _by_flag(overlay_, saved, changes: dict):
+    """``overlay_(saved, changes)``, its refusal of an option given on the command line naming
+    the option's flag (``--scratches must be ...``), not the config's field."""
+    try:
+        return overlay_(saved, changes)
+    except InputError as e:
+        m = _FIELD_RE.fullmatch(str(e))
+        path = None if m is None else ("loss." if m.group(1) == "LossConfig." else "") + m.group(2)
+        given_paths = set()
+        for k, v in changes.items():  # (nested: the loss options, "loss.lambda_x")
+            given_paths |= {f"{k}.{j}" for j in v} if isinstance(v, dict) else {k}
+        if path not in given_paths:  # (a value from a --config file: named as the file has it)
+            raise
+        raise type(e)(flags(type(saved))[path] + m.group(3)) from None
 
 
 def _board_scene(saved: dict) -> dict:

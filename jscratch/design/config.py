@@ -32,6 +32,10 @@ PARAMETERISATIONS = ("endpoints", "midpoint")
 #: Learning-rate schedules (`DesignConfig.lr_schedule`).
 LR_SCHEDULES = ("constant", "cosine")
 
+#: The most scratches and the largest image side a design takes: its scratch and pixel indices
+#: are int32.
+MAX_SCRATCHES, MAX_SIZE = 2**31 - 1, math.isqrt(2**31 - 1)
+
 #: Default targets from ``skimage.data`` (bundled with scikit-image; nothing is downloaded).
 DEFAULT_IMAGES = ("camera", "astronaut", "chelsea", "coffee", "rocket", "moon")
 
@@ -163,6 +167,8 @@ class DesignConfig(KnownFields):
 
         for name in ("n_scratches", "iterations", "chunk", "checkpoint_every"):
             integer(name, 1)
+        if self.n_scratches > MAX_SCRATCHES:
+            bad("n_scratches", f"an int in [1, {MAX_SCRATCHES}] (scratch indices are 32-bit)")
         integer("seed", 0)
         if self.seed >= 2**63:  # jax.random.PRNGKey takes a signed 64-bit seed
             bad("seed", "an int in [0, 2**63)")
@@ -338,8 +344,8 @@ class SceneConfig(KnownFields):
                 raise DesignError(f"got {len(targets)} target images for {self.views} views: "
                                   "give one target per view")
         if not (isinstance(self.size, (int, np.integer)) and not isinstance(self.size, bool)
-                and self.size >= 16):
-            bad("size", "an int >= 16 (pixels)")
+                and 16 <= self.size <= MAX_SIZE):
+            bad("size", f"an int in [16, {MAX_SIZE}] (pixels; pixel indices are 32-bit)")
         object.__setattr__(self, "size", int(self.size))
         for name in ("theta_deg", "camera_theta_deg", "offset_deg", "distance", "board"):
             v = getattr(self, name)
