@@ -366,14 +366,16 @@ def write_svg(path, design: Design, *, min_stroke_mm: float = 0.02) -> None:
         f.write(text)
 
 
-def demo_design(n: int = 400, seed: int = 0, board=(0.3, 0.3)) -> Design:
+def demo_design(n: int = 400, seed: int = 0, board=(0.3, 0.3), depth: float = 1.28e-4) -> Design:
     """A small built-in design: `n` brushed scratches on rings around the board centre.
 
     Lengths are uniform in `[5, 25]` mm and the profile is the optimisation start of docs/model.md §5
-    (`w = 2.5e-4`, `d = 1.28e-4` m, `alpha = 0.04`); each scratch runs tangent to the circle through
-    its midpoint (a brushed-ring look) with a little random tilt. Every endpoint lies on the board.
+    (`w = 2.5e-4`, `d = 1.28e-4` m, `alpha = 0.04`; `depth` gives another `d`); each scratch runs
+    tangent to the circle through its midpoint (a brushed-ring look) with a little random tilt.
+    Every endpoint lies on the board.
 
-    **Arguments:** `n` scratches (>= 1), `seed` for `numpy.random.default_rng`, `board` `(Sx, Sy)` m.
+    **Arguments:** `n` scratches (>= 1), `seed` for `numpy.random.default_rng`, `board` `(Sx, Sy)` m,
+    `depth` the grooves' `d`, m.
 
     **Returns:** a `Design` without views.
     """
@@ -396,5 +398,6 @@ def demo_design(n: int = 400, seed: int = 0, board=(0.3, 0.3)) -> Design:
         out = np.concatenate([out, seg[ok]], axis=0)
     out = out[:n]
     return validate_design(
-        out[:, 0], out[:, 1], np.full(n, 2.5e-4), np.full(n, 1.28e-4), np.full(n, 0.04), b, source="demo design"
+        out[:, 0], out[:, 1], np.full(n, 2.5e-4), np.full(n, float(depth)), np.full(n, 0.04), b,
+        source="demo design"
     )

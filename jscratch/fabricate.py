@@ -680,6 +680,9 @@ def _check_options(args) -> None:
         check_out_prefix("--out", args.out, "DIR/job")
 
 
+#: The built-in demo's groove depth `d`, m: shallow enough for the shipped profile's ball.
+DEMO_DEPTH = 6e-5
+
 #: Machine options whose value a program writes: the role of the line and the word's letter
 #: (the board offset: the last return to the board corner, ``G0 X.. Y..``).
 _WRITTEN = {"feed_mm_min": ("cut", "F"), "plunge_mm_min": ("plunge", "F"),
@@ -755,7 +758,7 @@ def _main(argv) -> int:
                 warn = None if args.quiet or args.resume else (lambda m: print(m, file=sys.stderr))
                 cfg = machine_for_design(design, file_prof, over, override=args.override_machine, warn=warn)
             else:
-                design = demo_design(args.demo_n)
+                design = demo_design(args.demo_n, depth=DEMO_DEPTH)
                 prefix = args.out or "jscratch_demo"
             gcode = prefix + ".gcode"
             if args.resume:
