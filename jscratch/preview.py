@@ -26,7 +26,7 @@ import time
 
 import numpy as np
 
-from jscratch.options import OneLineParser, check_out_prefix
+from jscratch.options import OneLineParser, check_out_prefix, signals_interrupt
 from jscratch.errors import (EXIT_STATUS_HELP, DesignFileError, InputError, JscratchError,
                              count_arg, error_line, real_number, report, shown)
 
@@ -294,6 +294,15 @@ def main(argv=None) -> int:
     1 a file could not be written, 2 refused input, 130 interrupted)."""
     args = _parser().parse_args(argv)  # SystemExit: --help (0) or a refused option (2, one line)
     try:
+        with signals_interrupt():  # (SIGTERM, SIGHUP: as Ctrl-C)
+            return _main(args)
+    except KeyboardInterrupt:
+        print("error: interrupted", file=sys.stderr)
+        return 130
+
+
+def _main(args) -> int:
+    try:
         _check_options(args)
         t0 = time.perf_counter()
         design, path = _load(args.design)
@@ -314,8 +323,6 @@ def main(argv=None) -> int:
                   f"{args.size} px, {time.perf_counter() - t0:.1f} s)"
                   + (f"; views {unmarked} share a frame with another view and are not marked"
                      if unmarked else ""))
-    except KeyboardInterrupt:
-        return 130
     except (JscratchError, OSError) as exc:
         return report(exc)
     except MemoryError as exc:

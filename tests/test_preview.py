@@ -73,6 +73,15 @@ def test_preview_writes_both_files_or_neither_and_lights_a_design_with_an_unlit_
     assert "error: " in capsys.readouterr().err
     assert sorted(os.listdir(out)) == ["p.orbit_sheet.png"]
     (out / "p.orbit_sheet.png").rmdir()
+    import jscratch.preview as preview_mod
+
+    def stopped(*a, **k):
+        raise KeyboardInterrupt  # (Ctrl-C, or SIGTERM / SIGHUP through signals_interrupt)
+
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(preview_mod, "render_orbit", stopped)
+        assert main(args) == 130
+    assert capsys.readouterr().err == "error: interrupted\n" and os.listdir(out) == []
     assert main(args) == 0
     assert sorted(os.listdir(out)) == ["p.orbit.gif", "p.orbit_sheet.png"]
     assert Image.open(out / "p.orbit.gif").n_frames == 3
