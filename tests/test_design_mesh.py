@@ -252,7 +252,7 @@ def test_two_processes_that_disagree_refuse(tmp_path):
     (_, e0, r0), (_, e1, r1) = _two(tmp_path / "a", tmp_path / "b", extra1=("--seed", "1"))
     assert (r0, r1) == (2, 2)
     for err in (e0, e1):
-        assert "error: process 1 and process 0 disagree on the design options" in err
+        assert "error: process 1 and process 0 disagree on the design option --seed" in err
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()  # nothing written
 
 
@@ -275,3 +275,64 @@ def test_a_refusal_on_one_process_stops_every_process(tmp_path):
     assert "error: mesh of 2 devices does not divide the image's 33 rows" in e1
     assert "error: process 1 refused: mesh of 2 devices does not divide the image's 33 rows" in e0
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_devices_that_leave_a_process_out_are_refused_by_every_process(tmp_path):
+    """``--devices 1`` over two processes of one device each leaves process 1 without a device
+    in the mesh (it crashed, then hung): every process refuses in one line, nothing written."""
+    (_, e0, r0), (_, e1, r1) = _two(tmp_path / "a", tmp_path / "b", extra0=("--devices", "1"),
+                                    extra1=("--devices", "1"))
+    assert (r0, r1) == (2, 2), (e0[-3000:], e1[-3000:])
+    says = ("--devices 1 leaves a process of the run without a device in the mesh: every "
+            "process needs one (at least --devices 2), or start fewer processes")
+    assert f"error: {says}\n" in e0 and f"refused: {says}\n" in e1, (e0[-3000:], e1[-3000:])
+    assert "Traceback" not in e0 + e1
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+# the command line with JAX's shutdown barrier timing out after 5 s, and process 0's outputs
+# written SLOW_SAVE seconds late (a long as-carved render)
+_SLOW_SAVE = ("import functools, os, sys, time; import jax; "
+              "jax.distributed.initialize = functools.partial(jax.distributed.initialize, "
+              "shutdown_timeout_seconds=5); import jscratch.design.cli as c; save = c.save_result; "
+              "c.save_result = lambda *a, **k: (time.sleep(float(os.environ['SLOW_SAVE'])), "
+              "save(*a, **k))[1]; sys.exit(c.main(sys.argv[1:]))")
+
+
+def test_the_other_processes_wait_for_process_0_to_write_the_outputs(tmp_path):
+    """Process 1 ends its part when the design is done, but not the run: it waits for process
+    0's outputs, so that JAX's shutdown barrier (here 5 s) does not time out and abort process 0
+    while it writes them (15 s here)."""
+    (_, e0, r0), (_, e1, r1) = _two(
+        tmp_path / "a", tmp_path / "b", env={"SLOW_SAVE": "15"},
+        cli=lambda args: [sys.executable, "-c", _SLOW_SAVE, *_ARGS, *args])
+    assert (r0, r1) == (0, 0), (e0[-3000:], e1[-3000:])
+    assert (tmp_path / "a" / "metrics.json").exists() and (tmp_path / "a" / "design.npz").exists()
+
+
+def test_a_process_killed_mid_run_stops_the_other_in_one_line(tmp_path):
+    """Process 1 killed after the first checkpoint: process 0's next collective fails, and it
+    stops with one line (exit 1, no traceback; it used to print one, then abort in C++ at the
+    shutdown barrier's timeout); its checkpoint is kept for --resume."""
+    import time
+
+    port = _free_port()
+    common = ["--coordinator", f"localhost:{port}", "--num-processes", "2", "--join-timeout", "60",
+              "--iterations", "100000", "--checkpoint-every", "5"]
+    procs = [subprocess.Popen(_cli(["--out", str(tmp_path / f"p{i}"), *common, "--process-id",
+                                    str(i)]), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                              text=True, env=_env()) for i in range(2)]
+    try:
+        for _ in range(600):
+            if (tmp_path / "p0" / "checkpoint.npz").exists() or procs[0].poll() is not None:
+                break
+            time.sleep(0.5)
+        procs[1].kill()
+        _, err = procs[0].communicate(timeout=600)
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    assert procs[0].returncode == 1, err[-3000:]
+    assert "error: another process of the run stopped (" in err and "Traceback" not in err
+    assert (tmp_path / "p0" / "checkpoint.npz").exists()

@@ -22,6 +22,7 @@ import json
 import os
 import re
 import sys
+import traceback
 import uuid
 from collections.abc import Sequence
 
@@ -232,6 +233,21 @@ def _comparable(config, name):
     return value
 
 
+def _options_by_flag(scene, config) -> dict:
+    """``{"design option --seed": 0, ...}``: each scene and design option by its flag (what the
+    processes of a run compare, so that a disagreement names the option)."""
+    out = {}
+    for cls, cfg, what in ((SceneConfig, scene, "scene option"),
+                           (DesignConfig, config, "design option")):
+        values = cfg.to_dict()
+        for path, flag in flags(cls).items():
+            v = values
+            for part in path.split("."):
+                v = v.get(part) if isinstance(v, dict) else None
+            out[f"{what} {flag}"] = v
+    return out
+
+
 def _show(value) -> str:
     if isinstance(value, (tuple, list)):
         return ",".join(map(str, value)) if value else "none"
@@ -283,13 +299,14 @@ def _run_joined(run, scene, config, held: list) -> int:
 
     targets, names, views, board, mesh = mesh_mod.all_or_none(checks)
     # --- the processes' agreement, checked before anything is written
-    mesh_mod.agree({"targets": targets_hash(targets), "design options": config.to_dict(),
-                    "scene options": scene.to_dict(),
+    mesh_mod.agree({"targets": targets_hash(targets), **_options_by_flag(scene, config),
+                    "design options": config.to_dict(), "scene options": scene.to_dict(),
                     "run options (--resume, --devices)": [run.resume, run.devices],
                     "versions": mesh_mod.versions()})
     if not writer:  # process 0 writes the outputs and the checkpoint
         design(targets, views, board, config, checkpoint=checkpoint, resume=run.resume,
                progress=False, mesh=mesh)
+        mesh_mod.outputs_written(False)  # (the run ends when they are written)
         return 0
     # ---
     made = _missing_folders(run.out)  # removed again if the run stops before its checkpoint
@@ -331,6 +348,14 @@ def _run_joined(run, scene, config, held: list) -> int:
             "before the first checkpoint (the folder is as it was): run again to start over"),
             file=sys.stderr)
         return 130
+    try:
+        return _write(run, result, scene, names)
+    finally:
+        mesh_mod.outputs_written(True)
+
+
+def _write(run, result, scene, names) -> int:
+    """Process 0's outputs of a finished design (`save_result`) and its summary; the status."""
     settle_earlier(run.out)
     try:
         save_result(result, run.out, scene=scene, names=names,
@@ -351,6 +376,12 @@ def _run_joined(run, scene, config, held: list) -> int:
     if not run.quiet:
         _summary(result, run.out)
     return 0
+
+
+def _peer_stopped(e: BaseException) -> bool:
+    """Whether `e` is a collective that failed because another process of the run stopped."""
+    return any(s in str(e) for s in ("Gloo", "Connection closed", "Connection reset",
+                                     "UNAVAILABLE"))
 
 
 def _out_of_memory(e: BaseException) -> bool:
@@ -388,6 +419,26 @@ def _summary(result, out) -> None:
 def main(argv: Sequence[str] | None = None) -> int:
     """Command-line entry point; returns the exit status (`jscratch.errors.exit_status`),
     printing a refusal as one line (`jscratch.errors.report`)."""
+    try:
+        status = _main(argv)
+    except Exception as e:  # (not a refusal: `_main` reports those)
+        if not mesh_mod.joined():
+            raise
+        if not _peer_stopped(e):  # a failure of this process: its traceback, then as below
+            traceback.print_exc()
+        print(f"error: {'another process of the run stopped' if _peer_stopped(e) else 'failed'}"
+              f" ({error_line(e, 100)}): --resume once every process runs", file=sys.stderr)
+        status = 1
+    if status and mesh_mod.joined():  # one of several processes stops: at once, not after the
+        # shutdown barrier, which would wait for the others (blocked in a collective with this
+        # one) until its timeout; they see the connection close and stop too
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(status)
+    return status
+
+
+def _main(argv) -> int:
     try:
         return _run(argv)
     except SystemExit as e:  # argparse: --help (0) or a refused option, already printed (2)

@@ -35,8 +35,8 @@ from jscratch import bvh
 from jscratch.errors import DesignFileError, InputError
 
 __all__ = ["AXIS", "agree", "all_or_none", "checkpoint_bytes", "default_mesh", "describe",
-           "initialize", "is_writer", "place", "read_on_zero", "replicated", "resolve",
-           "shard_lists", "sub_mesh", "versions"]
+           "initialize", "is_writer", "joined", "outputs_written", "place", "read_on_zero",
+           "replicated", "resolve", "shard_lists", "sub_mesh", "versions"]
 
 #: The mesh axis the pixels (rows of the image) are split over.
 AXIS = "pixels"
@@ -81,6 +81,8 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
         raise InputError(f"jax.distributed: process {process_id} of {num_processes} could not "
                          f"join the run at {where} within {timeout} s (is every process started,"
                          f" with the same --coordinator and --num-processes?){first}") from None
+    global _JOINED
+    _JOINED = jax.process_count() > 1
     return True
 
 
@@ -97,6 +99,12 @@ def default_mesh() -> Mesh | None:
 
 
 _FAILED: list = []
+_JOINED = False  # whether this process has joined a run of several (`initialize`)
+
+
+def joined() -> bool:
+    """Whether this process joined a run of several processes (`initialize`)."""
+    return _JOINED
 
 
 def _forget_failed_client():
@@ -173,7 +181,34 @@ def sub_mesh(devices: int) -> Mesh | None:
                          f"got {devices!r}")
     if devices == 0:
         return default_mesh()
+    first = {}  # each process's first device, in JAX's order
+    for i, d in enumerate(devs):
+        first.setdefault(d.process_index, i)
+    if max(first.values()) >= devices:
+        raise InputError(f"--devices {devices} leaves a process of the run without a device in "
+                         f"the mesh: every process needs one (at least --devices "
+                         f"{max(first.values()) + 1}), or start fewer processes")
     return Mesh(np.asarray(devs[:devices]), (AXIS,))
+
+
+#: How long the processes of a run wait for process 0 to write the outputs (ms, `outputs_written`).
+WRITE_WAIT_MS = 24 * 3600 * 1000
+
+
+def outputs_written(done: bool) -> None:
+    """With several processes: process 0 (``done=True``) says it has written the outputs, or
+    stopped; the others (``done=False``) wait for it (up to `WRITE_WAIT_MS`), so that none ends
+    the run, and JAX's shutdown barrier does not time out and abort process 0, while it writes.
+    Nothing for one process."""
+    if jax.process_count() == 1:
+        return
+    from jax._src import distributed
+
+    client = distributed.global_state.client
+    if done:
+        client.key_value_set("jscratch/outputs_written", "1", allow_overwrite=True)
+    else:
+        client.blocking_key_value_get("jscratch/outputs_written", WRITE_WAIT_MS)
 
 
 def describe(mesh: Mesh | None) -> dict[str, Any]:
