@@ -436,6 +436,7 @@ def test_status_and_cli_describe_the_kernel(capsys):
     assert native_main([]) == 0
     text = capsys.readouterr().out
     assert text.startswith("jscratch native kernel: native") and st["key"] in text
+    assert "float64's is in the cache too" in text  # (float64's was built above)
     out = subprocess.run([sys.executable, "-m", "jscratch.native", "--json"], capture_output=True,
                          text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]

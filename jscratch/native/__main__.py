@@ -2,6 +2,7 @@
 is in use (`main`)."""
 
 import json
+import os
 import sys
 import warnings
 
@@ -44,7 +45,10 @@ def main(argv=None) -> int:
                 f"up to {st['threads']} threads)" if st["kernel"] == "native"
                 else "the jnp path (jscratch.ndf)")
         print(f"jscratch native kernel: {st['kernel']}: {what}")
-        print(f"library (float32; float64's is built when first asked for): {st['library']}")
+        lib = st["library"] or ""
+        f64 = lib[:-len("-f32.so")] + "-f64.so" if lib.endswith("-f32.so") else None
+        built = "in the cache too" if f64 and os.path.isfile(f64) else "built when first asked for"
+        print(f"library (float32; float64's is {built}): {st['library']}")
         covers = ", ".join(f"{_COVERS.get(k, k)} {v}" for k, v in (st["covers"] or {}).items()
                            if k != "compiler_version")
         print(f"key: {st['key']}" + (f" (covers {covers}, compiler version)" if covers else ""))
