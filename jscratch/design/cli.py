@@ -290,8 +290,9 @@ def _run_joined(run, scene, config, held: list) -> int:
                                   "written")
         targets, names, views, board = load_scene(scene)
         if run.resume and writer and not os.path.isfile(checkpoint):
-            raise DesignFileError(f"--resume: no checkpoint {checkpoint!r} (run without --resume "
-                                  "first)")
+            raise DesignFileError(f"--resume: no checkpoint {checkpoint!r} to continue from "
+                                  "(a run without --resume starts a new one there, replacing "
+                                  "any result)")
         check_inputs(targets, views, board, config, checkpoint, run.resume)
         mesh = mesh_mod.sub_mesh(run.devices)
         mesh_mod.resolve(mesh, board, config)  # the mesh divides the work
