@@ -156,6 +156,14 @@ def test_initialize_refuses_bad_values(args, match):
         mesh.initialize(*args)
 
 
+def test_the_coordinator_may_come_from_the_environment(monkeypatch):
+    """``JAX_COORDINATOR_ADDRESS`` stands for ``--coordinator`` beside ``--num-processes`` and
+    ``--process-id`` (checked as the option is: this one has no port)."""
+    monkeypatch.setenv("JAX_COORDINATOR_ADDRESS", "localhost")
+    with pytest.raises(InputError, match="--coordinator must be HOST:PORT .*got 'localhost'"):
+        mesh.initialize(None, 2, 0)
+
+
 def test_one_process_needs_no_agreement():
     mesh.agree({"config": {"a": 1}})  # one process: nothing to compare, no collective
     assert mesh.is_writer()
@@ -265,6 +273,21 @@ def test_a_missing_process_is_one_line(tmp_path):
     # (XLA's coordination service logs in C++ beside the one line; no Python traceback follows)
     assert "\nerror: jax.distributed: process 0 of 2 could not join the run" in "\n" + p.stderr
     assert "Traceback" not in p.stderr
+    assert not (tmp_path / "a").exists()
+
+
+def test_a_coordinator_port_in_use_is_named(tmp_path):
+    with socket.socket() as busy:
+        busy.bind(("localhost", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        p = subprocess.run(_cli(["--out", str(tmp_path / "a"), "--coordinator",
+                                 f"localhost:{port}", "--num-processes", "2", "--process-id", "0",
+                                 "--join-timeout", "3"]),
+                           capture_output=True, text=True, timeout=300, env=_env())
+    assert p.returncode == 2
+    assert f"error: --coordinator localhost:{port}: port {port} cannot be served here (" in \
+        p.stderr and "Traceback" not in p.stderr, p.stderr[-2000:]  # (XLA's service crashed)
     assert not (tmp_path / "a").exists()
 
 

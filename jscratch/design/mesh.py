@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
 import hashlib
 import json
 import os
@@ -52,7 +53,10 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
     `timeout`: seconds to wait for every process. Returns whether the runtime was started.
     Raises `InputError` (one line) for inconsistent values or a process that did not join."""
     if coordinator is None and (num_processes is not None or process_id is not None):
-        raise InputError("--num-processes and --process-id need --coordinator HOST:PORT")
+        coordinator = os.environ.get("JAX_COORDINATOR_ADDRESS") or None  # (its equivalent)
+        if coordinator is None:
+            raise InputError("--num-processes and --process-id need --coordinator HOST:PORT (or "
+                             "JAX_COORDINATOR_ADDRESS)")
     if coordinator is None and not os.environ.get("JAX_COORDINATOR_ADDRESS"):
         return False
     if coordinator is not None:
@@ -69,6 +73,8 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
                              f"{coordinator!r}")
     if not (isinstance(timeout, int) and not isinstance(timeout, bool) and timeout >= 1):
         raise InputError(f"--join-timeout must be an int >= 1 (seconds), got {timeout!r}")
+    if process_id == 0 and coordinator is not None:
+        _check_port_free(coordinator)
     try:
         with _join_errors_raise():
             jax.distributed.initialize(coordinator, num_processes, process_id,
@@ -84,6 +90,25 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
     global _JOINED
     _JOINED = jax.process_count() > 1
     return True
+
+
+def _check_port_free(coordinator: str) -> None:
+    """Process 0 serves the coordinator on every address at the port of ``HOST:PORT``: refuse
+    a port that cannot be bound there (in use), which XLA's service answers with a crash."""
+    import socket
+
+    port = int(coordinator.rpartition(":")[2])
+    for family, address in ((socket.AF_INET6, "::"), (socket.AF_INET, "0.0.0.0")):
+        try:
+            with socket.socket(family) as s:
+                s.bind((address, port))
+            return
+        except OSError as exc:
+            if family == socket.AF_INET6 and exc.errno != errno.EADDRINUSE:
+                continue  # (no IPv6 here: the IPv4 address instead)
+            raise InputError(f"--coordinator {coordinator}: port {port} cannot be served here "
+                             f"({exc.strerror}): is it in use by another program? Give another "
+                             "port") from None
 
 
 def default_mesh() -> Mesh | None:
