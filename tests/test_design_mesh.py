@@ -359,3 +359,24 @@ def test_a_process_killed_mid_run_stops_the_other_in_one_line(tmp_path):
     assert procs[0].returncode == 1, err[-3000:]
     assert "error: another process of the run stopped (" in err and "Traceback" not in err
     assert (tmp_path / "p0" / "checkpoint.npz").exists()
+
+
+def test_ctrl_c_while_joining_stops_at_once(tmp_path):
+    """Ctrl-C while a process waits for the others to join: it stops then, in one line (blocked
+    in XLA's join it went on waiting for the whole --join-timeout)."""
+    import signal
+    import time
+
+    port = _free_port()
+    p = subprocess.Popen(_cli(["--out", str(tmp_path / "a"), "--coordinator", f"localhost:{port}",
+                               "--num-processes", "2", "--process-id", "0",
+                               "--join-timeout", "600"]),
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
+    try:
+        time.sleep(8)  # (well into the join: the imports and the checks come first)
+        p.send_signal(signal.SIGINT)
+        _, err = p.communicate(timeout=120)  # (not the 600 s join timeout)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 130 and "error: interrupted" in err and "Traceback" not in err, err

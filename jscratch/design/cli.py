@@ -430,7 +430,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {'another process of the run stopped' if _peer_stopped(e) else 'failed'}"
               f" ({error_line(e, 100)}): --resume once every process runs", file=sys.stderr)
         status = 1
-    if status and mesh_mod.joined():  # one of several processes stops: at once, not after the
+    if status and (mesh_mod.joined() or mesh_mod.abandoned_join()):  # one of several
+        # processes stops (or was stopped while joining): at once, not after the
         # shutdown barrier, which would wait for the others (blocked in a collective with this
         # one) until its timeout; they see the connection close and stop too
         sys.stdout.flush()

@@ -35,9 +35,9 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jscratch import bvh
 from jscratch.errors import DesignFileError, InputError
 
-__all__ = ["AXIS", "agree", "all_or_none", "checkpoint_bytes", "default_mesh", "describe",
-           "initialize", "is_writer", "joined", "outputs_written", "place", "read_on_zero",
-           "replicated", "resolve", "shard_lists", "sub_mesh", "versions"]
+__all__ = ["AXIS", "abandoned_join", "agree", "all_or_none", "checkpoint_bytes", "default_mesh",
+           "describe", "initialize", "is_writer", "joined", "outputs_written", "place",
+           "read_on_zero", "replicated", "resolve", "shard_lists", "sub_mesh", "versions"]
 
 #: The mesh axis the pixels (rows of the image) are split over.
 AXIS = "pixels"
@@ -76,9 +76,8 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
     if process_id == 0 and coordinator is not None:
         _check_port_free(coordinator)
     try:
-        with _join_errors_raise():
-            jax.distributed.initialize(coordinator, num_processes, process_id,
-                                       initialization_timeout=int(timeout))
+        _join_interruptibly(lambda: jax.distributed.initialize(
+            coordinator, num_processes, process_id, initialization_timeout=int(timeout)))
     except Exception as exc:  # XLA's errors are long; the one line names what happened
         _forget_failed_client()
         where = coordinator or os.environ.get("JAX_COORDINATOR_ADDRESS")
@@ -90,6 +89,42 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
     global _JOINED
     _JOINED = jax.process_count() > 1
     return True
+
+
+_ABANDONED: list = []  # a join left behind by Ctrl-C (`abandoned_join`)
+
+
+def abandoned_join() -> bool:
+    """Whether a Ctrl-C left this process's join of a run behind (blocked in XLA's client): the
+    process then ends without JAX's shutdown, which would wait for the join."""
+    return bool(_ABANDONED)
+
+
+def _join_interruptibly(join) -> None:
+    """Run `join` (XLA's blocking connect) on a thread and wait for it here, where Ctrl-C is
+    delivered (blocked in XLA it would wait for the join's timeout): `KeyboardInterrupt` then,
+    the join left behind (`abandoned_join`); its own error is raised here."""
+    import threading
+
+    box = []
+
+    def run():
+        try:
+            with _join_errors_raise():
+                join()
+        except BaseException as exc:  # (handed to the waiting thread)
+            box.append(exc)
+
+    thread = threading.Thread(target=run, name="jscratch-join", daemon=True)
+    thread.start()
+    try:
+        while thread.is_alive():
+            thread.join(0.1)
+    except KeyboardInterrupt:
+        _ABANDONED.append(thread)
+        raise
+    if box:
+        raise box[0]
 
 
 def _check_port_free(coordinator: str) -> None:
