@@ -136,6 +136,7 @@ def _check_port_free(coordinator: str) -> None:
     for family, address in ((socket.AF_INET6, "::"), (socket.AF_INET, "0.0.0.0")):
         try:
             with socket.socket(family) as s:
+                s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # (a closed run's port)
                 s.bind((address, port))
             return
         except OSError as exc:
