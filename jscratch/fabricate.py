@@ -605,8 +605,7 @@ def _refuse_overwrite(gcode: str):
 
 def _refuse_another_design(gcode: str):
     """Refuse a program written from a design other than the one beside it now (``X.gcode`` is
-    written from ``X.npz`` by default): the design was made again since, and the program would
-    carve the old one."""
+    written from ``X.npz`` by default): made again since, the program would carve the old one."""
     beside = os.path.splitext(gcode)[0] + ".npz"
     try:
         now = load_design(beside).digest() if os.path.isfile(beside) else None
@@ -680,9 +679,6 @@ def _check_options(args) -> None:
         check_out_prefix("--out", args.out, "DIR/job")
 
 
-#: The built-in demo's groove depth `d`, m: shallow enough for the shipped profile's ball.
-DEMO_DEPTH = 6e-5
-
 #: Machine options whose value a program writes: the role of the line and the word's letter
 #: (the board offset: the last return to the board corner, ``G0 X.. Y..``).
 _WRITTEN = {"feed_mm_min": ("cut", "F"), "plunge_mm_min": ("plunge", "F"),
@@ -731,7 +727,9 @@ def main(argv=None) -> int:
 
 
 def _main(argv) -> int:
-    args = _parser().parse_args(argv)
+    parser = _parser()
+    args = parser.parse_args(argv)
+    flags = {a.dest: a.option_strings[0] for a in parser._actions if a.option_strings}
     names = [f.name for f in dataclasses.fields(MachineConfig)]
     over = {k: getattr(args, k) for k in names if hasattr(args, k) and getattr(args, k) is not None}
     try:
@@ -739,7 +737,7 @@ def _main(argv) -> int:
         # Read and check everything (profile, design, program) before anything is written.
         file_prof = MachineProfile.from_toml(args.machine) if args.machine else None
         cfg = MachineProfile.from_dict(file_prof.to_dict() if file_prof else {}, source="the machine options",
-                                       **over)
+                                       flags=flags, **over)
         prog = None
         if args.gcode:
             gcode = args.gcode
@@ -758,7 +756,7 @@ def _main(argv) -> int:
                 warn = None if args.quiet or args.resume else (lambda m: print(m, file=sys.stderr))
                 cfg = machine_for_design(design, file_prof, over, override=args.override_machine, warn=warn)
             else:
-                design = demo_design(args.demo_n, depth=DEMO_DEPTH)
+                design = demo_design(args.demo_n, depth=6e-5)  # (the shipped ball reaches it)
                 prefix = args.out or "jscratch_demo"
             gcode = prefix + ".gcode"
             if args.resume:

@@ -29,6 +29,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 import sys
 
 from jscratch.errors import EXIT_STATUS_HELP, DesignFileError, InputError, JscratchError, report
@@ -178,10 +179,12 @@ class MachineProfile:
         return d
 
     @classmethod
-    def from_dict(cls, data: dict, source: str = "machine profile", **overrides) -> "MachineProfile":
+    def from_dict(cls, data: dict, source: str = "machine profile", *, flags: dict | None = None,
+                  **overrides) -> "MachineProfile":
         """A profile from a dict (keys as the fields), then `overrides` (those not None).
 
-        **Raises:** `InputError`, one line naming `source` and the key, for an unknown key or a bad value.
+        **Raises:** `InputError`, one line naming `source` and the key, for an unknown key or a bad value
+        (a bad override by its command-line option where `flags` maps its field to one).
         """
         if not isinstance(data, dict):
             raise InputError(f"{source}: expected a table of machine settings, got {type(data).__name__}")
@@ -192,6 +195,9 @@ class MachineProfile:
         try:
             return cls(**data)
         except InputError as exc:
+            bad = re.fullmatch(r"machine\.(\w+) (must be .*)", str(exc))
+            if bad and overrides.get(bad.group(1)) is not None and bad.group(1) in (flags or {}):
+                raise InputError(f"{flags[bad.group(1)]} {bad.group(2)}") from None
             raise InputError(f"{source}: {exc}") from None
 
     @classmethod

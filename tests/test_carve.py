@@ -731,7 +731,7 @@ def test_lost_ok_while_idle_stops_with_resume_advice(job):
     msg = str(out.get("exc"))
     assert isinstance(out.get("exc"), CarveError), msg
     assert re.fullmatch(r"controller on \S+ reports Idle but has not answered 'G1 Z-0\.100 F300\.0' for 0\.5 s "
-                        r"\(a lost 'ok'\) at G-code line 27 .*scratch position 4 .*retracted to Z1\.000\. "
+                        r"\(a lost 'ok'\) at G-code line 28 .*scratch position 4 .*retracted to Z1\.000\. "
                         r"4 of 24 scratches are journalled; .*--resume", msg), msg
     assert sim.pos[2] == 1.0 and Journal.read(path + ".journal")[1] == 4
     sim.drop_ok_at = None
@@ -750,7 +750,7 @@ def test_lost_ok_while_idle_stops_with_resume_advice(job):
         sim.close()
     assert re.fullmatch(r"controller on \S+ reports Idle but has not answered one of the 4 lines "
                         r"from 'G1 Z-0\.100 F300\.0' to 'G4 P0\.000' for 0\.5 s \(a lost 'ok'; "
-                        r"character counting cannot tell which\) at G-code line 27 .*scratch "
+                        r"character counting cannot tell which\) at G-code line 28 .*scratch "
                         r"position 4 .*4 of 24 scratches are journalled; .*--resume",
                         str(e.value)), str(e.value)
 

@@ -208,6 +208,16 @@ def test_a_program_is_refused_beside_a_design_made_again_since(tmp_path, capsys)
     assert main(["--gcode", gcode, "--dry-run", "--quiet"]) == 0
 
 
+@pytest.mark.parametrize("argv, says", [
+    (["--safe-z", "0"], "--safe-z must be a finite number > 0, got 0.0"),
+    (["--cutter-radius", "nan"], "--cutter-radius must be a finite number > 0, got nan"),
+])
+def test_a_refused_machine_option_is_named_by_its_flag(argv, says, tmp_path, capsys):
+    assert main(["--dry-run", "--demo-n", "5", "--out", str(tmp_path / "j"), *argv]) == 2
+    assert capsys.readouterr().err == f"error: {says}\n"
+    assert os.listdir(tmp_path) == []
+
+
 def test_cli_refuses_an_empty_path_instead_of_carving_the_demo(tmp_path, capsys, monkeypatch):
     """``--gcode "$JOB"`` with JOB unset is an empty path, not "no option": refused in one line,
     nothing written (it used to stream the built-in demo design)."""
@@ -223,7 +233,7 @@ def test_cli_refuses_an_empty_path_instead_of_carving_the_demo(tmp_path, capsys,
 
 def test_cli_refuses_a_huge_feed_a_huge_margin_and_a_folder_in_short_lines(tmp_path, capsys):
     for argv, want in ((["--feed", "1e300"], r"word F1e\+300 is outside GRBL's range"),
-                       (["--margin", "1e12"], r"machine.margin_mm must be a finite number in "
+                       (["--margin", "1e12"], r"--margin must be a finite number in "
                                               r"\[0, 1e4\] mm"),
                        (["--gcode", str(tmp_path)], r"G-code file .* is a folder, not a file"),
                        (["--offset", "99900", "0"], r"board_offset_mm \(--offset\) = \[99900.0, "
