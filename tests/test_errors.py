@@ -320,7 +320,7 @@ def test_cli_processes_print_one_line_and_write_nothing(tmp_path):
     (["--idle-timeout", "-1"], ("--idle-timeout", "> 0")),
     (["--port", "/dev/null"], ("--dry-run", "--port")),
     (["--resume"], ("--resume", "--port")),
-    (["--feed", "-5"], ("machine.feed_mm_min", "> 0")),
+    (["--feed", "-5"], ("--feed must be a finite number", "> 0")),
     (["--cutter-radius", "0.05"], ("machine.plunge_max_mm", "cutter_radius_mm")),
     (["--out", "{tmp}/new/"], ("--out", "prefix")),
     (["--machine", "{tmp}/none.toml"], ("none.toml", "does not exist")),
