@@ -198,7 +198,7 @@ def test_cli_input_errors(tmp_path, capsys):
     assert "2 target images for 3 views" in capsys.readouterr().err
     # Cameras below the board (polar angle beyond 90 degrees).
     assert main(TINY + ["--camera-theta-deg", "95", "--out", str(tmp_path / "o5")]) == 2
-    assert "camera_theta_deg must be in [0, 90) degrees" in capsys.readouterr().err
+    assert "--camera-theta-deg must be in [0, 90) degrees" in capsys.readouterr().err
     # A camera at the light's mirror direction: 2 views with camera 0 at azimuth 180 deg.
     assert main(TINY + ["--offset-deg", "180", "--out", str(tmp_path / "o6")]) == 2
     assert "mirror" in capsys.readouterr().err

@@ -371,7 +371,10 @@ def test_ctrl_c_while_joining_stops_at_once(tmp_path):
     p = subprocess.Popen(_cli(["--out", str(tmp_path / "a"), "--coordinator", f"localhost:{port}",
                                "--num-processes", "2", "--process-id", "0",
                                "--join-timeout", "600"]),
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(),
+                         # (Ctrl-C's default, whatever this process inherited: a shell's
+                         # background job ignores SIGINT)
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         time.sleep(8)  # (well into the join: the imports and the checks come first)
         p.send_signal(signal.SIGINT)
