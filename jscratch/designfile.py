@@ -374,8 +374,8 @@ def demo_design(n: int = 400, seed: int = 0, board=(0.3, 0.3), depth: float = 1.
     tangent to the circle through its midpoint (a brushed-ring look) with a little random tilt.
     Every endpoint lies on the board.
 
-    **Arguments:** `n` scratches (>= 1), `seed` for `numpy.random.default_rng`, `board` `(Sx, Sy)` m,
-    `depth` the grooves' `d`, m.
+    **Arguments:** `n` scratches (>= 1), `seed` for `numpy.random.default_rng`, `board`
+    `(Sx, Sy)` m, `depth` the grooves' `d`, m.
 
     **Returns:** a `Design` without views.
     """

@@ -183,8 +183,8 @@ class MachineProfile:
                   **overrides) -> "MachineProfile":
         """A profile from a dict (keys as the fields), then `overrides` (those not None).
 
-        **Raises:** `InputError`, one line naming `source` and the key, for an unknown key or a bad value
-        (a bad override by its command-line option where `flags` maps its field to one).
+        **Raises:** `InputError`, one line naming `source` and the key, for an unknown key or a
+        bad value (a bad override by its command-line option where `flags` maps its field to one).
         """
         if not isinstance(data, dict):
             raise InputError(f"{source}: expected a table of machine settings, got {type(data).__name__}")
