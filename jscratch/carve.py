@@ -12,7 +12,7 @@ from __future__ import annotations
 import os
 import sys
 
-from jscratch.errors import CarveError, DesignFileError
+from jscratch.errors import CarveError, DesignFileError, error_line
 from jscratch.grbl import clip
 from jscratch.gcode import Program, check_program_lines, read_program
 
@@ -52,6 +52,14 @@ def _program_setup(prog: Program, path) -> tuple:
         raise DesignFileError(f"G-code {clip(path, 60)!r} has no 'G0 Z' line (safe height): refusing to carve, "
                               "an emergency retract would not know where to go")
     return max(zs), coord
+
+
+class _JournalFailed(Exception):
+    """A scratch cut whose `done` record could not be written (`error` the `OSError`)."""
+
+    def __init__(self, k: int, s: int, error: OSError):
+        super().__init__(k, s, error)
+        self.k, self.s, self.error = k, s, error
 
 
 def _xyz(v) -> str:
@@ -128,7 +136,10 @@ def carve(gcode_path, port: str, *, baud: int = 115200, resume: bool = False, co
         raise CarveError(f"{exc} (no motion was sent)") from None
 
     def untouched():
-        return ("(the homing cycle $H ran; no G-code line was sent)" if grbl.homed else "(no motion was sent)")
+        if grbl.homing_tried:
+            done = "ran" if grbl.homed else "was sent"
+            return f"(the homing cycle $H {done}; no G-code line was sent)"
+        return "(no motion was sent)"
 
     journal = bar = None
     try:
@@ -164,7 +175,10 @@ def carve(gcode_path, port: str, *, baud: int = 115200, resume: bool = False, co
             if roles[j] == "sync":
                 i = sel[j]
                 k, s = int(prog.k[i]), int(prog.scratch[i])
-                journal.confirm(k, s)
+                try:
+                    journal.confirm(k, s)
+                except OSError as exc:
+                    raise _JournalFailed(k, s, exc) from None
                 bar.update(1)
                 if on_scratch is not None:
                     on_scratch(k, s)
@@ -177,6 +191,9 @@ def carve(gcode_path, port: str, *, baud: int = 115200, resume: bool = False, co
 
         def retract():
             try:
+                if _restarted(grbl, coord):  # a retract in its zero would go to the wrong place
+                    return (f"; the controller has restarted (machine position 0, 0, 0, its "
+                            f"{coord} zero elsewhere): position lost, no retract sent")
                 return "; " + grbl.hold_and_retract(retract_z, coord=coord)
             except GrblError as e2:
                 return f"; hold/retract failed: {clip(e2, 80)}"
@@ -196,11 +213,17 @@ def carve(gcode_path, port: str, *, baud: int = 115200, resume: bool = False, co
             else:
                 action = "; the controller reset itself, position may be lost"
                 advice = "re-home (--home) or re-zero the board (G10 L20 P1, then --rezeroed), then run again with --resume"
-            if "in Alarm" in action:  # the retract found the controller in Alarm: position lost
-                journal.event("alarm", done=journal.done)
+            if "in Alarm" in action or "restarted" in action:  # the position is lost
+                journal.event("alarm" if "in Alarm" in action else "restarted", done=journal.done)
                 advice = ("re-home (--home) or re-zero the board (G10 L20 P1, then --rezeroed), "
                           "then run again with --resume")
             raise CarveError(f"{exc} at {loc}{action}. {journal.done} of {n} scratches are journalled; {advice}") from None
+        except _JournalFailed as exc:  # stop: a scratch cut but not journalled is cut again
+            raise CarveError(
+                f"could not journal scratch position {exc.k} (design scratch {exc.s}), which was "
+                f"cut, in {journal_path!r}: {error_line(exc.error)}{retract()}. {journal.done} of "
+                f"{n} scratches are journalled; fix the journal's disk, then run again with "
+                "--resume (it cuts that scratch again, in its own groove)") from None
         except DeviceLost as exc:
             journal.event("lost", error=clip(exc, 200), done=journal.done)
             raise CarveError(
@@ -233,7 +256,9 @@ def carve(gcode_path, port: str, *, baud: int = 115200, resume: bool = False, co
 
 def _check_work_zero(grbl, coord: str, journalled: dict | None, rezeroed: bool, untouched) -> list:
     """Refuse offsets a reset would clear and, on resume, a work zero that changed; returns it (mm)."""
-    g92, tlo = grbl.offsets["G92"], grbl.offsets.get("TLO", (0.0,))
+    inch = 25.4 if grbl.settings.get(13, 0) == 1 else 1.0  # `$#` reports inches when $13=1
+    g92 = [inch * v for v in grbl.offsets["G92"]]
+    tlo = [inch * v for v in grbl.offsets.get("TLO", (0.0,))]
     if any(abs(v) > 5e-4 for v in g92):
         raise CarveError(
             f"a G92 offset ({_xyz(g92)}) is active, and GRBL clears G92 at every reset, so the job would shift after "
@@ -244,7 +269,7 @@ def _check_work_zero(grbl, coord: str, journalled: dict | None, rezeroed: bool, 
                          f"cancel it with G49 and zero Z in G54 (G10 L20 P1 Z0), then run again {untouched()}")
     if coord not in grbl.offsets:
         raise CarveError(f"the controller did not report the {coord} offset ($#) {untouched()}")
-    zero = [float(v) for v in grbl.offsets[coord]]
+    zero = [inch * float(v) for v in grbl.offsets[coord]]
     # With homing on ($22=1) GRBL starts locked in Alarm (unless built without that lock: `L`
     # among `$I`'s options): found unlocked and not unlocked now, it was homed since it started
     # (or unlocked by another sender), and a machine position of 0, 0, 0 is where homing leaves
@@ -297,8 +322,6 @@ def _check_travel(grbl, items, retract_z: float, zero, coord: str, untouched, wa
     soft, homing = grbl.settings.get(20, 0) == 1, grbl.settings.get(22, 0) == 1
     if not (soft or homing):
         return  # without homing, machine coordinates count from wherever the machine started
-    if grbl.settings.get(13, 0) == 1:  # `$#` reports inches ($13=1); travel and program are mm
-        zero = [25.4 * v for v in zero]
     ext = check_program_lines(items)
     z = ext["z"] or [retract_z, retract_z]
     ext["z"] = [min(z[0], retract_z), max(z[1], retract_z)]
@@ -320,6 +343,14 @@ def _check_travel(grbl, items, retract_z: float, zero, coord: str, untouched, wa
                 f"write the program with a lower --safe-z, then run again {untouched()}")
         warn(f"warning: {what}; soft limits are off ($20=0), so nothing stops the tool at the "
              f"end of its travel: check ${130 + a} and the board's zero before the job reaches it")
+
+
+def _restarted(grbl, coord: str) -> bool:
+    """Whether the controller has restarted since `connect` without a banner that came through:
+    its machine position is exactly 0, 0, 0 while the `coord` zero lies elsewhere."""
+    mpos = _machine_position(grbl.query_status(), grbl.offsets, coord)
+    return (mpos is not None and all(abs(v) < 5e-4 for v in mpos)
+            and any(abs(v) > 5e-4 for v in grbl.offsets[coord]))
 
 
 def _machine_position(status: dict, offsets: dict, coord: str) -> list | None:

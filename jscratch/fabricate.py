@@ -59,13 +59,15 @@ from typing import NamedTuple
 
 import numpy as np
 
-from jscratch.designfile import Design, DesignError, demo_design, groove_half_width, load_design
+from jscratch.designfile import (Design, DesignError, demo_design, groove_half_width,
+                                 load_design, validate_design)
 from jscratch.options import OneLineParser, check_out_prefix, signals_interrupt
 from jscratch.errors import EXIT_STATUS_HELP, InputError, JscratchError, real_number, report
 from jscratch.grbl import WORD_FORMAT, clip, gword
 from jscratch.carve import CarveError, carve
 from jscratch.gcode import (Program, check_program_lines, design_comment, digest_comment,
-                            limits_comment, program_design, read_program, write_program)
+                            limits_comment, options_not_in_program, program_design, read_program,
+                            write_program)
 from jscratch.machine import CUT_KEYS, MachineConfig, MachineProfile, carving_seconds
 from jscratch.toolpath import order_scratches
 
@@ -303,8 +305,8 @@ def make_program(design: Design, cfg: MachineConfig, *, improve: bool = True, ti
     `improve`/`time_limit` for `jscratch.toolpath.order_scratches`; `quiet`; `override_machine`
     cuts a design that records its machine with another cutter (`CUT_KEYS`) all the same.
 
-    **Returns:** a `Program`. **Raises:** `DesignError` for scratches too short to cut,
-    `InputError` if a coordinate would leave the board (+ margin), or if `cfg`'s cutter is not the
+    **Returns:** a `Program`. **Raises:** `DesignError` for scratches too short to cut or breaking
+    `validate_design` (an endpoint off the board, ...); `InputError` if `cfg`'s cutter is not the
     one the design records (its grooves would not be the designed ones), unless `override_machine`.
     """
     if not isinstance(design, Design):
@@ -313,6 +315,7 @@ def make_program(design: Design, cfg: MachineConfig, *, improve: bool = True, ti
     if not isinstance(cfg, MachineProfile):
         raise InputError(f"make_program: cfg must be a MachineProfile (machine_for_design or "
                          f"load_machine), got {type(cfg).__name__}")
+    design = validate_design(**design._asdict(), source="make_program: design")
     if design.machine is not None and not override_machine:
         rec = MachineProfile.from_dict(design.machine, source="the design's recorded machine")
         cut = rec.cut_mismatch(cfg)
@@ -679,36 +682,11 @@ def _check_options(args) -> None:
         check_out_prefix("--out", args.out, "DIR/job")
 
 
-#: Machine options whose value a program writes: the role of the line and the word's letter
-#: (the board offset: the last return to the board corner, ``G0 X.. Y..``).
-_WRITTEN = {"feed_mm_min": ("cut", "F"), "plunge_mm_min": ("plunge", "F"),
-            "safe_z_mm": ("retract", "Z"), "plunge_mm": ("plunge", "Z"),
-            "spindle_rpm": ("pre", "S"), "spinup_s": ("pre", "P"),
-            "board_offset_mm": ("post", "XY")}
-#: Machine options that only change the time estimate, not the program: never "not applied".
-_ESTIMATE_ONLY = ("rapid_mm_min", "overhead_s")
-
-
 def _warn_unused_options(gcode: str, over: dict, args) -> None:
     """Warn about the options given now that shape a program, not its streaming, when `--resume`
     or `--gcode` streams an existing program as written: those whose value differs from the
-    program's own word, and the others (a `--machine` file, the offset, the fit, ...) given."""
-    prog = read_program(gcode)
-    out = []
-    for key, value in over.items():
-        if key in _ESTIMATE_ONLY:
-            continue
-        role, letters = _WRITTEN.get(key, (None, ""))
-        values = value if key == "board_offset_mm" else [-value if key == "plunge_mm" else value]
-        lines = [t for t, r in zip(prog.lines, prog.role)
-                 if r == role and all(f" {a}" in t for a in letters)]
-        words = [w for w in lines[-1].split() if w[0] in letters] if letters and lines else []
-        word = " ".join(words) or None
-        if words and words == [gword(a, v) for a, v in zip(letters, values)]:
-            continue  # the program already has this value
-        if key == "spindle_rpm" and value == 0 and not lines:
-            continue  # no spindle, as the program has none
-        out.append(f"{key} = {value!r}" + (f" (the program has {word})" if word else ""))
+    program's own words (`options_not_in_program`), and the others (a `--machine` file, ...)."""
+    out = options_not_in_program(read_program(gcode), over)
     out += [f"--machine {args.machine}"] * bool(args.machine) + ["--no-improve"] * args.no_improve
     if out and not args.quiet:
         print(f"warning: the program {gcode!r} is streamed as written; not applied: "

@@ -15,10 +15,11 @@ from typing import NamedTuple
 import numpy as np
 
 from jscratch.errors import DesignFileError, InputError
-from jscratch.grbl import check_words, clip
+from jscratch.grbl import check_words, clip, gword
 
 __all__ = ["MAX_LINE", "Program", "check_program_lines", "design_comment", "digest_comment",
-           "limits_comment", "program_design", "read_program", "write_program"]
+           "limits_comment", "options_not_in_program", "program_design", "read_program",
+           "write_program"]
 
 MAX_LINE = 79  # characters, without the newline (GRBL's line buffer is 80 bytes)
 
@@ -211,3 +212,41 @@ def read_program(gcode_path) -> Program:
     if [int(k[i]) for i in syncs] != list(range(len(syncs))):
         raise DesignFileError(f"line map {map_path!r}: scratch blocks are not numbered 0..{len(syncs) - 1} in order")
     return Program(lines, k, np.asarray(ss), roles, {"scratches": len(syncs)})
+
+
+#: Machine options (`jscratch.machine.MachineProfile` fields) whose value a program writes: the
+#: role of its lines and the word's letters (the board offset: the last line of the postamble,
+#: the return to the board corner ``G0 X.. Y..``).
+WRITTEN_OPTIONS = {"feed_mm_min": ("cut", "F"), "plunge_mm_min": ("plunge", "F"),
+                   "safe_z_mm": ("retract", "Z"), "plunge_mm": ("plunge", "Z"),
+                   "spindle_rpm": ("pre", "S"), "spinup_s": ("pre", "P"),
+                   "board_offset_mm": ("post", "XY")}
+#: Machine options that only change the time estimate, never a program's words.
+ESTIMATE_ONLY = ("rapid_mm_min", "overhead_s")
+
+
+def options_not_in_program(prog: Program, over: dict) -> list[str]:
+    """The machine options in `over` (field -> value) that `prog` was not written with, each as
+    ``"key = value (the program has W)"``: an option it writes (`WRITTEN_OPTIONS`) unless every
+    line of its role carries the option's word, or one it does not write; `ESTIMATE_ONLY` never.
+    `W` is the program's word, or how many different ones it has and their range."""
+    out = []
+    for key, value in over.items():
+        if key in ESTIMATE_ONLY:
+            continue
+        role, letters = WRITTEN_OPTIONS.get(key, (None, ""))
+        values = value if key == "board_offset_mm" else [-value if key == "plunge_mm" else value]
+        lines = [t for t, r in zip(prog.lines, prog.role)
+                 if r == role and all(f" {a}" in t for a in letters)]
+        if role == "post":
+            lines = lines[-1:]
+        found = sorted({" ".join(w for w in t.split() if w[0] in letters) for t in lines},
+                       key=lambda ws: [float(w[1:]) for w in ws.split()])
+        if found and found == [" ".join(gword(a, v) for a, v in zip(letters, values))]:
+            continue  # every line already has this value
+        if key == "spindle_rpm" and value == 0 and not lines:
+            continue  # no spindle, as the program has none
+        has = (found[0] if len(found) == 1 else
+               f"{len(found)} values, {found[0]} to {found[-1]}" if found else None)
+        out.append(f"{key} = {value!r}" + (f" (the program has {has})" if has else ""))
+    return out

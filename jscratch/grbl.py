@@ -112,12 +112,14 @@ class Reply(NamedTuple):
 
     `kind` is one of `ok`, `error`, `alarm`, `status`, `msg` (any `[...]` feedback), `banner`,
     `setting` (a `$N=value` line of `$$`), `unknown`; `code` the number of `error:N`/`ALARM:N`
-    (else None); `text` the line.
+    (else None); `text` the line; `msgs` how many `msg` lines came before it (set on the answers
+    `Grbl` queues: which of them came after a command's feedback).
     """
 
     kind: str
     code: int | None
     text: str
+    msgs: int = 0
 
 
 def classify(line: str) -> Reply:
@@ -255,12 +257,15 @@ class Grbl:
         self.modes: list[str] = []  # from `$G`: the parser state, e.g. ["G0", "G54", "G17", ...]
         self.reset_sent = False  # connect sent a soft reset
         self.homed = False  # connect ran the homing cycle `$H` (the machine moved)
+        self.homing_tried = False  # connect sent `$H` (answered ok or not)
         self.state_at_connect = ""  # the state connect found (after its reset, if it sent one)
         self.unlocked = False  # connect cleared an Alarm with `$X` (the position was not restored)
         self._acks: queue.Queue = queue.Queue()
         self._banner_event = threading.Event()
         self._status_event = threading.Event()
-        self._last_reply = time.monotonic()
+        self._last_reply = time.monotonic()  # the latest line GRBL sends (not noise)
+        self._unknown_at_reply = 0  # `n_unknown` then
+        self._n_msgs = 0  # `msg` lines received
         self._idle_since: float | None = None  # first of the unbroken run of `Idle` reports
         self._status_at = 0.0  # when the latest status report came
         self._lost: BaseException | None = None
@@ -331,10 +336,12 @@ class Grbl:
     def _handle(self, line: str):
         if not line:
             return
-        now = self._last_reply = time.monotonic()
+        now = time.monotonic()
         r = classify(line)
+        if r.kind != "unknown":  # (noise keeps no device alive: `_check_alive`)
+            self._last_reply, self._unknown_at_reply = now, self.n_unknown
         if r.kind in ("ok", "error", "alarm"):
-            self._acks.put(r)
+            self._acks.put(r._replace(msgs=self._n_msgs))
         elif r.kind == "status":
             self.status = parse_status(line)
             self._status_at = now
@@ -349,6 +356,7 @@ class Grbl:
             self._acks.put(r)
         elif r.kind == "msg":
             self.messages.append(line)
+            self._n_msgs += 1
         elif r.kind == "setting":
             m = SETTING_RE.fullmatch(line)
             self.settings[int(m.group(1))] = float(m.group(2))
@@ -372,13 +380,19 @@ class Grbl:
         if self._lost is not None:
             raise self._lost_error()
         if time.monotonic() - self._last_reply > self.stall_timeout:
+            if self.n_unknown > self._unknown_at_reply:
+                raise DeviceLost(
+                    f"device on {self.port} sent nothing GRBL sends for {self.stall_timeout:g} s, "
+                    f"only {self.n_unknown - self._unknown_at_reply} unexpected lines (the latest "
+                    f"{clip(self.unknown[-1], 40)!r}: a wrong baud rate, noise on the line?)")
             raise DeviceLost(f"device on {self.port} sent nothing for {self.stall_timeout:g} s")
 
     def _next(self, timeout=None, *, idle_limit=None, since=0.0) -> Reply:
         """Next ok/error/alarm/banner reply; raises DeviceLost when the device is gone or silent.
 
         With `idle_limit`: a `Reply("stall", ...)` once every status report for `idle_limit` s (and
-        since `since`, a `time.monotonic()`) said `Idle` and nothing was answered, and an
+        since `since`, a `time.monotonic()`) said `Idle`, reports still come, and nothing was
+        answered, and an
         `alarm` reply without a code once a status report since `since` says `Alarm` (its
         `ALARM:N` line lost).
         """
@@ -392,7 +406,9 @@ class Grbl:
                 if t_end is not None and now > t_end:
                     raise DeviceLost(f"no reply from {self.port} within {timeout:g} s") from None
                 idle = self._idle_since
-                if idle_limit is not None and idle is not None and now - max(idle, since) > idle_limit:
+                fresh = now - self._status_at < max(1.0, 4 * self.poll_interval)  # reports come
+                if (idle_limit is not None and idle is not None and fresh
+                        and now - max(idle, since) > idle_limit):
                     return Reply("stall", None, "stall")
                 alarm = self.status.get("state", "").startswith("Alarm") and self._status_at > since
                 if idle_limit is not None and alarm:
@@ -478,10 +494,20 @@ class Grbl:
         if self._probe() != "Idle":
             self._reset()
         self.messages.clear()
+        sent_at = self._n_msgs
         r = self.command("$I")
         if r.kind == "error" and not self.reset_sent:  # a partial line left by an earlier host ate it
             self.messages.clear()
             r = self.command("$I")
+        for _ in range(self.rx_size):  # `ok`s owed to an earlier host's lines (a dwell, found Idle)
+            if r.kind != "ok" or r.msgs > sent_at:  # $I's own `ok` follows its `[VER:..]`
+                break
+            try:
+                r = self._next(self.banner_timeout)  # $I's own answer follows them
+            except DeviceLost:
+                if self._lost is not None:
+                    raise
+                break
         if r.kind != "ok":
             raise NotGrblError(f"device on {self.port} answered $I with {clip(r.text, 40)!r}")
         for msg in self.messages:
@@ -500,13 +526,14 @@ class Grbl:
         st = self.query_status()
         self.state_at_connect = st["state"]
         if home:  # in any state: the caller asks for a known machine position
-            self.homed = True
+            self.homing_tried = True
             r = self.command("$H", timeout=120.0)
             if r.kind != "ok":
                 hint = " (homing is not enabled: $22=0)" if r.text == "error:5" else ""
-                raise GrblError(f"the homing cycle $H was answered {clip(r.text, 40)}{hint}; "
-                                "re-zero the board (G10 L20 P1 X0 Y0 Z0) and pass --rezeroed "
-                                "instead of --home")
+                raise GrblError(f"the homing cycle $H was answered {clip(r.text, 40)}{hint}; run "
+                                "again without --home (a job resumed after its position was lost: "
+                                "re-zero the board, G10 L20 P1 X0 Y0 Z0, and pass --rezeroed)")
+            self.homed = True
         elif st["state"].startswith("Alarm"):
             if not unlock:
                 raise AlarmLocked(

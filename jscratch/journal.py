@@ -106,6 +106,8 @@ class Journal:
                 return "an alarm"
             if r.get("event") == "reset":
                 return "a soft reset on a second interrupt"
+            if r.get("event") == "restarted":
+                return "a restart of the controller"
             if r.get("event") == "fault" and reply.startswith("ALARM"):
                 return reply
             if r.get("event") == "fault" and reply.startswith("Grbl"):
@@ -213,4 +215,7 @@ class Journal:
         self._append({"type": "event", "event": kind, "time": time.time(), **info})
 
     def close(self):
-        self._f.close()
+        try:
+            self._f.close()
+        except OSError:  # (a full disk: every record that returned is already fsynced)
+            pass

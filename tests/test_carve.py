@@ -629,16 +629,15 @@ def test_a_program_outside_the_machines_travel_is_refused_when_soft_limits_are_o
             _, done = Journal.read(path + ".journal")
             assert done < 24
             os.remove(path + ".journal")
-    # A controller reporting inches ($13=1) gives its work zero in inches: converted to mm.
+    # A controller reporting inches ($13=1): the zero comes in mm (`_check_work_zero` converts
+    # it: `test_a_work_zero_reported_in_inches_is_named_in_mm`) and is not converted again.
     class Inches:
         settings, options = {**TRAVEL, 13: 1}, "V"
 
     lines = [t for t in prog.lines if not t.startswith("(")]
-    inch_zero = [v / 25.4 for v in fits]
-    carve_mod._check_travel(Inches(), lines, 1.0, inch_zero, "G54", lambda: "", print)
-    Inches.settings = TRAVEL
-    with pytest.raises(CarveError, match="program moves X from -14.961 to 278.755 mm"):
-        carve_mod._check_travel(Inches(), lines, 1.0, inch_zero, "G54", lambda: "", print)
+    carve_mod._check_travel(Inches(), lines, 1.0, list(fits), "G54", lambda: "", print)
+    with pytest.raises(CarveError, match="program moves X from -100.000 to 193.716 mm"):
+        carve_mod._check_travel(Inches(), lines, 1.0, list(cases["X"]), "G54", lambda: "", print)
     # Without homing, machine coordinates count from wherever the machine started: not checked.
     r, _ = _carve_at(path, cases["X"], {**TRAVEL, 20: 0, 22: 0})
     assert r["done"] == 24
@@ -843,3 +842,196 @@ def test_spinup_dwell_after_m3_also_on_resume(tmp_path, small):
     assert _resume(str(path), sim)["done"] == 24
     sim.close()
     _verify(prog, wp, in_progress={6})  # no cut with the spindle off or still spinning up
+
+
+def _carve_in_thread(path, sim, wait=20.0, **kw):
+    """`carve` on a thread: its exception (None if it returned) and whether it still ran after
+    `wait` s (the port is then closed under it)."""
+    out = {}
+
+    def run():
+        try:
+            carve(path, sim.port, **{**FAST, **kw})
+        except BaseException as exc:  # noqa: BLE001 (returned to the test)
+            out["exc"] = exc
+
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    t.join(wait)
+    hung = t.is_alive()
+    if hung:
+        sim.vanish()
+        t.join(5.0)
+    return out.get("exc"), hung
+
+
+class _NoiseFrom(GrblSim):
+    """Everything it sends from its `start`-th G-code line on arrives as noise (a baud rate gone
+    wrong): whole lines, none of them GRBL's."""
+
+    start = 2 + 5 * 3 + 3  # the cut of scratch position 3
+
+    def _send(self, data):
+        if self.gcode_lines >= self.start:
+            data = bytes((b ^ 0x55) & 0x7F for b in data).replace(b"\n", b"") + b"\r\n"
+        super()._send(data)
+
+
+@pytest.mark.parametrize("block_time", [0.5, 0.0004])  # the last good status: Run, Idle
+def test_a_controller_that_turns_to_noise_is_lost_after_the_stall_timeout(job, block_time):
+    """Lines of noise are not answers, nor status reports: when nothing GRBL sends has come for
+    `stall_timeout` s the device counts as lost (one line, the count journalled), however much
+    noise arrives, and a lost `ok` is not inferred from the last report."""
+    path, _ = job
+    sim = _NoiseFrom(Workpiece(), block_time=block_time)
+    exc, hung = _carve_in_thread(path, sim, stall_timeout=3.0, idle_timeout=2.0)
+    sim.close()
+    assert not hung, "the streamer still waits after 20 s of noise"
+    assert isinstance(exc, CarveError), exc
+    assert re.fullmatch(r"device on \S+ sent nothing GRBL sends for 3 s, only \d+ unexpected "
+                        r"lines \(the latest '.*': a wrong baud rate, noise on the line\?\)\. 3 of "
+                        r"24 scratches are journalled; .*--resume.*", str(exc)), str(exc)
+
+
+class _RestartsUnheard(GrblSim):
+    """Restarts (a brown-out) at its `restart_at`-th G-code line: machine position 0, 0, 0, the
+    G54 zero kept; its banner arrives garbled, so the host does not see the restart."""
+
+    restart_at = 2 + 5 * 4 + 3  # the cut of scratch position 4
+    moves_at_restart = None
+
+    def _execute_line(self, line):
+        if self.restart_at and self.gcode_lines + 1 == self.restart_at and not line.startswith("$"):
+            self.restart_at = None
+            with self.lock:
+                if self.executing is not None:
+                    self.executing["abort"] = True
+                self.planner.clear()
+                self.rx.clear()
+                self.pos, self.state = [0.0, 0.0, 0.0], "Idle"
+                self.modal = {"distance": 90, "units": 21}
+                self.moves_at_restart = len(self.wp.moves)
+            self._send(b"\r\nGr\xffl 1.1h ['$' for help]\r\n")
+            return True
+        return super()._execute_line(line)
+
+
+def test_an_unheard_restart_sends_no_retract_and_blocks_a_plain_resume(job):
+    """After a restart whose banner did not come through, the lost `ok` looks like a stall: a
+    retract in the G54 zero would now drive the tool 19 mm down. No retract is sent, the lost
+    position is journalled, and a resume needs --home or --rezeroed."""
+    path, _ = job
+    wp = Workpiece()
+    wp.wcs[54] = [50.0, 40.0, -20.0]
+    sim = _RestartsUnheard(wp)
+    sim.pos = [50.0, 40.0, -15.0]
+    try:
+        exc, hung = _carve_in_thread(path, sim, idle_timeout=0.5)
+        assert not hung and isinstance(exc, CarveError), exc
+        assert re.search(r"the controller has restarted \(machine position 0, 0, 0, its G54 zero "
+                         r"elsewhere\): position lost, no retract sent\. 4 of 24 scratches are "
+                         r"journalled; re-home \(--home\)", str(exc)), str(exc)
+        after = wp.moves[sim.moves_at_restart:]  # (the move it was making, cut short)
+        assert not [m for m in after if np.allclose(m[1], 0.0)]  # none from where it restarted
+        events = [r.get("event") for r in Journal.records(path + ".journal")]
+        assert events[-2:] == ["fault", "restarted"]
+        with pytest.raises(CarveError, match=r"position may be lost \(a restart of the "
+                                             r"controller since the job last ran\)"):
+            _resume(path, sim)
+        assert wp.moves[sim.moves_at_restart:] == after
+    finally:
+        sim.close()
+
+
+def test_a_journal_that_cannot_be_written_stops_the_job_in_one_line(job, monkeypatch):
+    """A `done` record that cannot be written (a full disk) stops the job at once: hold, reset,
+    retract; one line naming the scratch, the journal and how to resume; the resume cuts that
+    scratch again and finishes."""
+    import errno
+
+    path, prog = job
+    append, dones = Journal._append, []
+
+    def full_disk(self, rec):
+        if rec.get("type") == "done":
+            dones.append(rec["k"])
+            if len(dones) == 4:
+                raise OSError(errno.ENOSPC, "No space left on device")
+        return append(self, rec)
+
+    monkeypatch.setattr(Journal, "_append", full_disk)
+    wp = Workpiece()
+    sim = GrblSim(wp)
+    try:
+        with pytest.raises(CarveError) as e:
+            carve(path, sim.port, **FAST)
+        assert re.fullmatch(r"could not journal scratch position 3 \(design scratch \d+\), which "
+                            r"was cut, in '.*job\.gcode\.journal': OSError: \[Errno 28\] No space "
+                            r"left on device; held, reset and retracted to Z1\.000\. 3 of 24 "
+                            r"scratches are journalled; .*--resume \(it cuts that scratch again, "
+                            r"in its own groove\)", str(e.value)), str(e.value)
+        assert sim.pos[2] == 1.0 and sim.spindle_on is None
+        monkeypatch.setattr(Journal, "_append", append)
+        assert _resume(path, sim)["done"] == 24
+    finally:
+        sim.close()
+    _verify(prog, wp, in_progress={3})
+
+
+class _NoHoming(GrblSim):
+    """Homing not enabled (`$22=0`): GRBL 1.1 answers `$H` with `error:5`."""
+
+    def _dollar(self, line):
+        if line == "$H":
+            self._answer("error:5")
+            return True
+        return super()._dollar(line)
+
+
+def test_a_refused_homing_cycle_says_it_did_not_run(job):
+    path, _ = job
+    sim = _NoHoming(Workpiece(), settings={22: 0})
+    try:
+        with pytest.raises(CarveError) as e:
+            carve(path, sim.port, home=True, **FAST)
+    finally:
+        sim.close()
+    msg = str(e.value)
+    assert re.fullmatch(r"the homing cycle \$H was answered error:5 \(homing is not enabled: "
+                        r"\$22=0\); run again without --home .* \(the homing cycle \$H was sent; "
+                        r"no G-code line was sent\)", msg), msg
+    assert sim.wp.moves == []
+
+
+def test_oks_owed_to_an_earlier_host_are_not_taken_for_the_answer_to_i(job):
+    """A host that died during a dwell leaves GRBL Idle (so not reset) with an `ok` to come: it
+    is not the answer to `$I`, whose own answer follows, and the job runs."""
+    path, prog = job
+    sim = GrblSim()
+    try:
+        g = Grbl(sim.port, banner_timeout=1.0, poll_interval=0.05).connect()
+        g._write(b"G4 P1.500\n")
+        time.sleep(0.2)
+        g.close()
+        assert carve(path, sim.port, **FAST)["done"] == 24
+    finally:
+        sim.close()
+    _verify(prog, sim.wp)
+
+
+def test_a_work_zero_reported_in_inches_is_named_in_mm():
+    """With `$13=1` GRBL reports `$#` in inches; the work zero is compared and named in mm."""
+    class Inches:  # what `Grbl.connect` leaves on such a controller
+        port, homed, unlocked, state_at_connect, options = "/dev/ttyUSB0", True, False, "Idle", "V"
+        settings = {13: 1.0}
+        offsets = {"G54": (50 / 25.4, 40 / 25.4, -20 / 25.4), "G92": (0.0, 0.0, 0.0),
+                   "TLO": (0.0,)}
+
+    untouched = lambda: "(no motion was sent)"  # noqa: E731
+    zero = carve_mod._check_work_zero(Inches(), "G54", None, False, untouched)
+    np.testing.assert_allclose(zero, [50.0, 40.0, -20.0])
+    with pytest.raises(CarveError, match=r"the G54 work zero is X50\.000 Y40\.000 Z-20\.000 "
+                                         r"\(machine mm\) but was X50\.000 Y40\.000 Z-19\.000 .*"
+                                         r"G10 L2 P1 X50\.000 Y40\.000 Z-19\.000"):
+        carve_mod._check_work_zero(Inches(), "G54", {"G54": [50.0, 40.0, -19.0]}, False,
+                                   untouched)

@@ -14,7 +14,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 from grbl_sim import GcodeError, check_line  # noqa: E402
 
 from jscratch import gcode  # noqa: E402
-from jscratch.designfile import demo_design  # noqa: E402
+from jscratch.designfile import DesignError, demo_design  # noqa: E402
 from jscratch.errors import DesignFileError  # noqa: E402
 from jscratch.fabricate import MachineConfig, make_program, read_program, write_program  # noqa: E402
 
@@ -146,3 +146,32 @@ def test_read_program_refuses_a_missing_or_mismatched_map(tmp_path, small):
     open(map_path, "w").write("\n".join(rows[:-1]) + "\n")
     with pytest.raises(ValueError, match=f"has {len(rows) - 2} rows for {len(rows) - 1} G-code lines"):
         gcode.read_program(path)
+
+
+def test_options_not_in_program_reads_every_line_of_their_role():
+    """An option counts as the program's only when every line of its role carries its word: a
+    program of ten depths has no single plunge, and says how many it has and their range."""
+    d = demo_design(10, seed=4)
+    d = d._replace(depth=np.linspace(2e-5, 9e-5, 10))
+    prog = make_program(d, MachineConfig(), time_limit=0.5)
+    z = sorted({w for t, r in zip(prog.lines, prog.role) if r == "plunge"
+                for w in t.split() if w[0] == "Z"}, key=lambda w: float(w[1:]))
+    assert len(z) == 10
+    deepest = -float(z[0][1:])
+    got = gcode.options_not_in_program(prog, {"plunge_mm": deepest, "rapid_mm_min": 1.0})
+    assert got == [f"plunge_mm = {deepest!r} (the program has 10 values, {z[0]} to {z[-1]})"]
+    one = make_program(d, MachineConfig(plunge_mm=0.05), time_limit=0.5)
+    assert gcode.options_not_in_program(one, {"plunge_mm": 0.05}) == []
+    assert gcode.options_not_in_program(one, {"plunge_mm": 0.06}) == [
+        "plunge_mm = 0.06 (the program has Z-0.050)"]
+
+
+def test_make_program_refuses_an_endpoint_off_the_board():
+    """A design built in Python is checked as a loaded one is: an endpoint 50 mm off the board is
+    refused, not clipped onto its edge (which would cut another scratch)."""
+    d = demo_design(5, seed=1)
+    p1 = d.p1.copy()
+    p1[0] = [d.board[0] + 0.05, 0.1]
+    with pytest.raises(DesignError, match=r"^make_program: design: scratch 0: p1 = \(0.35, 0.1\) m "
+                                          r"lies off the board"):
+        make_program(d._replace(p1=p1), MachineConfig(plunge_mm=0.05), time_limit=0.5)

@@ -158,6 +158,9 @@ def load_target(path: str | os.PathLike, shape: tuple[int, int]) -> np.ndarray:
     except Exception as e:  # noqa: BLE001 - any reader failure is an unreadable image
         if "allow_pickle" in str(e):  # numpy's advice on a junk .npz: no image array in it
             raise DesignError(f"target image {path!r} is not a valid image or .npz file") from None
+        if "find a backend" in str(e):  # imageio's words for a format that no reader knows
+            raise DesignError(f"target image {path!r} is not a readable image "
+                              "(no image reader knows its format)") from None
         raise DesignError(f"target image {path!r} is not a readable image ({error_line(e)})") from None
     return prepare_target(img, _image_shape(shape), repr(path), crop=False)
 
