@@ -35,7 +35,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from jscratch.compile_options import few_calls_jit
-from jscratch.errors import InputError
+from jscratch.errors import InputError, real_number
 from jscratch.features import (VGG19_LAYERS, VGG19_TAPS, Features, FilterBank, VGG19Features,
                                gram, load_vgg19, separable3)
 from jscratch.options import KnownFields, option
@@ -106,8 +106,10 @@ def _check_images(render, target, name: str = "render") -> tuple[Array, Array]:
 
 def _gauss1(sigma: float) -> tuple[float, float, float]:
     """1D weights ``[e, 1, e] / (1 + 2e)``, ``e = exp(-1 / (2 sigma^2))`` (Python floats)."""
-    if not (isinstance(sigma, (int, float)) and math.isfinite(sigma) and sigma > 0):
+    value = real_number(sigma)
+    if value is None or not (math.isfinite(value) and value > 0):
         raise InputError(f"sigma must be a finite positive number of pixels, got {sigma!r}")
+    sigma = value
     e = math.exp(-1.0 / (2.0 * sigma * sigma))
     return (e / (1.0 + 2.0 * e), 1.0 / (1.0 + 2.0 * e), e / (1.0 + 2.0 * e))
 

@@ -227,3 +227,19 @@ def test_the_private_name_check_can_fail(tmp_path, bad_import):
     p = tmp_path / "m.py"
     p.write_text(f"from jscratch import bvh\n{bad_import}\n")
     assert _private_uses(p)
+
+
+def test_every_public_name_of_every_module_exists():
+    """`from m import *` works for every module: each name in its `__all__` is defined there."""
+    import importlib
+    import pkgutil
+
+    import jscratch
+
+    missing = []
+    for info in pkgutil.walk_packages(jscratch.__path__, "jscratch."):
+        if info.name.endswith("__main__"):
+            continue
+        mod = importlib.import_module(info.name)
+        missing += [f"{info.name}.{n}" for n in getattr(mod, "__all__", ()) if not hasattr(mod, n)]
+    assert missing == []

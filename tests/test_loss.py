@@ -48,6 +48,11 @@ def test_gaussian_kernel3_values():
     np.testing.assert_allclose(K1, [0.27406862, 0.45186276, 0.27406862], atol=1e-8)
     with pytest.raises(ValueError, match="sigma"):
         loss_mod.gaussian_kernel3(0.0)
+    for bad in (True, "1", np.array([1.0, 2.0]), np.nan):
+        with pytest.raises(InputError, match="^sigma must be a finite positive number"):
+            loss_mod.gaussian_kernel3(bad)
+    for one in (np.float32(1.0), jnp.float32(1.0), np.array(1.0), 1):  # any real number
+        np.testing.assert_array_equal(np.asarray(loss_mod.gaussian_kernel3(one)), g)
 
 
 @pytest.mark.float64

@@ -1025,12 +1025,13 @@ def test_keep_freed_memory_keeps_a_freed_block_and_can_be_turned_off():
     assert bad.returncode != 0 and "JSCRATCH_KEEP_MEMORY='2'" in bad.stderr
 
 
-def test_status_available_and_building_refuse_what_is_no_dtype():
+def test_status_available_building_and_prepare_refuse_what_is_no_dtype():
     for who, call in (("status", native.status), ("available", native.available),
-                      ("building", native.building)):
+                      ("building", native.building), ("prepare", native.prepare)):
         for bad, shown in (("foo", "'foo'"), (1.5, "1.5")):
             want = rf"^native.{who}: `dtype` must be a dtype \(float32 or float64\), got "
             with pytest.raises(InputError, match=want + re.escape(shown) + "$"):
                 call(bad)
     assert native.status(jnp.int32)["kernel"] == "jnp"  # a dtype without a kernel: says why
     assert native.available(jnp.int32) is False and native.building(jnp.int32) is False
+    assert native.prepare(jnp.int32) is None  # (nothing to build)

@@ -99,7 +99,7 @@ from jscratch.errors import InputError, error_line, shown
 
 __all__ = ["PROFILES", "NativeKernelWarning", "available", "bin_cells", "building", "enabled",
            "keep_freed_memory", "lit",
-           "lit_partials", "lit_values", "main", "override", "pair_jacobian", "pair_values",
+           "lit_partials", "lit_values", "override", "pair_jacobian", "pair_values",
            "pair_vjp", "pairs", "prepare", "status", "threads"]
 
 _SOURCE = Path(__file__).with_name("native_lit.cc")
@@ -367,7 +367,7 @@ def _on_cpu() -> bool:
 
 def _dtype_arg(dtype, who: str) -> jnp.dtype:
     """`dtype` as a dtype; `InputError` (one line, naming `who`) for what is not one (`available`,
-    `building`, `status`)."""
+    `building`, `prepare`, `status`)."""
     try:
         return jnp.dtype(dtype)
     except TypeError:
@@ -379,11 +379,8 @@ def prepare(dtype=jnp.float32) -> None:
     """Start building the kernels for `dtype` (float32 or float64) on a background thread (the
     compiler runs as a subprocess, so the caller's setup goes on meanwhile); `available` waits
     for it. A no-op when already started, built, disabled (`enabled`), off the CPU or for
-    another dtype."""
-    try:
-        name = _DTYPES.get(jnp.dtype(dtype))
-    except TypeError:  # not a dtype: whoever passed it refuses it
-        return
+    another dtype; `InputError` for what is not a dtype."""
+    name = _DTYPES.get(_dtype_arg(dtype, "prepare"))
     if name is None or not enabled() or not _on_cpu():
         return
     _start(name)
