@@ -11,9 +11,9 @@ come from the model, not from a run.
     python benchmarks/bench_mesh.py [N_SCRATCHES] [RES] [VIEWS]     (default 5000 128 3)
 """
 
+import argparse
 import os
 import re
-import sys
 import time
 
 os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
@@ -73,7 +73,12 @@ def collective_bytes(hlo: str) -> dict[str, int]:
 
 
 def main():
-    n, res, m = (int(a) for a in sys.argv[1:4]) if len(sys.argv) > 3 else (5000, 128, 3)
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("n", nargs="?", type=int, default=5000, help="scratches (default 5000)")
+    parser.add_argument("res", nargs="?", type=int, default=128, help="image side (default 128)")
+    parser.add_argument("m", nargs="?", type=int, default=3, help="views (default 3)")
+    args = parser.parse_args()
+    n, res, m = args.n, args.res, args.m
     rng = np.random.default_rng(0)
     targets = rng.uniform(0.2, 0.8, (m, res, res)).astype(np.float32)
     config = DesignConfig(n_scratches=n, iterations=10, prune_every=0, discard=False)

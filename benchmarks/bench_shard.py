@@ -8,8 +8,8 @@ memory (XLA's per-device compiled estimate: arguments + outputs + temporaries) a
     python benchmarks/bench_shard.py [N_SCRATCHES] [RES]     (default 60000 512)
 """
 
+import argparse
 import os
-import sys
 
 os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
                            + " --xla_force_host_platform_device_count=4")
@@ -21,7 +21,11 @@ import numpy as np
 from jscratch import render
 from jscratch.bench.rendering import compiled_mib, scene
 
-n, res = (int(a) for a in sys.argv[1:3]) if len(sys.argv) > 2 else (60000, 512)
+_parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+_parser.add_argument("n", nargs="?", type=int, default=60000, help="scratches (default 60000)")
+_parser.add_argument("res", nargs="?", type=int, default=512, help="image side, px (default 512)")
+_args = _parser.parse_args()
+n, res = _args.n, _args.res
 views = 4
 board, s, v = scene(n, res, views)
 target = jnp.full((views, res, res), 0.5, jnp.float32)

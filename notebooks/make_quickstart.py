@@ -257,11 +257,14 @@ print("cameras (m):\n", np.round(np.asarray(views2.camera), 3), "\nlight (m):", 
 ## 3. A three-view optimisation (§3.4, §4.1)
 
 `design(targets, views, board, config)` optimises the scratches so that view `j` shows
-`targets[j]`. The loss is the paper's `E = E_p + lambda_g E_g`: a blurred L2 distance between
-display images (`E_p`) plus a distance between Gram matrices of image features (`E_g`, texture
-statistics; a fixed weight-free filter bank by default, VGG-19 if you supply weights). Adam updates
-the endpoints (in board-normalised coordinates kept on the board), log width and log depth per
-scratch and the log light intensity per view; `alpha` stays frozen at 0.04 as for fabrication.
+`targets[j]`. The loss is the paper's `E_p + lambda_g E_g` plus a small ghosting term: a blurred
+L2 distance between display images (`E_p`), a distance between Gram matrices of image features
+(`E_g`, texture statistics; a fixed weight-free filter bank by default, VGG-19 if you supply
+weights; `lambda_g` is 20, or 60 for a dense design, at least 0.4 scratches per pixel), and
+`w_x E_x`, the SSIM of each view with the other views' targets (`lambda_x = 1e-3`). Adam updates
+the endpoints (in board-normalised coordinates kept on the board), one plunge per scratch (the
+groove's width and depth follow from the cutter's profile: every groove can be carved) and the
+log light intensity per view; `alpha` stays frozen at 0.04 as for fabrication.
 Each step renders all views differentiably through the pair integrals of section 1. The targets are
 three images bundled with scikit-image; `python -m jscratch.design` does the same from the shell.
 """),
@@ -278,9 +281,10 @@ print("SSIM per view", np.round(m["ssim"], 3), "| PSNR (dB)", np.round(m["psnr"]
 """),
     code(r"""
 hist = result.history
-lambda_g = jscratch.loss.LAMBDA_G if config.loss.lambda_g is None else config.loss.lambda_g
+lambda_g = config.design_loss(SIZE * SIZE).lambda_g  # (60 for a dense design)
+lambda_g = jscratch.loss.LAMBDA_G if lambda_g is None else lambda_g
 fig, ax = plt.subplots(figsize=(5.5, 3.4))
-ax.plot(hist["total"], "k", label="E = E_p + lambda_g E_g")
+ax.plot(hist["total"], "k", label="E = E_p + lambda_g E_g + w_x E_x")
 ax.plot(hist["terms"]["E_p"], "--", label="E_p (blurred L2)")
 ax.plot(lambda_g * np.asarray(hist["terms"]["E_g"]), "--", label=f"lambda_g E_g (Gram), lambda_g = {lambda_g:g}")
 ax.set(xlabel="iteration", ylabel="loss", yscale="log", title="loss curve")

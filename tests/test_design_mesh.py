@@ -335,8 +335,8 @@ def test_the_other_processes_wait_for_process_0_to_write_the_outputs(tmp_path):
 
 def test_a_process_killed_mid_run_stops_the_other_in_one_line(tmp_path):
     """Process 1 killed after the first checkpoint: process 0's next collective fails, and it
-    stops with one line (exit 1, no traceback; it used to print one, then abort in C++ at the
-    shutdown barrier's timeout); its checkpoint is kept for --resume."""
+    stops with one line (exit 1, no traceback, no C++ abort at the shutdown barrier's timeout);
+    its checkpoint is kept for --resume."""
     import time
 
     port = _free_port()

@@ -220,7 +220,7 @@ def test_a_refused_machine_option_is_named_by_its_flag(argv, says, tmp_path, cap
 
 def test_cli_refuses_an_empty_path_instead_of_carving_the_demo(tmp_path, capsys, monkeypatch):
     """``--gcode "$JOB"`` with JOB unset is an empty path, not "no option": refused in one line,
-    nothing written (it used to stream the built-in demo design)."""
+    nothing written (not the built-in demo design streamed instead)."""
     monkeypatch.chdir(tmp_path)
     for argv, opt in ((["--gcode", ""], "--gcode"), ([""], "the design"),
                       (["--machine", " "], "--machine"), (["--out", ""], "--out"),

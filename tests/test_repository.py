@@ -1,7 +1,7 @@
 """The repository stands on its own and describes what is, checked over every tracked text file.
 
 - No file cites a path outside the repository: a ``../`` path that leaves the repository root
-  (resolved from the file's folder), the old shared folder, or an absolute path on a developer's
+  (resolved from the file's folder), the shared folder beside the checkout, or an absolute path on a developer's
   machine (``/work/``, ``/home/``, ``/Users/``, ``/root/``). Scratch output folders such as
   ``/tmp/...`` in example commands are fine.
 - No file tells history by number ("issue N", "session N"): say what the code does and why.
@@ -28,7 +28,7 @@ HISTORY = re.compile(r"\b(issue|session)s? #?\d+", re.IGNORECASE)
 ABSOLUTE = re.compile(r"(?<![\w.~/-])/(work|home|Users|root)/[\w.-][\w./-]*")
 #: A relative path that climbs one or more folders (not preceded by a path character).
 CLIMB = re.compile(r"(?<![\w.~/-])((?:\.\./)+)([\w.-]*)")
-#: The old shared folder, wherever it is cited from.
+#: The shared folder beside the checkout, wherever it is cited from.
 SHARED = re.compile(r"(?<![\w-])" + re.escape("..") + r"/shared\b")
 #: A citation of the model document and the section numbers that follow it.
 CITATION = re.compile(r"docs/model\.md((?:\s*(?:,|and|or|to|-)?\s*§\d+)+)")

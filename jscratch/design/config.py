@@ -94,9 +94,10 @@ class DesignConfig(KnownFields):
     init_length: tuple[float, float] = option((0.005, 0.025), "initial lengths, uniform in MIN MAX",
                                               unit="m", metavar=("MIN", "MAX"))
     lr_endpoints: float = option(1e-3, "learning rate of the endpoints", unit="board widths/step")
-    lr_width: float = option(1e-2, "learning rate of the width (plunge logit when carvable)",
-                             unit="log m")
-    lr_depth: float = option(1e-2, "learning rate of the depth", unit="log m")
+    lr_width: float = option(1e-2, "learning rate of the width; with --groove carvable of the "
+                             "plunge logit", unit="log m; logit")
+    lr_depth: float = option(1e-2, "learning rate of the depth (unused with --groove carvable, "
+                             "whose depth follows from the plunge)", unit="log m")
     lr_alpha: float = option(1e-2, "learning rate of the roughness", unit="logit")
     lr_intensity: float = option(1e-2, "learning rate of the light intensities", unit="log W/sr")
     freeze: tuple[str, ...] = option(("alpha",), f"groups not optimised, comma-separated from "

@@ -264,8 +264,8 @@ V arc_piece_impl(int n, const double* xs, const double* ws, int n_s,
 // The Bernstein-ellipse test for the shorter rule: whether the pole z = (zr, zi) is at least
 // kFar piece lengths away in summed distance, |z - ua| + |z - ub| >= kFar |ub - ua|, i.e. it
 // lies outside the ellipse E_rho with foci ua, ub and rho + 1 / rho = 2 kFar (rho ~ 10.3), which
-// holds E_5, all the error bound needs (docs/model.md §13; kFar = 2.6, E_5 itself, saved at most
-// 2-3 % of a step: benchmarks/RESULTS.md).
+// holds E_5, all the error bound needs (docs/model.md §13; kFar = 2.6, E_5 itself, would make a
+// step at most 2-3 % faster: benchmarks/RESULTS.md).
 constexpr double kFar = 5.2;
 template <typename T, typename V>
 inline decltype(V{} < V{}) far_pole(V zr, V zi, V ua, V ub, V len) {
