@@ -368,17 +368,29 @@ def test_ctrl_c_while_joining_stops_at_once(tmp_path):
     import time
 
     port = _free_port()
-    p = subprocess.Popen(_cli(["--out", str(tmp_path / "a"), "--coordinator", f"localhost:{port}",
-                               "--num-processes", "2", "--process-id", "0",
-                               "--join-timeout", "600"]),
+    cmd = _cli(["--out", str(tmp_path / "a"), "--coordinator", f"localhost:{port}",
+                "--num-processes", "2", "--process-id", "0", "--join-timeout", "600"])
+    p = subprocess.Popen([a for a in cmd if a != "--quiet"],  # (it says when it waits)
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(),
                          # (Ctrl-C's default, whatever this process inherited: a shell's
                          # background job ignores SIGINT)
                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
-        time.sleep(8)  # (well into the join: the imports and the checks come first)
+        import queue
+        import threading
+
+        lines: queue.Queue = queue.Queue()  # stderr's lines, read on a thread
+        threading.Thread(target=lambda: [lines.put(t) for t in p.stderr] + [lines.put("")],
+                         daemon=True).start()
+        want = f"process 0 of 2: waiting up to 600 s for every process to join at localhost:{port}"
+        seen = []  # (the imports and the checks come first)
+        while not (seen and seen[-1].startswith(want)):
+            seen.append(lines.get(timeout=300))
+            assert seen[-1], f"it ended before the join: {seen}"
+        time.sleep(1)  # (into XLA's join)
         p.send_signal(signal.SIGINT)
-        _, err = p.communicate(timeout=120)  # (not the 600 s join timeout)
+        assert p.wait(timeout=120) is not None  # (not the 600 s join timeout)
+        err = "".join(iter(lambda: lines.get(timeout=10), ""))
     finally:
         if p.poll() is None:
             p.kill()

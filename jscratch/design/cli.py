@@ -265,7 +265,8 @@ def _run(argv) -> int:
                 remove_partial_writes(early.out)
         run, scene, config = configs(argv)
         # --- several processes: joined before any JAX work (jax.distributed)
-        mesh_mod.initialize(run.coordinator, run.num_processes, run.process_id, run.join_timeout)
+        mesh_mod.initialize(run.coordinator, run.num_processes, run.process_id, run.join_timeout,
+                            say=None if run.quiet else lambda s: print(s, file=sys.stderr))
         # --- from here SIGTERM and SIGHUP stop the run as Ctrl-C does (not while blocked in
         # the join)
         with signals_interrupt():

@@ -44,13 +44,14 @@ AXIS = "pixels"
 
 
 def initialize(coordinator: str | None = None, num_processes: int | None = None,
-               process_id: int | None = None, timeout: int = 300) -> bool:
+               process_id: int | None = None, timeout: int = 300, say=None) -> bool:
     """Join the processes of a run with `jax.distributed.initialize` (before any JAX work).
 
     With `coordinator` (``HOST:PORT``) the three values are given; without it, when the
     environment names a coordinator (``JAX_COORDINATOR_ADDRESS``, or a cluster JAX detects:
     SLURM, Open MPI, ...) JAX reads the rest from there. Otherwise nothing is done (one process).
-    `timeout`: seconds to wait for every process. Returns whether the runtime was started.
+    `timeout`: seconds to wait for every process; `say(line)`, when given, is told that the
+    process waits for the others. Returns whether the runtime was started.
     Raises `InputError` (one line) for inconsistent values or a process that did not join."""
     if coordinator is None and (num_processes is not None or process_id is not None):
         coordinator = os.environ.get("JAX_COORDINATOR_ADDRESS") or None  # (its equivalent)
@@ -75,6 +76,9 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
         raise InputError(f"--join-timeout must be an int >= 1 (seconds), got {timeout!r}")
     if process_id == 0 and coordinator is not None:
         _check_port_free(coordinator)
+    if say is not None:
+        say(f"process {process_id} of {num_processes}: waiting up to {timeout} s for every "
+            f"process to join at {coordinator or os.environ.get('JAX_COORDINATOR_ADDRESS')}")
     try:
         _join_interruptibly(lambda: jax.distributed.initialize(
             coordinator, num_processes, process_id, initialization_timeout=int(timeout)))
