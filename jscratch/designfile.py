@@ -31,7 +31,7 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
-from jscratch.errors import DesignFileError, InputError, error_line, real_number
+from jscratch.errors import DesignFileError, InputError, error_line, instance_arg, real_number
 from jscratch.scene import PROFILES, check_scratches, check_views
 
 __all__ = [
@@ -339,6 +339,7 @@ def write_svg(path, design: Design, *, min_stroke_mm: float = 0.02) -> None:
 
     **Arguments:** `path` of the SVG; `design` a `Design`; `min_stroke_mm` the thinnest stroke.
     """
+    instance_arg("write_svg", "design", design, Design)
     given, min_stroke_mm = min_stroke_mm, real_number(min_stroke_mm)
     if min_stroke_mm is None or not (math.isfinite(min_stroke_mm) and min_stroke_mm >= 0):
         raise DesignError(f"write_svg: min_stroke_mm must be a finite width >= 0 in mm, got "

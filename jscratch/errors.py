@@ -32,6 +32,8 @@ __all__ = [
     "whole_number",
     "shown",
     "count_arg",
+    "instance_arg",
+    "shape_arg",
     "exit_status",
     "report",
 ]
@@ -136,6 +138,43 @@ def count_arg(where: str, name: str, value, low: int) -> int:
     if n is None or n < low:
         raise InputError(f"{where}: `{name}` must be an int >= {low}, got {shown(value)}")
     return n
+
+
+def instance_arg(where: str, name: str, value, kind: type) -> None:
+    """`InputError` naming `where` and `name`, one line, unless `value` is a `kind` (a jscratch
+    class such as `Board`: the message calls it ``jscratch.<kind>``)."""
+    if not isinstance(value, kind):
+        raise InputError(f"{where}: `{name}` must be a jscratch.{kind.__name__}, got "
+                         f"{type(value).__name__}")
+
+
+def shape_arg(where: str, name: str, value, *shapes: tuple, what: str = "") -> None:
+    """`InputError` naming `where` and `name`, one line, unless `value` (an array, a tracer, a
+    nested list or a number) has one of `shapes`. In a shape a string (``"N"``) matches any
+    length and a leading ``...`` any leading axes; `what` (e.g. ``" (views, pixels)"``) follows
+    the shapes in the message. Shapes are static, so this works under `jax.jit` too."""
+    import numpy as np
+
+    def text(shape):
+        axes = ["..." if s is Ellipsis else str(s) for s in shape]
+        return "(" + ", ".join(axes) + ("," if len(axes) == 1 else "") + ")"
+
+    def fits(got, shape):
+        if shape[:1] == (Ellipsis,):
+            shape = shape[1:]
+            got = got[len(got) - len(shape):] if len(got) >= len(shape) else None
+        return got is not None and len(got) == len(shape) and all(
+            isinstance(s, str) or s == g for s, g in zip(shape, got))
+
+    try:
+        got = None if isinstance(value, (str, bytes)) else tuple(np.shape(value))
+    except (TypeError, ValueError):  # (a ragged nested list)
+        got = None
+    if got is None or not any(fits(got, tuple(s)) for s in shapes):
+        texts = [text(tuple(s)) for s in shapes]
+        expected = " or ".join([", ".join(texts[:-1]), texts[-1]] if texts[1:] else texts)
+        seen = f"shape {text(got)}" if got is not None else shown(value)
+        raise InputError(f"{where}: `{name}` must have shape {expected}{what}, got {seen}")
 
 
 def shown(value, limit: int = 60) -> str:

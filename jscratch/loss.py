@@ -35,7 +35,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from jscratch.compile_options import few_calls_jit
-from jscratch.errors import InputError, real_number
+from jscratch.errors import InputError, real_number, shown
 from jscratch.features import (VGG19_LAYERS, VGG19_TAPS, Features, FilterBank, VGG19Features,
                                gram, load_vgg19, separable3)
 from jscratch.options import KnownFields, option
@@ -328,12 +328,15 @@ def calibrate_lambda_g(
 
     **Returns:** ``ratio * E_p / E_g`` as a Python float.
     """
-    if not (math.isfinite(ratio) and ratio > 0):
-        raise InputError(f"ratio must be finite and positive, got {ratio!r}")
+    given, ratio = ratio, real_number(ratio)
+    if ratio is None or not (math.isfinite(ratio) and ratio > 0):
+        raise InputError(f"calibrate_lambda_g: `ratio` must be a finite number > 0, got "
+                         f"{shown(given)}")
     ep = float(perceptual_loss(render, target))
     eg = float(gram_loss(render, target, features))
     if not (math.isfinite(ep) and math.isfinite(eg)) or eg <= 0:
-        raise InputError(f"cannot calibrate: E_p = {ep}, E_g = {eg} (need finite, E_g > 0)")
+        raise InputError(f"calibrate_lambda_g: cannot calibrate: E_p = {ep}, E_g = {eg} (need "
+                         f"finite, E_g > 0)")
     return ratio * ep / eg
 
 

@@ -79,7 +79,7 @@ boundary) and coordinates taken relative to a footprint vertex keep a small foot
 a long scratch, or a slab that only nicks ``Q``, free of cancellation.
 
 **Derivatives.** Reverse mode is hand-written where autodiff is costly (on the CPU the XLA
-reverse graph of the closed form and its clipping was 10-20x the forward). Each piece's value
+reverse graph of the closed form and its clipping would dominate a gradient step). A piece's value
 ``I = ∫_{ua}^{ub} Y D du`` has ``∂I/∂ub = Yb D(ub) - (Yb - Ya) m_b``, ``∂I/∂Yb = (ub - ua) m_b``
 (and the mirror for ``a``) with ``m_b = ∫_0^1 tau D dtau`` along the piece; the sharp lobe is
 linear in its coefficients ``c`` (the basis integrals come with the closed form) and depends on
@@ -117,6 +117,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from jscratch import lobe, native
+from jscratch.errors import InputError, real_number, shape_arg, shown
 
 __all__ = [
     "pair_integral",
@@ -148,10 +149,6 @@ def _safe_sqrt(x):
     return jnp.where(pos, jnp.sqrt(jnp.where(pos, x, 1)), 0)
 
 
-def _dtype(*xs):
-    return jnp.result_type(*[jnp.asarray(x) for x in xs], jnp.float32)
-
-
 def _dot2(v, d):
     """`v . d` over a trailing axis of length 2, written out."""
     return v[..., 0] * d[0] + v[..., 1] * d[1]
@@ -174,8 +171,7 @@ def _two_prod(a, b):
         return hi, v - hi
 
     p = a * b
-    ah, al = halves(a)
-    bh, bl = halves(b)
+    (ah, al), (bh, bl) = halves(a), halves(b)
     return p, ((ah * bh - p) + ah * bl + al * bh) + al * bl
 
 
@@ -184,12 +180,9 @@ def _cross_accurate(o, p0, p1):
     result, even when it is tiny compared with `|o - p0| |p1 - p0|`: compensated sums and
     products. It fixes where a scratch axis lies relative to a footprint to far better than the
     board coordinates' ulp, which a sharp GGX peak (width `alpha w`, nanometres) needs."""
-    ex, ex_lo = _two_sum(o[0], -p0[0])
-    ey, ey_lo = _two_sum(o[1], -p0[1])
-    dx, dx_lo = _two_sum(p1[0], -p0[0])
-    dy, dy_lo = _two_sum(p1[1], -p0[1])
-    a, a_lo = _two_prod(ex, dy)
-    b, b_lo = _two_prod(ey, dx)
+    (ex, ex_lo), (ey, ey_lo) = _two_sum(o[0], -p0[0]), _two_sum(o[1], -p0[1])
+    (dx, dx_lo), (dy, dy_lo) = _two_sum(p1[0], -p0[0]), _two_sum(p1[1], -p0[1])
+    (a, a_lo), (b, b_lo) = _two_prod(ex, dy), _two_prod(ey, dx)
     small = (a_lo - b_lo) + (ex * dy_lo + ex_lo * dy) - (ey * dx_lo + ey_lo * dx)
     return (a - b) + small
 
@@ -295,8 +288,7 @@ def _lerp(a, b, d, t):
 def _lb(a, delta, lo, hi):
     """Liang-Barsky: the parameter interval `[t_in, t_out]` (clipped to [-2, 2]) where
     `lo <= a + t delta <= hi`."""
-    r_lo = _ratio_clipped(lo - a, delta)
-    r_hi = _ratio_clipped(hi - a, delta)
+    r_lo, r_hi = _ratio_clipped(lo - a, delta), _ratio_clipped(hi - a, delta)
     inside = (a >= lo) & (a <= hi)
     t_in = jnp.where(delta > 0, r_lo, jnp.where(delta < 0, r_hi, jnp.where(inside, -2, 2)))
     t_out = jnp.where(delta > 0, r_hi, jnp.where(delta < 0, r_lo, jnp.where(inside, 2, -2)))
@@ -338,14 +330,11 @@ def _strip_pieces(u, y, y_lo, y_hi):
     found without gradient; each then carries the derivative of the one constraint that sets it
     (`_implicit`), or none at a vertex."""
     sg = jax.lax.stop_gradient
-    ub_ = jnp.roll(u, -1)
-    yb_ = jnp.roll(y, -1)
-    du = ub_ - u
-    dy = yb_ - y
+    ub_, yb_ = jnp.roll(u, -1), jnp.roll(y, -1)
+    du, dy = ub_ - u, yb_ - y
     dy0 = sg(dy)
     tiy, toy = _lb(sg(y), dy0, sg(y_lo), sg(y_hi))
-    t0 = jnp.maximum(tiy, 0)
-    t1 = jnp.minimum(toy, 1)
+    t0, t1 = jnp.maximum(tiy, 0), jnp.minimum(toy, 1)
     empty = t1 <= t0
     t1 = jnp.maximum(t1, t0)
     vert0, vert1 = t0 <= 0, t1 >= 1
@@ -374,8 +363,7 @@ def _strip_pieces(u, y, y_lo, y_hi):
         sw > 0, jnp.sum(wgt * sg(e_ya + e_yb) / 2) / jnp.where(sw > 0, sw, 1),
         jnp.where(hi_touch, sg(y_hi), sg(y_lo)),
     )
-    Y_lo = y_lo - y_ref
-    Y_hi = y_hi - y_ref
+    Y_lo, Y_hi = y_lo - y_ref, y_hi - y_ref
     ua = jnp.concatenate([e_ua, jnp.stack([lo_in, hi_in])])
     ub = jnp.concatenate([e_ub, jnp.stack([lo_out, hi_out])])
     Ya = jnp.concatenate([e_ya - y_ref, jnp.stack([Y_lo, Y_hi])])
@@ -419,8 +407,7 @@ def _cut(ua, ub, Ya, Yb, lo, hi) -> _Cut:
     shift: the pieces form a closed boundary), so a slab that only nicks `Q` keeps `Y` of its
     own size. Written with `where`, not `clip`, so that autodiff and `_cut_transpose` agree at
     ties: an end exactly on a bound keeps its own derivative."""
-    du = ub - ua
-    dY = Yb - Ya
+    du, dY = ub - ua, Yb - Ya
     lo_a, hi_a = ua < lo, ua > hi
     lo_b, hi_b = ub < lo, ub > hi
     moved_a, moved_b = lo_a | hi_a, lo_b | hi_b
@@ -468,16 +455,13 @@ def _cut_transpose(c: _Cut, g_ca, g_cb, g_Ya, g_Yb):
     # A point's second end is its first.
     g_ca = g_ca + jnp.where(c.point, g_cb, zero)
     g_Ya = g_Ya + jnp.where(c.point, g_Yb, zero)
-    g_cb = jnp.where(c.point, zero, g_cb)
-    g_Yb = jnp.where(c.point, zero, g_Yb)
+    g_cb, g_Yb = jnp.where(c.point, zero, g_cb), jnp.where(c.point, zero, g_Yb)
     # Y at an end is the lerp of the piece's Y at t.
-    g_Ya0 = g_Ya * (1 - c.ta) + g_Yb * (1 - c.tb)
-    g_Yb0 = g_Ya * c.ta + g_Yb * c.tb
+    g_Ya0, g_Yb0 = g_Ya * (1 - c.ta) + g_Yb * (1 - c.tb), g_Ya * c.ta + g_Yb * c.tb
     # t = (c - ua) / (ub - ua) where the end is a crossing.
     ga = jnp.where(c.ta_free, g_Ya * c.dY * c.inv_du, zero)
     gb = jnp.where(c.tb_free, g_Yb * c.dY * c.inv_du, zero)
-    g_ca = g_ca + ga
-    g_cb = g_cb + gb
+    g_ca, g_cb = g_ca + ga, g_cb + gb
     g_ua = ga * (c.ta - 1) + gb * (c.tb - 1)
     g_ub = -(ga * c.ta + gb * c.tb)
     # The clamp.
@@ -598,9 +582,7 @@ def piece_count_estimate(footprint: Float[ArrayLike, "4 2"], p0: Float[ArrayLike
     scratch ends whose crossing by the footprint does. It differs from the count only on ties
     (pieces that touch the groove in one point); a renderer sorts pairs by it, and only the
     speed depends on it."""
-    dt = _dtype(footprint, p0, p1, width, depth)
-    footprint, p0, p1, width, depth = (jnp.asarray(v, dt) for v in (footprint, p0, p1, width,
-                                                                     depth))
+    footprint, p0, p1, width, depth = _as_inputs(footprint, p0, p1, width, depth)
     _, b, _, q, x_c, y, y_lo, y_hi = _strip_frame(footprint, p0, p1)
     u = (_dot2(q, b) + x_c) / width
     X = groove_half_width(width, depth) / width
@@ -617,7 +599,7 @@ def piece_count_estimate(footprint: Float[ArrayLike, "4 2"], p0: Float[ArrayLike
     def chain(t, level):  # where the boundary crosses y = level: its u-span meets the groove
         crosses = ~flat & (t > 0) & (t < 1) & ((y - level) * (y + dy - level) < 0)
         uc = u + t * du
-        big = jnp.asarray(1e30, dt)
+        big = jnp.asarray(1e30, u.dtype)
         lo = jnp.min(jnp.where(crosses, uc, big))
         hi = jnp.max(jnp.where(crosses, uc, -big))
         return (jnp.sum(crosses) >= 2) & (lo <= X) & (hi >= -X) & (hi > lo)
@@ -650,8 +632,23 @@ def _view(G, h):
 
 
 def _as_inputs(*xs):
-    dt = _dtype(*xs)
+    dt = jnp.result_type(*[jnp.asarray(x) for x in xs], jnp.float32)
     return tuple(jnp.asarray(v, dt) for v in xs)
+
+
+#: `pair_integral`'s arguments and their shapes (one pair: `jax.vmap` adds the batch axes).
+_PAIR_SHAPES = dict(h=(3,), footprint=(4, 2), p0=(2,), p1=(2,), width=(), depth=(), alpha=())
+
+
+def _pair_inputs(where: str, *args):
+    """`_as_inputs` of `pair_integral`'s arguments, after `InputError` (one line) for one without
+    its shape, or an `alpha` outside (0, 1) (values are checked where concrete, not traced)."""
+    for (name, shape), x in zip(_PAIR_SHAPES.items(), args):
+        shape_arg(where, name, x, shape)
+    alpha = real_number(args[-1])
+    if alpha is not None and not 0 < alpha < 1:
+        raise InputError(f"{where}: `alpha` must lie in (0, 1), got {shown(args[-1])}")
+    return _as_inputs(*args)
 
 
 class PairGeometry(NamedTuple):
@@ -744,12 +741,15 @@ def pair_integral(
 
     Reverse-mode derivatives are hand-written (`_lit_sum`, `_cut_pieces`); forward mode (`jax.jvp`)
     is not available.
+
+    **Raises:** `InputError`, one line: a wrong shape, or a concrete `alpha` outside (0, 1).
     """
     return _pair_integral(h, footprint, p0, p1, width, depth, alpha, True)
 
 
 def _pair_integral(h, footprint, p0, p1, width, depth, alpha, hand_vjp: bool):
-    h, footprint, p0, p1, width, depth, alpha = _as_inputs(h, footprint, p0, p1, width, depth, alpha)
+    h, footprint, p0, p1, width, depth, alpha = _pair_inputs(
+        "pair_integral", h, footprint, p0, p1, width, depth, alpha)
     geometry = _pair_geometry(footprint, p0, p1, width, depth, hand_vjp)
     return _lit_integral(geometry, h, alpha, N_PIECES, hand_vjp), geometry.area
 
@@ -776,13 +776,12 @@ def pair_integral_quadrature(h, footprint, p0, p1, width, depth, alpha, n: int):
     `w ∫ chord(u) D_x(u) du` over the lit groove range `[u_lo, u_hi]`, with the GGX in its
     factored (cancellation-free) form. Same arguments and returns as `pair_integral`; `A` is the
     same rule applied to `chord(u)` over `[-x_max, x_max] / w`."""
-    h, footprint, p0, p1, width, depth, alpha = _as_inputs(h, footprint, p0, p1, width, depth, alpha)
+    h, footprint, p0, p1, width, depth, alpha = _pair_inputs(
+        "pair_integral_quadrature", h, footprint, p0, p1, width, depth, alpha)
     G = _groove(footprint, p0, p1, width, depth)
     hx, hy, hz, u_lo, u_hi = _view(G, h)
     L = lobe.lobe(hx, hy, hz, alpha)
-    x, w = lobe.gauss_legendre(int(n))
-    x = jnp.asarray(x, h.dtype)
-    w = jnp.asarray(w, h.dtype)
+    x, w = (jnp.asarray(v, h.dtype) for v in lobe.gauss_legendre(int(n)))
 
     def rule(a, b, f):
         half = (b - a) / 2

@@ -59,7 +59,7 @@ from jscratch import arc, lobe, native, ndf
 from jscratch.compile_options import grad_compiler_options
 from jscratch.bvh import (DEFAULT_CHUNK, bin_pairs, check_binned_for, check_chunk, cull_pairs,
                           flat_pairs, pair_checks, pixels_per_shard, view_keep)
-from jscratch.errors import InputError, real_number
+from jscratch.errors import InputError, instance_arg, real_number
 from jscratch.scene import (
     Board,
     Scratches,
@@ -682,9 +682,7 @@ def _check_scene_types(where: str, scratches, views, board) -> None:
     arguments given in another order)."""
     for name, value, kind in (("scratches", scratches, Scratches), ("views", views, Views),
                               ("board", board, Board)):
-        if not isinstance(value, kind):
-            raise InputError(f"{where}: `{name}` must be a jscratch.{kind.__name__}, got "
-                             f"{type(value).__name__}")
+        instance_arg(where, name, value, kind)
 
 
 @functools.lru_cache(maxsize=None)

@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from jscratch.errors import InputError, count_arg, real_number, shown
+from jscratch.errors import InputError, count_arg, real_number, shape_arg, shown
 
 __all__ = [
     "ALPHA_RANGE",
@@ -51,8 +51,10 @@ __all__ = [
     "Board",
     "Scratches",
     "Views",
+    "array_arg",
     "check_scratches",
     "check_views",
+    "dtype_arg",
     "flat_highlight",
     "scene_checks",
     "views_on_circle",
@@ -350,7 +352,7 @@ def _board_arg(source: str, board) -> "Board":
     return board
 
 
-def _scene_dtype(source: str, dtype):
+def dtype_arg(source: str, dtype):
     """`dtype` as one of `DTYPES` (None: the default float); `InputError` otherwise."""
     if dtype is None:
         return jnp.dtype(jnp.result_type(float))
@@ -392,8 +394,9 @@ def _float_dtype(*xs, source: str):
     return dt
 
 
-def _as_array(x, name: str, source: str):
-    """`jnp.asarray(x)`, with a one-line `InputError` for what is no numeric array."""
+def array_arg(source: str, name: str, x):
+    """`jnp.asarray(x)`, with a one-line `InputError` naming `source` and `name` for what is no
+    numeric array."""
     try:
         return jnp.asarray(x)
     except (TypeError, ValueError) as exc:
@@ -435,8 +438,8 @@ class Scratches(eqx.Module):
         if profile not in PROFILES:
             raise InputError(f"Scratches: `profile` must be one of {PROFILES}; got {profile!r}")
         self.profile = profile
-        p0 = _as_array(p0, "p0", "Scratches")
-        p1 = _as_array(p1, "p1", "Scratches")
+        p0 = array_arg("Scratches", "p0", p0)
+        p1 = array_arg("Scratches", "p1", p1)
         dtype = _float_dtype(p0, p1, source="Scratches")
         for name, p in (("p0", p0), ("p1", p1)):
             if p.ndim != 2 or p.shape[1] != 2:
@@ -447,7 +450,7 @@ class Scratches(eqx.Module):
         self.p0 = p0.astype(dtype)
         self.p1 = p1.astype(dtype)
         for name, v in (("width", width), ("depth", depth), ("alpha", alpha)):
-            _float_dtype(_as_array(v, name, "Scratches"), source="Scratches")
+            _float_dtype(array_arg("Scratches", name, v), source="Scratches")
             v = jnp.asarray(v, dtype=dtype)
             if v.ndim == 0:
                 v = jnp.broadcast_to(v, (n,))
@@ -495,7 +498,7 @@ class Scratches(eqx.Module):
             raise InputError(f"{where}: `length` must be (min, max) metres with 0 < min <= max; "
                              f"got {shown(length)}")
         p0, p1 = _random_endpoints(key, n, float(board.Sx), float(board.Sy), (lo, hi),
-                                   _scene_dtype(where, dtype))
+                                   dtype_arg(where, dtype))
         return Scratches(p0, p1, width, depth, alpha)
 
 
@@ -536,8 +539,8 @@ class Views(eqx.Module):
     intensity: Float[Array, " m"]
 
     def __init__(self, camera: ArrayLike, light: ArrayLike, intensity: ArrayLike = 1.0):
-        camera = _as_array(camera, "camera", "Views")
-        light = _as_array(light, "light", "Views")
+        camera = array_arg("Views", "camera", camera)
+        light = array_arg("Views", "light", light)
         dtype = _float_dtype(camera, light, source="Views")
         for name, p in (("camera", camera), ("light", light)):
             if p.ndim != 2 or p.shape[1] != 3:
@@ -546,7 +549,7 @@ class Views(eqx.Module):
             raise InputError(f"Views: `camera` {camera.shape} and `light` {light.shape} must have"
                              " the same shape")
         m = camera.shape[0]
-        _float_dtype(_as_array(intensity, "intensity", "Views"), source="Views")
+        _float_dtype(array_arg("Views", "intensity", intensity), source="Views")
         intensity = jnp.asarray(intensity, dtype)
         if intensity.ndim == 0:
             intensity = jnp.broadcast_to(intensity, (m,))
@@ -578,9 +581,24 @@ def flat_highlight(camera, light) -> np.ndarray:
 
     At that point the half vector is the board normal, so the flat board's GGX peak
     ``1 / (pi a_S^2)`` shows there.
+
+    **Raises:** `InputError`, one line: `camera` or `light` not points ``(..., 3)`` of numbers,
+    or shapes that do not broadcast.
     """
-    c = np.asarray(camera, np.float64)
-    l = np.asarray(light, np.float64)
+    points = []
+    for name, v in (("camera", camera), ("light", light)):
+        try:
+            points.append(np.asarray(v, np.float64))
+        except (TypeError, ValueError):
+            raise InputError(f"flat_highlight: `{name}` must be points (..., 3) of numbers (m), "
+                             f"got {shown(v)}") from None
+        shape_arg("flat_highlight", name, points[-1], (..., 3), what=" (m)")
+    c, l = points
+    try:
+        np.broadcast_shapes(c.shape, l.shape)
+    except ValueError:
+        raise InputError(f"flat_highlight: `camera` {c.shape} and `light` {l.shape} do not "
+                         f"broadcast") from None
     s = c[..., 2:3] / (c[..., 2:3] + l[..., 2:3])
     return c[..., :2] + s * (l[..., :2] - c[..., :2])
 
@@ -631,7 +649,7 @@ def views_on_circle(M: int, theta: float = DEFAULT_THETA, distance: float = 1.0,
     if isinstance(M, (bool, str)) or not whole or M < 1:
         raise InputError(f"views_on_circle: `M` must be a positive int; got {shown(M)}")
     M = int(M)
-    dtype = _scene_dtype(where, dtype)
+    dtype = dtype_arg(where, dtype)
     camera_theta = theta if camera_theta is None else camera_theta
     given = {"theta": theta, "camera_theta": camera_theta, "distance": distance,
              "light_azimuth": light_azimuth, "offset": offset}

@@ -17,8 +17,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from jscratch.errors import InputError, real_number, shown
-from jscratch.scene import Board, Views
+from jscratch.errors import InputError, instance_arg, real_number, shape_arg, shown
+from jscratch.scene import Board, Views, array_arg, dtype_arg
 
 __all__ = [
     "DISPLAY_GAMMA",
@@ -50,24 +50,30 @@ def pixel_footprints(board: Board, dtype=None) -> Float[Array, "p 4 2"]:
     """Pixel footprints (docs/model.md §1) as counter-clockwise quads.
 
     **Returns:** ``(H*W, 4, 2)`` board metres; pixel ``r*W + c`` is
-    ``(x0, y0), (x1, y0), (x1, y1), (x0, y1)`` with ``x0 = c Sx/W``, ``y1 = Sy - r Sy/H``.
+    ``(x0, y0), (x1, y0), (x1, y1), (x0, y1)`` with ``x0 = c Sx/W``, ``y1 = Sy - r Sy/H``, in
+    `dtype` (float32 or float64; default float).
     """
+    instance_arg("pixel_footprints", "board", board, Board)
+    dtype = dtype_arg("pixel_footprints", dtype)
     xe, ye = pixel_edges(board)
     c = np.tile(np.arange(board.W), board.H)
     r = np.repeat(np.arange(board.H), board.W)
     x0, x1, y0, y1 = xe[c], xe[c + 1], ye[r + 1], ye[r]
     fp = np.stack([np.stack([x0, y0], -1), np.stack([x1, y0], -1), np.stack([x1, y1], -1),
                    np.stack([x0, y1], -1)], 1)
-    return jnp.asarray(fp, jnp.result_type(float) if dtype is None else dtype)
+    return jnp.asarray(fp, dtype)
 
 
 def pixel_centres(board: Board, dtype=None) -> Float[Array, "p 2"]:
-    """Footprint centres ``(H*W, 2)`` (board metres), pixel ``r*W + c``."""
+    """Footprint centres ``(H*W, 2)`` (board metres), pixel ``r*W + c``, in `dtype` (float32 or
+    float64; default float)."""
+    instance_arg("pixel_centres", "board", board, Board)
+    dtype = dtype_arg("pixel_centres", dtype)
     xe, ye = pixel_edges(board)
     c = np.tile(np.arange(board.W), board.H)
     r = np.repeat(np.arange(board.H), board.W)
     ctr = np.stack([0.5 * (xe[c] + xe[c + 1]), 0.5 * (ye[r] + ye[r + 1])], -1)
-    return jnp.asarray(ctr, jnp.result_type(float) if dtype is None else dtype)
+    return jnp.asarray(ctr, dtype)
 
 
 def _unit(v):
@@ -96,8 +102,17 @@ def _geometry(views: Views, board: Board, dtype) -> _Geometry:
 
 def half_vectors(views: Views, board: Board, dtype=None) -> Float[Array, "m p 3"]:
     """Board-frame unit half vectors at every footprint centre, ``(M, H*W, 3)`` (docs/model.md §4),
-    as `cull.cull` wants them (``h_pixel = half_vectors(...)[j]``)."""
-    dtype = views.camera.dtype if dtype is None else dtype
+    as `cull.cull` wants them (``h_pixel = half_vectors(...)[j]``); in `dtype` (float32 or
+    float64; default that of the cameras)."""
+    return _half_vectors("half_vectors", views, board, dtype)
+
+
+def _half_vectors(where: str, views, board, dtype):
+    """`half_vectors`, after `InputError` (one line, naming `where`) for `views` or `board` of
+    another type or a `dtype` other than float32, float64 or None."""
+    instance_arg(where, "views", views, Views)
+    instance_arg(where, "board", board, Board)
+    dtype = views.camera.dtype if dtype is None else dtype_arg(where, dtype)
     return _geometry(views, board, dtype).h
 
 
@@ -105,7 +120,7 @@ def board_ndf(views: Views, board: Board, dtype=None) -> Float[Array, "m p"]:
     """The flat board's GGX ``D(h; a_S)`` at every footprint centre, ``(M, H*W)`` (1/sr): the
     board term of `shade` per unit uncovered area, as `cull.cull_coverage` wants it (largest over
     the views)."""
-    return _ggx_unit(half_vectors(views, board, dtype), board.a_S)
+    return _ggx_unit(_half_vectors("board_ndf", views, board, dtype), board.a_S)
 
 
 def _ggx_unit(h, a):
@@ -127,11 +142,20 @@ def shade(D_P: Float[Array, "m p"], coverage: Float[Array, "m p"], views: Views,
     ``f = (D_P + max(0, 1 - c) D_ggx(h_z; a_S)) G F / (4 wi_z wo_z)``,
     ``radiance = I f wi_z / r2``.
 
-    **Arguments:** `D_P` patch NDF ``(M, H*W)`` (1/sr); `coverage` ``c`` ``(M, H*W)`` or ``(H*W,)``;
-    `views`; `board`.
+    **Arguments:** `D_P` patch NDF ``(M, H*W)`` (1/sr); `coverage` ``c`` ``(M, H*W)``, ``(1, H*W)``
+    or ``(H*W,)``; `views`; `board`.
 
     **Returns:** linear radiance ``(M, H*W)`` (W/(sr m^2)), in the dtype of `D_P`.
+
+    **Raises:** `InputError`, one line: `views` or `board` of another type, or `D_P` or
+    `coverage` of another shape.
     """
+    instance_arg("shade", "views", views, Views)
+    instance_arg("shade", "board", board, Board)
+    m, p = views.m, board.n_pixels
+    shape_arg("shade", "D_P", D_P, (m, p), what=" (M views, H*W pixels)")
+    shape_arg("shade", "coverage", coverage, (m, p), (1, p), (p,), what=" (M views, H*W pixels)")
+    D_P = array_arg("shade", "D_P", D_P)
     dtype = D_P.dtype
     g = _geometry(views, board, dtype)
     wiz, woz = g.wi[..., 2], g.wo[..., 2]
@@ -157,15 +181,15 @@ def display(radiance: ArrayLike, gamma: float = DISPLAY_GAMMA,
     ``gamma`` is refused. Negative inputs (the renderer produces none beyond rounding) follow
     the same quadratic. No clipping above 1. Elementwise, any shape, follows the input dtype.
 
-    **Raises:** `InputError`, one line, for a `gamma` or `knee` that is not a finite number > 0,
-    or a `gamma` of 1/2 or less.
+    **Raises:** `InputError`, one line, for a `radiance` that is no numeric array, a `gamma` or
+    `knee` that is not a finite number > 0, or a `gamma` of 1/2 or less.
     """
     gamma, knee = _positive("gamma", gamma), _positive("knee", knee)
     if gamma <= 0.5:
         raise InputError(f"display: `gamma` must be > 0.5 (below, the curve falls near 0: its "
                          f"slope there, (2 - 1/gamma) knee^(1/gamma - 1), is negative); got "
                          f"{gamma}")
-    return _display(jnp.asarray(radiance), gamma, knee)
+    return _display(array_arg("display", "radiance", radiance), gamma, knee)
 
 
 def _positive(name: str, v) -> float:

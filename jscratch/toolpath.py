@@ -29,7 +29,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from jscratch.errors import InputError, real_number, shown, whole_number
+from jscratch.errors import InputError, real_number, shape_arg, shown, whole_number
 
 __all__ = ["Ordering", "order_scratches", "path_travel", "greedy_order", "improve_order",
            "best_directions", "knn_grid"]
@@ -472,10 +472,17 @@ def order_scratches(p0, p1, start=(0.0, 0.0), *, improve: bool = True, k: int = 
     finite, `start` not two finite numbers, `k` not an int >= 1.
     """
     t0 = time.perf_counter()
-    p0 = np.asarray(p0, np.float64)
-    p1 = np.asarray(p1, np.float64)
-    if p0.ndim != 2 or p0.shape[1] != 2 or p1.shape != p0.shape:
-        raise InputError(f"p0 and p1 must both have shape (N, 2), got {p0.shape} and {p1.shape}")
+    where = "order_scratches"
+    points = []
+    for name, p in (("p0", p0), ("p1", p1)):
+        try:
+            points.append(np.asarray(p, np.float64))
+        except (TypeError, ValueError):
+            raise InputError(f"{where}: `{name}` must be an (N, 2) array of numbers, got "
+                             f"{shown(p)}") from None
+    p0, p1 = points
+    shape_arg(where, "p0", p0, ("N", 2))
+    shape_arg(where, "p1", p1, p0.shape, what=" (that of `p0`)")
     for name, p in (("p0", p0), ("p1", p1)):
         bad = ~np.isfinite(p).all(axis=1)
         if bad.any():
