@@ -1,5 +1,5 @@
 """Test configuration: float32 by default, float64 per test, 4 forced CPU devices for sharding
-tests, XLA's CPU fusion emitters off.
+tests, XLA's CPU fusion emitters off, one JAX compilation cache per run.
 
 The tests compile with ``--xla_cpu_use_fusion_emitters=false`` (unless ``XLA_FLAGS`` already sets
 it): the design's step and `jscratch.compile_options.few_calls_jit` compile so anyway, and the
@@ -16,8 +16,20 @@ with an explicit dtype. Requesting float64 from JAX outside a marked test is an 
 float32.
 """
 
+import atexit
 import contextlib
 import os
+import shutil
+import tempfile
+
+# One JAX compilation cache for the whole run: the xdist workers and the command lines the tests
+# start inherit it, so a program that several of them compile alike (a small design's step) is
+# compiled once. It lives as long as the process that made it (the controller).
+if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
+    _cache = tempfile.mkdtemp(prefix="jscratch-tests-xla-")
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = _cache
+    atexit.register(shutil.rmtree, _cache, ignore_errors=True)
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.3")
 
 os.environ.setdefault("XLA_FLAGS", "")
 if "xla_force_host_platform_device_count" not in os.environ["XLA_FLAGS"]:
