@@ -34,6 +34,7 @@ __all__ = [
     "count_arg",
     "instance_arg",
     "shape_arg",
+    "float64_arg",
     "exit_status",
     "report",
 ]
@@ -146,6 +147,17 @@ def instance_arg(where: str, name: str, value, kind: type) -> None:
     if not isinstance(value, kind):
         raise InputError(f"{where}: `{name}` must be a jscratch.{kind.__name__}, got "
                          f"{type(value).__name__}")
+
+
+def float64_arg(where: str, name: str, value, what: str):
+    """`value` as a float64 numpy array; `InputError` naming `where` and `name`, one line, for
+    what is no array of numbers (`what`: what it must be, e.g. ``"an (N, 2) array of numbers"``)."""
+    import numpy as np
+
+    try:
+        return np.asarray(value, np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{where}: `{name}` must be {what}, got {shown(value)}") from None
 
 
 def shape_arg(where: str, name: str, value, *shapes: tuple, what: str = "") -> None:

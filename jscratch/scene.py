@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from jscratch.errors import InputError, count_arg, real_number, shape_arg, shown
+from jscratch.errors import InputError, count_arg, float64_arg, real_number, shape_arg, shown
 
 __all__ = [
     "ALPHA_RANGE",
@@ -585,15 +585,10 @@ def flat_highlight(camera, light) -> np.ndarray:
     **Raises:** `InputError`, one line: `camera` or `light` not points ``(..., 3)`` of numbers,
     or shapes that do not broadcast.
     """
-    points = []
-    for name, v in (("camera", camera), ("light", light)):
-        try:
-            points.append(np.asarray(v, np.float64))
-        except (TypeError, ValueError):
-            raise InputError(f"flat_highlight: `{name}` must be points (..., 3) of numbers (m), "
-                             f"got {shown(v)}") from None
-        shape_arg("flat_highlight", name, points[-1], (..., 3), what=" (m)")
-    c, l = points
+    c, l = (float64_arg("flat_highlight", name, v, "points (..., 3) of numbers (m)")
+            for name, v in (("camera", camera), ("light", light)))
+    shape_arg("flat_highlight", "camera", c, (..., 3), what=" (m)")
+    shape_arg("flat_highlight", "light", l, (..., 3), what=" (m)")
     try:
         np.broadcast_shapes(c.shape, l.shape)
     except ValueError:

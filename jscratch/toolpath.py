@@ -29,7 +29,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from jscratch.errors import InputError, real_number, shape_arg, shown, whole_number
+from jscratch.errors import InputError, float64_arg, real_number, shape_arg, shown, whole_number
 
 __all__ = ["Ordering", "order_scratches", "path_travel", "greedy_order", "improve_order",
            "best_directions", "knn_grid"]
@@ -473,14 +473,8 @@ def order_scratches(p0, p1, start=(0.0, 0.0), *, improve: bool = True, k: int = 
     """
     t0 = time.perf_counter()
     where = "order_scratches"
-    points = []
-    for name, p in (("p0", p0), ("p1", p1)):
-        try:
-            points.append(np.asarray(p, np.float64))
-        except (TypeError, ValueError):
-            raise InputError(f"{where}: `{name}` must be an (N, 2) array of numbers, got "
-                             f"{shown(p)}") from None
-    p0, p1 = points
+    p0, p1 = (float64_arg(where, name, p, "an (N, 2) array of numbers")
+              for name, p in (("p0", p0), ("p1", p1)))
     shape_arg(where, "p0", p0, ("N", 2))
     shape_arg(where, "p1", p1, p0.shape, what=" (that of `p0`)")
     for name, p in (("p0", p0), ("p1", p1)):
