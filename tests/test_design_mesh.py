@@ -370,11 +370,13 @@ def test_ctrl_c_while_joining_stops_at_once(tmp_path):
     port = _free_port()
     cmd = _cli(["--out", str(tmp_path / "a"), "--coordinator", f"localhost:{port}",
                 "--num-processes", "2", "--process-id", "0", "--join-timeout", "600"])
-    p = subprocess.Popen([a for a in cmd if a != "--quiet"],  # (it says when it waits)
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(),
-                         # (Ctrl-C's default, whatever this process inherited: a shell's
-                         # background job ignores SIGINT)
-                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    # Ctrl-C's default, whatever this process inherited (a shell's background job ignores
+    # SIGINT), set by a small parent that then becomes the command (no fork of this process).
+    default_sigint = ("import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_DFL); "
+                      "os.execv(sys.executable, [sys.executable, *sys.argv[1:]])")
+    p = subprocess.Popen([sys.executable, "-c", default_sigint]
+                         + [a for a in cmd[1:] if a != "--quiet"],  # (it says when it waits)
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
     try:
         import queue
         import threading
