@@ -392,9 +392,8 @@ class Grbl:
 
         With `idle_limit`: a `Reply("stall", ...)` once every status report for `idle_limit` s (and
         since `since`, a `time.monotonic()`) said `Idle`, reports still come, and nothing was
-        answered, and an
-        `alarm` reply without a code once a status report since `since` says `Alarm` (its
-        `ALARM:N` line lost).
+        answered; an `alarm` reply without a code once a status report since `since` says
+        `Alarm` (its `ALARM:N` line lost).
         """
         t_end = None if timeout is None else time.monotonic() + timeout
         while True:
