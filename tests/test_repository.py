@@ -1,9 +1,9 @@
 """The repository stands on its own and describes what is, checked over every tracked text file.
 
 - No file cites a path outside the repository: a ``../`` path that leaves the repository root
-  (resolved from the file's folder), the shared folder beside the checkout, or an absolute path on a developer's
-  machine (``/work/``, ``/home/``, ``/Users/``, ``/root/``). Scratch output folders such as
-  ``/tmp/...`` in example commands are fine.
+  (resolved from the file's folder), the shared folder beside the checkout, or an absolute path
+  on a developer's machine (``/work/``, ``/home/``, ``/Users/``, ``/root/``). Scratch output
+  folders such as ``/tmp/...`` in example commands are fine.
 - No file tells history by number ("issue N", "session N"): say what the code does and why.
 - Every ``docs/model.md §N`` citation names a section heading that exists in docs/model.md.
 - Every relative link in a Markdown file resolves to a file of the repository.
