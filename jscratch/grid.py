@@ -178,8 +178,9 @@ def _check_board_shape(board, shape):
         raise InputError(f"shape {shape!r} has too many pixels for int32 indices")
 
 
-def checked_scratches(p0, p1, width, depth):
-    """Static shape/dtype checks and in-jit finiteness checks; returns broadcast float arrays."""
+def checked_scratches(p0, p1, width, depth, values: bool = True):
+    """Static shape/dtype checks and (``values``) in-jit finiteness checks (`eqx.error_if`);
+    returns broadcast float arrays."""
     p0 = jnp.asarray(p0)
     p1 = jnp.asarray(p1)
     if p0.ndim != 2 or p0.shape[-1] != 2:
@@ -199,6 +200,8 @@ def checked_scratches(p0, p1, width, depth):
     p1 = p1.astype(dtype)
     width = jnp.broadcast_to(width, (n,))
     depth = jnp.broadcast_to(depth, (n,))
+    if not values:
+        return p0, p1, width, depth
     p0 = eqx.error_if(p0, ~jnp.all(jnp.isfinite(p0)), "p0 has non-finite entries")
     p1 = eqx.error_if(p1, ~jnp.all(jnp.isfinite(p1)), "p1 has non-finite entries")
     width = eqx.error_if(
@@ -432,13 +435,15 @@ def _bin(p0, p1, width, depth, *, board, shape, skin, strip_capacity, rows, pair
     return pairs, (strips_needed, max_rows, pairs_needed)
 
 
-@jax.jit
+@functools.partial(jax.jit, static_argnames="checked")
 def update(
     spec: GridSpec,
     p0: Float[ArrayLike, "N 2"],
     p1: Float[ArrayLike, "N 2"],
     width: Float[ArrayLike, "N"],
     depth: Float[ArrayLike, "N"],
+    *,
+    checked: bool = True,
 ) -> Pairs:
     """Bin scratches to pixels at the fixed capacities of `spec` (jittable).
 
@@ -447,6 +452,10 @@ def update(
     - `spec`: a `GridSpec` from `allocate` (board, image shape, capacities, skin).
     - `p0`, `p1`: `(N, 2)` scratch endpoints, board metres.
     - `width`, `depth`: `(N,)` or scalar, metres (`width > 0`, `depth >= 0`).
+    - `checked` (static): ``False`` leaves out the runtime checks of those values (the shapes
+      are still checked), for a caller that guarantees them: the design step, which replaces
+      non-finite values first. Its compiled program then holds no host callback, so JAX's
+      persistent compilation cache can keep it.
 
     **Returns:**
 
@@ -455,7 +464,7 @@ def update(
     dtype; gradients are stopped (binning is piecewise constant). On the CPU with the native
     kernel the strip and cell stage runs natively (the same result).
     """
-    p0, p1, width, depth = checked_scratches(p0, p1, width, depth)
+    p0, p1, width, depth = checked_scratches(p0, p1, width, depth, values=checked)
     p0, p1, width, depth = jax.lax.stop_gradient((p0, p1, width, depth))
     binner = _bin_native if native.available(p0.dtype) else _bin
     pairs, _ = binner(
@@ -618,13 +627,15 @@ def build_pairs(
 # Rebinning test
 
 
-@jax.jit
+@functools.partial(jax.jit, static_argnames="checked")
 def needs_rebin(
     pairs: Pairs,
     p0: Float[ArrayLike, "N 2"],
     p1: Float[ArrayLike, "N 2"],
     width: Float[ArrayLike, "N"],
     depth: Float[ArrayLike, "N"],
+    *,
+    checked: bool = True,
 ) -> Bool[Array, ""]:
     """Whether `pairs` may miss a pair of the current scratches (jittable, O(N)).
 
@@ -634,7 +645,7 @@ def needs_rebin(
     `skin = 0` any change that grows a groove beyond its old rectangle asks for a rebin.
 
     **Arguments:** `pairs` from `update` (with its `bin_*` fields); current `p0`, `p1`
-    `(N, 2)` and `width`, `depth` (`(N,)` or scalar), metres.
+    `(N, 2)` and `width`, `depth` (`(N,)` or scalar), metres; `checked` as for `update`.
 
     **Returns:** `()` bool.
     """
@@ -643,7 +654,7 @@ def needs_rebin(
         for f in (pairs.bin_p0, pairs.bin_p1, pairs.bin_half_width, pairs.bin_extend, pairs.bin_tol)
     ):
         raise InputError("pairs has no bin_* fields (was it built by update/build_pairs?)")
-    p0, p1, width, depth = checked_scratches(p0, p1, width, depth)
+    p0, p1, width, depth = checked_scratches(p0, p1, width, depth, values=checked)
     if p0.shape != pairs.bin_p0.shape:
         raise InputError(f"p0 has shape {p0.shape} but pairs was binned for {pairs.bin_p0.shape}")
     p0, p1, width, depth = jax.lax.stop_gradient((p0, p1, width, depth))

@@ -17,7 +17,7 @@ from jscratch import bvh, native
 from jscratch.design import DesignConfig, design
 from jscratch.design import run as run_mod
 from jscratch.design.run import free_memory, pair_lists, rebin, setup, step_memory
-from jscratch.design.solver import compile_step
+from jscratch.design.solver import compile_step, lower_step
 from jscratch.designfile import DesignError
 from jscratch.scene import Board, Scratches, views_on_circle
 
@@ -230,6 +230,37 @@ def test_step_memory_holds_every_pairs_jacobians():
         assert needs[-1][0] >= (10 * 2 + 6) * 4 * slots
     (small, s_small), (big, s_big) = needs
     assert big - small >= (10 * 2 + 6) * 4 * (s_big - s_small) > 0
+
+
+def _host_callbacks(lowered) -> int:
+    """Custom calls into Python (`eqx.error_if`, `jax.pure_callback`, ...) in a lowered program."""
+    text = lowered.as_text()
+    return text.count("python_cpu_callback") + text.count("xla_python_gpu_callback")
+
+
+def test_the_step_holds_no_host_callback():
+    """The compiled step calls no Python (the binning's runtime checks are left out: the step
+    replaces non-finite values first), so JAX's persistent compilation cache can keep it; the
+    binning called from outside still checks (a pure callback there), and bins the same."""
+    targets, views, board = _inputs()
+    params, optimizer, ctx = setup(targets, views, board, CFG)
+    lists = pair_lists(params, ctx, CFG)
+    assert _host_callbacks(lower_step(params, optimizer.init(params), lists, ctx,
+                                      optimizer)) == 0
+    s = params.scratches()
+    args = (lists.spec, s.p0, s.p1, s.width, s.depth)
+    assert _host_callbacks(bvh.update.lower(*args)) > 0
+    assert _host_callbacks(bvh.update.lower(*args, checked=False)) == 0
+    shared = bvh.update(*args, checked=False)
+    for f in ("pixel", "scratch", "valid"):
+        np.testing.assert_array_equal(np.asarray(getattr(shared, f)),
+                                      np.asarray(getattr(bvh.update(*args), f)))
+    rebin = (shared, s.p0, s.p1 + 1e-3, s.width, s.depth)
+    assert _host_callbacks(bvh.needs_rebin.lower(*rebin)) > 0
+    assert _host_callbacks(bvh.needs_rebin.lower(*rebin, checked=False)) == 0
+    assert bool(bvh.needs_rebin(*rebin, checked=False)) == bool(bvh.needs_rebin(*rebin)) is True
+    with pytest.raises(Exception, match="p0 has non-finite entries"):
+        bvh.update(lists.spec, s.p0.at[0, 0].set(jnp.nan), s.p1, s.width, s.depth)
 
 
 def test_a_resumed_run_is_checked_too(tmp_path, monkeypatch):

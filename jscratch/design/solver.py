@@ -214,16 +214,17 @@ def _step_impl(params: DesignParams, opt_state, lists: bvh.PairLists, ctx: Conte
     new = eqx.apply_updates(params, updates)
     s = new.scratches()
     # Non-finite or out-of-range values are reported by the health check (and the host stops);
-    # here they are replaced so that needs_rebin's own checks do not fire first.
+    # here they are replaced, so the binning's own runtime checks are left out (``checked``):
+    # the step then holds no host callback, and a persistent compilation cache can keep it.
     ok = lambda x: jnp.isfinite(x) & (x > 0)
     p0 = jnp.where(jnp.isfinite(s.p0), s.p0, 0)
     p1 = jnp.where(jnp.isfinite(s.p1), s.p1, 0)
     w = jnp.where(ok(s.width), s.width, 1e-4)
     d = jnp.where(ok(s.depth), s.depth, 1e-4)
-    rebin = bvh.needs_rebin(lists.shared, p0, p1, w, d)
+    rebin = bvh.needs_rebin(lists.shared, p0, p1, w, d, checked=False)
     new_lists = None  # on a mesh the host rebuilds and lays out the list (`mesh.shard_lists`)
     if ctx.mesh is None:
-        shared = jax.lax.cond(rebin, lambda: bvh.update(lists.spec, p0, p1, w, d),
+        shared = jax.lax.cond(rebin, lambda: bvh.update(lists.spec, p0, p1, w, d, checked=False),
                               lambda: lists.shared)
         new_lists = dataclasses.replace(lists, shared=shared, views=None, coverage=None)
     return mesh_mod.replicated((new, opt_state, terms, new_lists, rebin, culled.counts,
