@@ -201,13 +201,40 @@ def _two(out0, out1, extra0=(), extra1=(), timeout=600, cli=_cli, env=None):
                 p.kill()
 
 
-def test_two_processes_equal_one(tmp_path):
+# The command line with the host's free memory read from FREE_BYTES (bytes), JAX's shutdown
+# barrier timing out after 5 s, and process 0's outputs written SLOW_SAVE seconds late (a long
+# as-carved render).
+_PATCHED_CLI = ("import functools, os, sys, time; import jax; "
+                "import jscratch.design.run as r; "
+                "r.free_memory = lambda: int(os.environ['FREE_BYTES']); "
+                "jax.distributed.initialize = functools.partial(jax.distributed.initialize, "
+                "shutdown_timeout_seconds=5); import jscratch.design.cli as c; "
+                "save = c.save_result; c.save_result = lambda *a, **k: "
+                "(time.sleep(float(os.environ['SLOW_SAVE'])), save(*a, **k))[1]; "
+                "sys.exit(c.main(sys.argv[1:]))")
+
+
+def _patched_cli(args):
+    return [sys.executable, "-c", _PATCHED_CLI, *_ARGS, *args]
+
+
+def test_two_processes_equal_one_and_check_their_memory_together(tmp_path):
+    """Two processes on this machine design what one process designs (process 0 writes the
+    outputs). Process 1 ends its part when the design is done, but not the run: it waits for
+    process 0's outputs, so that JAX's shutdown barrier (here 5 s) does not time out and abort
+    process 0 while it writes them (10 s late here).
+
+    Their steps' memory is summed before it is compared with the machine's free memory
+    (`run.check_step_memory`, `mesh.per_host_total`): with 1.5x one process's need free, each
+    process alone would fit, both together do not, so both refuse."""
     ref = subprocess.run(_cli(["--out", str(tmp_path / "one")]), capture_output=True, text=True,
                          timeout=600, env=_env())
     assert ref.returncode == 0, ref.stderr[-3000:]
-    (_, e0, r0), (_, e1, r1) = _two(tmp_path / "two", tmp_path / "other")
+    (_, e0, r0), (_, e1, r1) = _two(tmp_path / "two", tmp_path / "other", cli=_patched_cli,
+                                    env={"FREE_BYTES": str(10 ** 12), "SLOW_SAVE": "10"})
     assert (r0, r1) == (0, 0), (e0[-3000:], e1[-3000:])
     assert not (tmp_path / "other").exists()  # process 0 writes the outputs
+    assert (tmp_path / "two" / "design.npz").exists()
     m1 = json.loads((tmp_path / "one" / "metrics.json").read_text())
     m2 = json.loads((tmp_path / "two" / "metrics.json").read_text())
     assert m2["mesh"]["processes"] == 2 and m2["mesh"]["devices"] == 2
@@ -218,28 +245,10 @@ def test_two_processes_equal_one(tmp_path):
         for k in ("geom", "log_width", "log_depth", "logit_alpha", "log_intensity"):
             np.testing.assert_allclose(a[k], b[k], rtol=0, atol=TOL)
 
-
-# the command line, with the host's free memory read from FREE_BYTES (bytes)
-_FREE_FROM_ENV = ("import os, sys; import jscratch.design.run as r; "
-                  "r.free_memory = lambda: int(os.environ['FREE_BYTES']); "
-                  "from jscratch.design.cli import main; sys.exit(main(sys.argv[1:]))")
-
-
-def _cli_free_from_env(args):
-    return [sys.executable, "-c", _FREE_FROM_ENV, *_ARGS, *args]
-
-
-def test_processes_on_one_machine_check_their_memory_together(tmp_path):
-    """Two processes on this machine: their steps' memory is summed before it is compared with the
-    machine's free memory (`run.check_step_memory`, `mesh.per_host_total`). Free memory 1.5x
-    one process's need: each process alone would fit, both together do not, so both refuse."""
-    (_, e0, r0), (_, e1, r1) = _two(tmp_path / "a", tmp_path / "b", cli=_cli_free_from_env,
-                                    env={"FREE_BYTES": str(10 ** 12)})
-    assert (r0, r1) == (0, 0), (e0[-3000:], e1[-3000:])
-    need = json.loads((tmp_path / "a" / "metrics.json").read_text())["step_memory_bytes"]
+    need = m2["step_memory_bytes"]
     assert need > 0
-    (_, e0, r0), (_, e1, r1) = _two(tmp_path / "c", tmp_path / "d", cli=_cli_free_from_env,
-                                    env={"FREE_BYTES": str(int(1.5 * need))})
+    (_, e0, r0), (_, e1, r1) = _two(tmp_path / "c", tmp_path / "d", cli=_patched_cli,
+                                    env={"FREE_BYTES": str(int(1.5 * need)), "SLOW_SAVE": "0"})
     assert (r0, r1) == (2, 2), (e0[-3000:], e1[-3000:])
     assert "this machine (running 2 processes) has" in e0
     assert not (tmp_path / "c").exists() and not (tmp_path / "d").exists()
@@ -311,26 +320,6 @@ def test_devices_that_leave_a_process_out_are_refused_by_every_process(tmp_path)
     assert f"error: {says}\n" in e0 and f"refused: {says}\n" in e1, (e0[-3000:], e1[-3000:])
     assert "Traceback" not in e0 + e1
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
-
-
-# the command line with JAX's shutdown barrier timing out after 5 s, and process 0's outputs
-# written SLOW_SAVE seconds late (a long as-carved render)
-_SLOW_SAVE = ("import functools, os, sys, time; import jax; "
-              "jax.distributed.initialize = functools.partial(jax.distributed.initialize, "
-              "shutdown_timeout_seconds=5); import jscratch.design.cli as c; save = c.save_result; "
-              "c.save_result = lambda *a, **k: (time.sleep(float(os.environ['SLOW_SAVE'])), "
-              "save(*a, **k))[1]; sys.exit(c.main(sys.argv[1:]))")
-
-
-def test_the_other_processes_wait_for_process_0_to_write_the_outputs(tmp_path):
-    """Process 1 ends its part when the design is done, but not the run: it waits for process
-    0's outputs, so that JAX's shutdown barrier (here 5 s) does not time out and abort process 0
-    while it writes them (15 s here)."""
-    (_, e0, r0), (_, e1, r1) = _two(
-        tmp_path / "a", tmp_path / "b", env={"SLOW_SAVE": "15"},
-        cli=lambda args: [sys.executable, "-c", _SLOW_SAVE, *_ARGS, *args])
-    assert (r0, r1) == (0, 0), (e0[-3000:], e1[-3000:])
-    assert (tmp_path / "a" / "metrics.json").exists() and (tmp_path / "a" / "design.npz").exists()
 
 
 def test_a_process_killed_mid_run_stops_the_other_in_one_line(tmp_path):
