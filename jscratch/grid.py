@@ -222,8 +222,8 @@ def _host_check(p0, p1, width, depth):
         raise InputError(f"p1 must have the shape of p0 {p0n.shape}, got {p1n.shape}")
     for name, a in (("p0", p0n), ("p1", p1n), ("width", wn), ("depth", dn)):
         if not np.all(np.isfinite(a)):
-            bad = np.argwhere(~np.isfinite(a))[0]
-            raise InputError(f"{name} has non-finite entries (first at index {tuple(bad)})")
+            bad = tuple(int(i) for i in np.argwhere(~np.isfinite(a))[0])
+            raise InputError(f"{name} has non-finite entries (first at index {bad})")
     if np.any(wn <= 0):
         raise InputError(f"width must be > 0 m for every scratch, got {float(np.min(wn))!r} (the smallest)")
     if np.any(dn < 0):
@@ -496,16 +496,18 @@ def _bin_native(p0, p1, width, depth, *, board, shape, skin, strip_capacity, row
     return pairs, (stats[0], stats[1], stats[2])
 
 
+# `_setup_counts` and `_measure` run for `allocate`, which checks the values on the host first:
+# without the runtime checks they hold no host callback (JAX's persistent cache can keep them).
 @few_calls_jit(filter=True)
 def _setup_counts(p0, p1, width, depth, board, shape, skin):
-    p0, p1, width, depth = checked_scratches(p0, p1, width, depth)
+    p0, p1, width, depth = checked_scratches(p0, p1, width, depth, values=False)
     g = _strip_setup(p0, p1, width, depth, board, shape, skin)
     return jnp.sum(g.n_strips), jnp.max(g.rows_bound, initial=1)
 
 
 @few_calls_jit(filter=True)
 def _measure(p0, p1, width, depth, board, shape, skin, strip_capacity, rows, pair_capacity):
-    p0, p1, width, depth = checked_scratches(p0, p1, width, depth)
+    p0, p1, width, depth = checked_scratches(p0, p1, width, depth, values=False)
     # (the native stage where `update` runs it: the same counts, and no compilation of the jnp
     # stage at the provable capacities, the largest part of a design's setup)
     binner = _bin_native if native.available(p0.dtype) else _bin
@@ -612,12 +614,12 @@ def build_pairs(
         raise InputError(
             f"spec is for board {spec.board} and shape {spec.shape}, not {board} and {shape}"
         )
-    pairs = _update_jit(spec, p0, p1, width, depth)
+    pairs = _update_jit(spec, p0, p1, width, depth, checked=False)  # (checked above)
     if bool(pairs.overflow):
         spec = allocate(
             p0, p1, width, depth, board=board, shape=shape, margin=spec.margin, skin=spec.skin
         )
-        pairs = _update_jit(spec, p0, p1, width, depth)
+        pairs = _update_jit(spec, p0, p1, width, depth, checked=False)
         if bool(pairs.overflow):  # cannot happen: allocate measured this very scene
             raise RuntimeError("binning overflowed right after allocation (bug)")
     return pairs, spec

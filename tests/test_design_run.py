@@ -13,12 +13,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jscratch import bvh, native
+from jscratch import bvh, grid, native
 from jscratch.design import DesignConfig, design
 from jscratch.design import run as run_mod
 from jscratch.design.run import free_memory, pair_lists, rebin, setup, step_memory
 from jscratch.design.solver import compile_step, lower_step
 from jscratch.designfile import DesignError
+from jscratch.errors import InputError
 from jscratch.scene import Board, Scratches, views_on_circle
 
 CFG = DesignConfig(n_scratches=60, iterations=1, seed=3, groove="free")  # widths as initialised
@@ -261,6 +262,12 @@ def test_the_step_holds_no_host_callback():
     assert bool(bvh.needs_rebin(*rebin, checked=False)) == bool(bvh.needs_rebin(*rebin)) is True
     with pytest.raises(Exception, match="p0 has non-finite entries"):
         bvh.update(lists.spec, s.p0.at[0, 0].set(jnp.nan), s.p1, s.width, s.depth)
+    # The host drivers check on the host, then bin without runtime checks.
+    assert _host_callbacks(grid._setup_counts.lower(s.p0, s.p1, s.width, s.depth,
+                                                    (board.Sx, board.Sy), board.shape, 0.0)) == 0
+    with pytest.raises(InputError, match=r"^p0 has non-finite entries \(first at index \(0, 0\)"):
+        bvh.build_pairs(s.p0.at[0, 0].set(jnp.nan), s.p1, s.width, s.depth,
+                        board=(board.Sx, board.Sy), shape=board.shape)
 
 
 def test_a_resumed_run_is_checked_too(tmp_path, monkeypatch):
