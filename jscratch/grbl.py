@@ -112,14 +112,16 @@ class Reply(NamedTuple):
 
     `kind` is one of `ok`, `error`, `alarm`, `status`, `msg` (any `[...]` feedback), `banner`,
     `setting` (a `$N=value` line of `$$`), `unknown`; `code` the number of `error:N`/`ALARM:N`
-    (else None); `text` the line; `msgs` how many `msg` lines came before it (set on the answers
-    `Grbl` queues: which of them came after a command's feedback).
+    (else None); `text` the line; `msgs` how many `msg` lines came before it and `seq` its place
+    among every line the controller sent (both set on the answers `Grbl` queues: which of them
+    came after a command's feedback, or before a line was written).
     """
 
     kind: str
     code: int | None
     text: str
     msgs: int = 0
+    seq: int = 0
 
 
 def classify(line: str) -> Reply:
@@ -206,6 +208,12 @@ ALARM_TEXT = {
 }
 _DWELL_RE = re.compile(r"\bG4\b.*\bP(\d+\.?\d*)")
 
+#: States in which a dwell cannot have been answered: GRBL answers `G4` only once the planner is
+#: empty and the dwell is over, so a report sent after a dwell's `ok`, with nothing sent after
+#: the dwell, says `Idle` (`Check` in check mode). A feed hold from the machine's own button
+#: (`Hold`) is counted as moving too: the stream then waits for another `ok`.
+_MOVING = ("Run", "Jog", "Hold")
+
 
 #: How many unexpected lines from a controller are logged (a noisy line could send thousands).
 _UNKNOWN_LOGGED = 10
@@ -266,6 +274,9 @@ class Grbl:
         self._last_reply = time.monotonic()  # the latest line GRBL sends (not noise)
         self._unknown_at_reply = 0  # `n_unknown` then
         self._n_msgs = 0  # `msg` lines received
+        self._seq = 0  # lines received (each reply's `seq`)
+        self._status_seq = 0  # `seq` of the latest status report
+        self.stray_oks = 0  # `ok`s that answered no line, ignored (`stream`, `command`)
         self._idle_since: float | None = None  # first of the unbroken run of `Idle` reports
         self._status_at = 0.0  # when the latest status report came
         self._lost: BaseException | None = None
@@ -337,14 +348,15 @@ class Grbl:
         if not line:
             return
         now = time.monotonic()
-        r = classify(line)
+        self._seq += 1
+        r = classify(line)._replace(seq=self._seq)
         if r.kind != "unknown":  # (noise keeps no device alive: `_check_alive`)
             self._last_reply, self._unknown_at_reply = now, self.n_unknown
         if r.kind in ("ok", "error", "alarm"):
             self._acks.put(r._replace(msgs=self._n_msgs))
         elif r.kind == "status":
             self.status = parse_status(line)
-            self._status_at = now
+            self._status_at, self._status_seq = now, self._seq
             if self.status["state"] != "Idle":
                 self._idle_since = None
             elif self._idle_since is None:
@@ -426,12 +438,37 @@ class Grbl:
             raise DeviceLost(f"no status report from {self.port} within {timeout:g} s")
         return dict(self.status)
 
+    def _state_after(self, seq: int, timeout: float = 2.0) -> str:
+        """The state in the first status report the controller sent after its reply `seq`."""
+        t_end = time.monotonic() + timeout
+        while self._status_seq <= seq:
+            self._status_event.clear()
+            if self._status_seq > seq:
+                break
+            self._write(b"?")
+            left = t_end - time.monotonic()
+            if not self._status_event.wait(max(0.0, min(0.5, left))):
+                self._check_alive()
+                if left <= 0:
+                    raise DeviceLost(f"no status report from {self.port} within {timeout:g} s")
+        return self.status.get("state", "")
+
+    def _stray(self, why: str):
+        self.stray_oks += 1
+        self.log(f"ignored an 'ok' that answered no line ({why}): noise on the line, or another "
+                 "program writing to the port?")
+
     def command(self, line: str, timeout: float = 10.0) -> Reply:
-        """Send one line and wait for its `ok`/`error:N` (ALARM raises `JobFault`)."""
+        """Send one line and wait for its `ok`/`error:N` (ALARM raises `JobFault`); an `ok` that
+        came before the line was written answers no line of this host's and is ignored."""
+        before = self._seq
         self._write((line + "\n").encode("ascii"))
         self.lines_sent.append(line)
         while True:
             r = self._next(timeout)
+            if r.kind == "ok" and r.seq <= before:
+                self._stray(f"it came before {clip(line, 40)!r} was sent")
+                continue
             if r.kind == "banner":
                 raise JobFault(f"controller reset while waiting for {line!r}", -1, r.text)
             if r.kind == "alarm":
@@ -584,6 +621,12 @@ class Grbl:
         answered `ok` (the caller puts barriers before plunges and after sync points, so that an
         `error` can never let a later scratch run).
 
+        An `ok` is taken for the oldest unanswered line, so an `ok` that answers no line (noise)
+        would shift every later answer one line early. It is ignored when it came before that
+        line was written, or when it is taken for a dwell (`G4`, the only line unanswered, as
+        after a barrier) while a status report sent after it says the machine is still moving:
+        so a dwell is only ever confirmed once the motion before it is over.
+
         Watchdog: when lines are owed an answer and every status report for `idle_timeout` s (plus
         the `P` seconds of owed `G4` dwells) has said `Idle`, the answer was lost: `Stalled`; a
         status report that says `Alarm` is an alarm whose `ALARM:N` line was lost: `JobFault`.
@@ -609,18 +652,27 @@ class Grbl:
                     raise GrblError(f"line {clip(items[i])!r} is longer than the controller's buffer")
                 if pending and (not counting or used + len(data) > cap or (barrier is not None and barrier[i])):
                     break
+                before = self._seq
                 self._write(data)
                 self.lines_sent.append(items[i])
                 m = _DWELL_RE.search(items[i])
-                pending.append((i, len(data), float(m.group(1)) if m else 0.0))
+                pending.append((i, len(data), float(m.group(1)) if m else 0.0, before, bool(m)))
                 used += len(data)
                 i += 1
                 progress = time.monotonic()
             limit = self.idle_timeout + sum(p[2] for p in pending)
             r = self._next(idle_limit=limit, since=progress)
             idx = pending[0][0]
+            if r.kind == "ok" and r.seq <= pending[0][3]:
+                self._stray(f"it came before {clip(items[idx], 40)!r} was sent")
+                continue
+            if (r.kind == "ok" and pending[0][4] and len(pending) == 1
+                    and self._state_after(r.seq).startswith(_MOVING)):
+                self._stray(f"the controller was still moving when it came for "
+                            f"{clip(items[idx], 40)!r}, a dwell")
+                continue
             if r.kind == "ok":
-                _, size, _ = pending.popleft()
+                _, size, *_ = pending.popleft()
                 used -= size
                 settled = settled if pending else i
                 progress = time.monotonic()

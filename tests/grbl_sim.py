@@ -21,9 +21,9 @@ simulator models what a host can get wrong:
   minimum, ``$23``, when ``options`` holds ``Z``, HOMING_FORCE_SET_ORIGIN) raises ``ALARM:2`` and
   stops motion, the position kept;
 - faults: ``error:N`` on the n-th G-code line, ``ALARM:N`` in the n-th block, the device vanishing
-  in the n-th block, the n-th line's ``ok`` lost, garbage lines, a slow device, a non-GRBL device
-  (optionally spewing given bytes), start in Alarm, cutting before the spindle is up to speed,
-  starting the spindle with the tool on the board.
+  in the n-th block, the n-th line's ``ok`` lost, an ``ok`` that answers no line, garbage lines,
+  a slow device, a non-GRBL device (optionally spewing given bytes), start in Alarm, cutting
+  before the spindle is up to speed, starting the spindle with the tool on the board.
 
 Every executed move is recorded in a :class:`Workpiece` (shared across simulator instances so a
 "power cycle" keeps the board). :func:`check_line` is a strict GRBL 1.1 grammar checker.
@@ -206,19 +206,23 @@ class GrblSim:
     `error:code` instead of running it; `alarm_at` `(n, code)`: raise `ALARM:code` half-way through
     the n-th executed block; `vanish_at` n: close the device half-way through the n-th block;
     `garbage_every` n: a garbage line before every n-th answer; `drop_ok_at` n: run the n-th G-code
-    line but never send its `ok`; `start_alarm`; `not_grbl`: answer like some other firmware, or
-    with these bytes; `spinup_s`: a cut below Z = 0 (work) sooner than this after `M3`, or with the
-    spindle off, is a fault; `banner_on_open`; `settings` the `$$` settings (number -> value;
-    `$20=1` turns soft limits on); `options` the build option letters of `$I`'s `[OPT:...]`.
+    line but never send its `ok`; `stray_ok_at` a collection of n: an `ok` that answers no line,
+    sent as the n-th G-code line is received (before its own answer); `start_alarm`;
+    `not_grbl`: answer like some other firmware, or with these bytes; `spinup_s`: a cut below
+    Z = 0 (work) sooner than this after `M3`, or with the spindle off, is a fault;
+    `banner_on_open`; `settings` the `$$` settings (number -> value; `$20=1` turns soft limits
+    on); `options` the build option letters of `$I`'s `[OPT:...]`.
     """
 
     def __init__(self, workpiece=None, *, block_time=0.0004, reply_delay=0.0, error_at=None, alarm_at=None,
-                 vanish_at=None, garbage_every=None, drop_ok_at=None, start_alarm=False, not_grbl=False,
+                 vanish_at=None, garbage_every=None, drop_ok_at=None, stray_ok_at=(),
+                 start_alarm=False, not_grbl=False,
                  spinup_s=None, banner_on_open=True, settings=None, options="V"):
         self.wp = workpiece or Workpiece()
         self.settings = dict(settings or {})
         self.options = options
         self.drop_ok_at = drop_ok_at
+        self.stray_ok_at = set(stray_ok_at)
         self.spinup_s = spinup_s
         self.g92 = [0.0, 0.0, 0.0]
         self.spindle_on = None  # time.monotonic() of the M3 that started the spindle
@@ -427,6 +431,8 @@ class GrblSim:
                 self._dwell_end = None
         self.gcode_lines += 1
         self.wp.received.append(line)
+        if self.gcode_lines in self.stray_ok_at:
+            self._answer("ok")  # noise: an answer to no line
         if self.error_at and self.gcode_lines == self.error_at[0]:
             self._answer(f"error:{self.error_at[1]}")
             return True

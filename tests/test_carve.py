@@ -1019,6 +1019,37 @@ def test_oks_owed_to_an_earlier_host_are_not_taken_for_the_answer_to_i(job):
     _verify(prog, sim.wp)
 
 
+@pytest.mark.parametrize("counting", [False, True])
+def test_an_ok_that_answers_no_line_never_journals_a_scratch_early(job, counting):
+    """Noise that reads `ok` would be taken for the oldest unanswered line's answer, and every
+    later line's answer one line early: a scratch journalled while it is still being cut (lost
+    if the job then stops). Each scratch is journalled only once it is carved and the tool is
+    up, whether the stray `ok` comes at a plunge, a dwell or a travel, or before a line."""
+    path, prog = job
+    cuts = _program_cuts(prog)
+    sim = GrblSim(block_time=0.02, stray_ok_at={2 + 5 * 3 + 2, 2 + 5 * 10 + 5, 2 + 5 * 15 + 1})
+    early = []
+
+    def on_scratch(k, s):
+        done = any(f == 1.0 and np.allclose(e[:2], cuts[k][1], atol=1e-6)
+                   for _, e, f in sim.wp.cuts())
+        if not (done and sim.pos[2] > 0 and sim.state == "Idle"):
+            early.append((k, done, tuple(sim.pos), sim.state))
+
+    try:
+        r = carve(path, sim.port, counting=counting, on_scratch=on_scratch, **FAST)
+        assert early == [] and r["done"] == 24
+        assert Journal.read(path + ".journal")[1] == 24
+        g = Grbl(sim.port, banner_timeout=1.0, poll_interval=0.05).connect()
+        sim._reply("ok")  # unasked, before the next line is written
+        time.sleep(0.1)
+        assert g.command("G4 P0").text == "ok" and g.stray_oks == 1
+        g.close()
+    finally:
+        sim.close()
+    _verify(prog, sim.wp)
+
+
 def test_a_work_zero_reported_in_inches_is_named_in_mm():
     """With `$13=1` GRBL reports `$#` in inches; the work zero is compared and named in mm."""
     class Inches:  # what `Grbl.connect` leaves on such a controller
