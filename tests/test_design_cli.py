@@ -431,7 +431,7 @@ def test_a_run_too_large_for_the_free_memory_is_refused_and_leaves_no_folder(
     existing folder the config.json it wrote is removed."""
     from jscratch.design import run as run_mod
 
-    monkeypatch.setattr(run_mod, "free_memory", lambda: 1000)
+    monkeypatch.setattr(run_mod, "free_memory", lambda: 100_000)
     out = tmp_path / "out"
     assert cli.main([*TINY, "--out", str(out), "--quiet"]) == 2
     err = capsys.readouterr().err
@@ -456,7 +456,7 @@ def test_a_refused_run_leaves_an_earlier_run_in_its_folder_as_it_was(cli_run, tm
     shutil.copytree(cli_run, out)
     before = {p.name: p.read_bytes() for p in out.iterdir()}
     assert "checkpoint.npz" in before and "config.json" in before
-    monkeypatch.setattr(run_mod, "free_memory", lambda: 1000)
+    monkeypatch.setattr(run_mod, "free_memory", lambda: 100_000)
     assert cli.main([*TINY, "--seed", "5", "--out", str(out), "--quiet"]) == 2
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
 

@@ -199,7 +199,7 @@ def test_a_step_larger_than_the_free_memory_is_refused_before_it_runs(tmp_path, 
     """With less memory free than the compiled step needs, `design` refuses in one line before
     its first step (no checkpoint written); ``JSCRATCH_MEMORY_CHECK=0`` runs it anyway."""
     targets, views, board = _inputs()
-    monkeypatch.setattr(run_mod, "free_memory", lambda: 1000)
+    monkeypatch.setattr(run_mod, "free_memory", lambda: 100_000)  # (the scratches fit)
     checkpoint = tmp_path / "ck.npz"
     with pytest.raises(DesignError, match=r"^the design step needs about \d+ MB of memory "
                        r"and this machine has 0 MB free: .*JSCRATCH_MEMORY_CHECK=0 runs it"):
@@ -211,6 +211,30 @@ def test_a_step_larger_than_the_free_memory_is_refused_before_it_runs(tmp_path, 
     monkeypatch.setenv("JSCRATCH_MEMORY_CHECK", "0")
     metrics = design(targets, views, board, CFG).metrics
     assert metrics["iterations"] == 1 and metrics["step_memory_bytes"] > 0
+
+
+def test_scratches_that_cannot_fit_are_refused_before_anything_is_allocated(monkeypatch):
+    """More scratches than ``SETUP_BYTES_PER_SCRATCH`` each leaves room for: refused in one line
+    before the setup allocates them (10^8 scratches were killed by the system while setting up,
+    before the step's check); ``JSCRATCH_MEMORY_CHECK=0`` goes on to the setup."""
+    targets, views, board = _inputs()
+
+    def no_setup(*args, **kwargs):
+        raise AssertionError("set up")
+
+    monkeypatch.setattr(run_mod, "setup", no_setup)
+    monkeypatch.setattr(run_mod, "free_memory", lambda: 20 * 10**9)
+    n = 20 * 10**9 // run_mod.SETUP_BYTES_PER_SCRATCH + 1
+    cfg = dataclasses.replace(CFG, n_scratches=n)
+    with pytest.raises(DesignError, match=rf"^{n:,} scratches need at least 20.0 GB of memory "
+                       r"before the first step and this machine has 20.0 GB free: ask for "
+                       r"fewer scratches \(JSCRATCH_MEMORY_CHECK=0 runs it anyway\)$"):
+        design(targets, views, board, cfg)
+    with pytest.raises(AssertionError, match="set up"):  # one scratch fewer fits
+        design(targets, views, board, dataclasses.replace(cfg, n_scratches=n - 1))
+    monkeypatch.setenv("JSCRATCH_MEMORY_CHECK", "0")
+    with pytest.raises(AssertionError, match="set up"):
+        design(targets, views, board, cfg)
 
 
 @pytest.mark.skipif(not native.available(jnp.float32),
@@ -279,7 +303,7 @@ def test_a_resumed_run_is_checked_too(tmp_path, monkeypatch):
     design(targets, views, board, cfg, checkpoint=checkpoint, stop_after=1)
     saved = checkpoint.read_bytes()
     with monkeypatch.context() as m:
-        m.setattr(run_mod, "free_memory", lambda: 1000)
+        m.setattr(run_mod, "free_memory", lambda: 100_000)
         with pytest.raises(DesignError, match="^the design step needs about"):
             design(targets, views, board, cfg, checkpoint=checkpoint, resume=True)
     assert checkpoint.read_bytes() == saved
