@@ -439,18 +439,10 @@ class Grbl:
         return dict(self.status)
 
     def _state_after(self, seq: int, timeout: float = 2.0) -> str:
-        """The state in the first status report the controller sent after its reply `seq`."""
-        t_end = time.monotonic() + timeout
+        """The state in the first status report the controller sent after its reply `seq`
+        (`query_status` until one comes; `DeviceLost` when none does within `timeout` s)."""
         while self._status_seq <= seq:
-            self._status_event.clear()
-            if self._status_seq > seq:
-                break
-            self._write(b"?")
-            left = t_end - time.monotonic()
-            if not self._status_event.wait(max(0.0, min(0.5, left))):
-                self._check_alive()
-                if left <= 0:
-                    raise DeviceLost(f"no status report from {self.port} within {timeout:g} s")
+            self.query_status(timeout)
         return self.status.get("state", "")
 
     def _stray(self, why: str):
